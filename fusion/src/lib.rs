@@ -1,0 +1,19 @@
+//! canopy-fusion: the estimation maths of canopy. Pure: no I/O, threads, async or clocks.
+//!
+//! Equation numbers refer to Bryson & Sukkarieh, "Inertial Sensor-Based SLAM for UAVs"
+//! (`shared/seed/inertial-slam-chapter.txt`).
+//!
+//! # Layout
+//! - [`rotation`]: attitude conventions (Euler z-y-x, C_b^n, E_b^n of eq. 21.8).
+//! - [`geodesy`]: WGS-84, C_n^e (21.12), Earth and transport rates (21.6, 21.7), gravity (21.9).
+//! - [`state`]: state layout and named index constants.
+//! - [`sensor`]: the estimator's inputs (IMU samples, terrain observations, sensor models).
+//! - [`imu`]: IMU error model and grades (21.13–21.17).
+//! - [`info`]: map information keyed by feature id (21.86, 21.87).
+
+pub mod geodesy;
+pub mod imu;
+pub mod info;
+pub mod rotation;
+pub mod sensor;
+pub mod state;

@@ -1,0 +1,4 @@
+//! canopy-node: the `canopy` binary's library.
+//!
+//! # Layout
+//! (filled in as the node grows)

@@ -1,0 +1,1 @@
+//! Shared helpers for canopy's integration suites.
