@@ -1,0 +1,171 @@
+//! Plain-file outputs: TUM trajectories, map CSV, metrics CSV, link CSV.
+
+use crate::record::{RunRecord, VehicleRecord};
+use std::fmt::Write as _;
+
+/// Quaternion (qx, qy, qz, qw) of C_b^n for the z-y-x Euler triple (roll, pitch, yaw).
+pub fn quaternion_from_euler(att: &[f64; 3]) -> [f64; 4] {
+    let q = nalgebra::UnitQuaternion::from_euler_angles(att[0], att[1], att[2]);
+    [q.i, q.j, q.k, q.w]
+}
+
+/// A TUM trajectory (`timestamp tx ty tz qx qy qz qw`, one pose per line, space separated; see
+/// the TUM RGB-D benchmark file-format page), of the estimate or of the truth.
+pub fn tum(v: &VehicleRecord, truth: bool) -> String {
+    let mut out = String::with_capacity(v.samples.len() * 96);
+    out.push_str("# timestamp tx ty tz qx qy qz qw (launch-site NED frame, metres)\n");
+    for s in &v.samples {
+        let (p, a) = if truth {
+            (&s.truth_pos, &s.truth_att)
+        } else {
+            (&s.est_pos, &s.est_att)
+        };
+        let q = quaternion_from_euler(a);
+        let _ = writeln!(
+            out,
+            "{:.6} {:.6} {:.6} {:.6} {:.9} {:.9} {:.9} {:.9}",
+            s.t, p[0], p[1], p[2], q[0], q[1], q[2], q[3]
+        );
+    }
+    out
+}
+
+/// Map CSV: one row per feature per vehicle (and per baseline feature, vehicle `baseline`).
+pub fn map_csv(run: &RunRecord) -> String {
+    let mut out = String::from(
+        "vehicle,id,x,y,z,cov_xx,cov_xy,cov_xz,cov_yy,cov_yz,cov_zz,truth_x,truth_y,truth_z,error_m\n",
+    );
+    let baseline_map = run
+        .baseline
+        .as_ref()
+        .and_then(|b| b.first())
+        .map(|v| ("baseline", v));
+    for (name, v) in run
+        .vehicles
+        .iter()
+        .map(|v| (v.name.as_str(), v))
+        .chain(baseline_map)
+    {
+        for f in &v.map {
+            let c = &f.cov;
+            let _ = write!(
+                out,
+                "{name},{},{:.6},{:.6},{:.6},{:.9e},{:.9e},{:.9e},{:.9e},{:.9e},{:.9e}",
+                f.id, f.est[0], f.est[1], f.est[2], c[0], c[1], c[2], c[4], c[5], c[8]
+            );
+            match f.truth {
+                Some(t) => {
+                    let e = (0..3)
+                        .map(|i| (f.est[i] - t[i]).powi(2))
+                        .sum::<f64>()
+                        .sqrt();
+                    let _ = writeln!(out, ",{:.6},{:.6},{:.6},{e:.6}", t[0], t[1], t[2]);
+                }
+                None => out.push_str(",,,,\n"),
+            }
+        }
+    }
+    out
+}
+
+/// Metrics CSV: the estimate-vs-truth time series of every vehicle (and the baseline, with
+/// `source = baseline`).
+pub fn metrics_csv(run: &RunRecord) -> String {
+    let mut out = String::from(
+        "source,vehicle,t,err_n,err_e,err_d,err_norm,sigma_n,sigma_e,sigma_d,nees_pos,nees_pose\n",
+    );
+    let sources = run.vehicles.iter().map(|v| ("decentralized", v));
+    let base = run.baseline.iter().flatten().map(|v| ("baseline", v));
+    for (source, v) in sources.chain(base) {
+        for s in &v.samples {
+            let e: Vec<f64> = (0..3).map(|i| s.est_pos[i] - s.truth_pos[i]).collect();
+            let _ = writeln!(
+                out,
+                "{source},{},{:.3},{:.6},{:.6},{:.6},{:.6},{:.6},{:.6},{:.6},{:.6},{:.6}",
+                v.name,
+                s.t,
+                e[0],
+                e[1],
+                e[2],
+                s.position_error(),
+                s.sigma(0),
+                s.sigma(1),
+                s.sigma(2),
+                s.nees_pos,
+                s.nees_pose
+            );
+        }
+    }
+    out
+}
+
+/// Link CSV: cumulative link statistics over time.
+pub fn links_csv(run: &RunRecord) -> String {
+    let mut out = String::from("link,transport,t,bytes_ab,bytes_ba,messages,drops,rejections,up\n");
+    for l in &run.links {
+        for s in &l.samples {
+            let _ = writeln!(
+                out,
+                "{}-{},{},{:.3},{},{},{},{},{},{}",
+                l.a,
+                l.b,
+                l.transport,
+                s.t,
+                s.bytes_ab,
+                s.bytes_ba,
+                s.messages,
+                s.drops,
+                s.rejections,
+                u8::from(s.up)
+            );
+        }
+    }
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::record::PoseSample;
+
+    #[test]
+    fn quaternion_matches_the_zyx_convention() {
+        // Independent construction: Rz(yaw)·Ry(pitch)·Rx(roll) from axis-angle rotations.
+        let att = [0.3, -0.2, 2.0];
+        let q = quaternion_from_euler(&att);
+        let r = nalgebra::UnitQuaternion::from_axis_angle(&nalgebra::Vector3::z_axis(), att[2])
+            * nalgebra::UnitQuaternion::from_axis_angle(&nalgebra::Vector3::y_axis(), att[1])
+            * nalgebra::UnitQuaternion::from_axis_angle(&nalgebra::Vector3::x_axis(), att[0]);
+        let same =
+            (q[0] - r.i).abs() + (q[1] - r.j).abs() + (q[2] - r.k).abs() + (q[3] - r.w).abs();
+        let opposite =
+            (q[0] + r.i).abs() + (q[1] + r.j).abs() + (q[2] + r.k).abs() + (q[3] + r.w).abs();
+        assert!(same.min(opposite) < 1e-12);
+    }
+
+    #[test]
+    fn tum_lines_have_eight_numeric_fields() {
+        let v = VehicleRecord {
+            name: "uav1".into(),
+            samples: vec![PoseSample {
+                t: 1.5,
+                est_pos: [1.0, 2.0, -100.0],
+                est_att: [0.0, 0.0, 0.5],
+                truth_pos: [1.1, 2.0, -100.0],
+                truth_att: [0.0, 0.0, 0.5],
+                pos_cov: [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
+                nees_pos: 0.01,
+                nees_pose: 0.02,
+            }],
+            ..Default::default()
+        };
+        for text in [tum(&v, false), tum(&v, true)] {
+            let lines: Vec<_> = text.lines().filter(|l| !l.starts_with('#')).collect();
+            assert_eq!(lines.len(), 1);
+            let fields: Vec<f64> = lines[0].split(' ').map(|f| f.parse().unwrap()).collect();
+            assert_eq!(fields.len(), 8);
+            let qn: f64 = fields[4..].iter().map(|x| x * x).sum();
+            assert!((qn - 1.0).abs() < 1e-8);
+        }
+    }
+}

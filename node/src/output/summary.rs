@@ -1,0 +1,336 @@
+//! `summary.json`: the run's figures (field names documented in the README).
+
+use crate::record::{LinkRecord, RunRecord, VehicleRecord};
+use serde::{Deserialize, Serialize};
+use statrs::distribution::{ChiSquared, ContinuousCDF};
+
+/// Two-sided 95 % bounds of a χ² variable with `dof` degrees of freedom.
+pub fn chi2_band(dof: f64) -> (f64, f64) {
+    // dof > 0 by construction of the callers (3 or 6), so the distribution always exists.
+    let d = ChiSquared::new(dof).expect("positive degrees of freedom");
+    (d.inverse_cdf(0.025), d.inverse_cdf(0.975))
+}
+
+/// Figures of one vehicle (or of the baseline filter's estimate of that vehicle).
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+pub struct VehicleSummary {
+    /// Vehicle name.
+    pub name: String,
+    /// RMS position error over the run [m].
+    pub position_rmse_m: f64,
+    /// Position error at the end of the run [m].
+    pub final_position_error_m: f64,
+    /// Time-averaged position NEES divided by its 3 dof (1.0 when consistent).
+    pub position_anees: f64,
+    /// Time-averaged pose (position + attitude) NEES divided by its 6 dof.
+    pub pose_anees: f64,
+    /// Fraction of samples whose pose NEES lies inside the per-sample χ²₆ 95 % interval.
+    pub pose_nees_in_band: f64,
+    /// Features in the vehicle's final map.
+    pub map_features: usize,
+    /// RMS error of the final map's features that have a truth [m].
+    pub map_rmse_m: f64,
+    /// Mean per-feature map NEES divided by its 3 dof.
+    pub map_anees: f64,
+    /// Wrong associations (observation associated to another feature).
+    pub wrong_associations: u64,
+    /// Observations processed.
+    pub observations: u64,
+    /// Received fusion messages rejected.
+    pub rejected_messages: u64,
+    /// Process restarts.
+    pub restarts: u32,
+}
+
+/// Totals of one link.
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+pub struct LinkSummary {
+    /// `a-b`.
+    pub link: String,
+    /// `shm`, `net` or `sim`.
+    pub transport: String,
+    /// Bytes a → b.
+    pub bytes_ab: u64,
+    /// Bytes b → a.
+    pub bytes_ba: u64,
+    /// Messages, both directions.
+    pub messages: u64,
+    /// Dropped messages.
+    pub drops: u64,
+    /// Rejected messages.
+    pub rejections: u64,
+    /// Whether the link fell back to covariance intersection.
+    pub ci: bool,
+}
+
+/// The whole summary.
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+pub struct Summary {
+    /// Scenario name.
+    pub scenario: String,
+    /// Fusion mode.
+    pub mode: String,
+    /// Navigation frame.
+    pub frame: String,
+    /// World seed.
+    pub seed: u64,
+    /// Simulated time [s].
+    pub duration_s: f64,
+    /// Wall-clock time [s].
+    pub wall_time_s: f64,
+    /// Simulated seconds per wall-clock second.
+    pub real_time_factor: f64,
+    /// Per-vehicle figures.
+    pub vehicles: Vec<VehicleSummary>,
+    /// Means over vehicles: position RMSE, map RMSE, pose ANEES, map ANEES.
+    pub team: TeamSummary,
+    /// Per-link totals.
+    pub links: Vec<LinkSummary>,
+    /// The centralized all-data EKF's figures, when it ran.
+    pub baseline: Option<BaselineSummary>,
+    /// Number of fault and lifecycle events.
+    pub events: usize,
+}
+
+/// Team means.
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+pub struct TeamSummary {
+    /// Mean of the vehicles' position RMSE [m].
+    pub position_rmse_m: f64,
+    /// Mean of the vehicles' map RMSE [m].
+    pub map_rmse_m: f64,
+    /// Mean pose ANEES.
+    pub pose_anees: f64,
+    /// Mean map ANEES.
+    pub map_anees: f64,
+}
+
+/// The centralized baseline's figures.
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+pub struct BaselineSummary {
+    /// Per-vehicle figures of the joint filter (the map figures are those of the joint map).
+    pub vehicles: Vec<VehicleSummary>,
+    /// Team means.
+    pub team: TeamSummary,
+}
+
+fn mean(v: impl Iterator<Item = f64>) -> f64 {
+    let (s, n) = v.fold((0.0, 0usize), |(s, n), x| (s + x, n + 1));
+    if n == 0 { f64::NAN } else { s / n as f64 }
+}
+
+/// Figures of one vehicle record.
+pub fn summarize_vehicle(v: &VehicleRecord) -> VehicleSummary {
+    let (lo, hi) = chi2_band(6.0);
+    let position_rmse_m = mean(v.samples.iter().map(|s| s.position_error().powi(2))).sqrt();
+    let final_position_error_m = v.samples.last().map_or(f64::NAN, |s| s.position_error());
+    let position_anees = mean(v.samples.iter().map(|s| s.nees_pos / 3.0));
+    let pose_anees = mean(v.samples.iter().map(|s| s.nees_pose / 6.0));
+    let pose_nees_in_band = mean(
+        v.samples
+            .iter()
+            .map(|s| f64::from(u8::from(s.nees_pose >= lo && s.nees_pose <= hi))),
+    );
+    let with_truth: Vec<_> = v
+        .map
+        .iter()
+        .filter_map(|f| f.truth.map(|t| (f, t)))
+        .collect();
+    let map_rmse_m = mean(
+        with_truth
+            .iter()
+            .map(|(f, t)| (0..3).map(|i| (f.est[i] - t[i]).powi(2)).sum::<f64>()),
+    )
+    .sqrt();
+    let map_anees = mean(
+        with_truth
+            .iter()
+            .filter_map(|(f, t)| feature_nees(&f.est, &f.cov, t))
+            .map(|n| n / 3.0),
+    );
+    VehicleSummary {
+        name: v.name.clone(),
+        position_rmse_m,
+        final_position_error_m,
+        position_anees,
+        pose_anees,
+        pose_nees_in_band,
+        map_features: v.map.len(),
+        map_rmse_m,
+        map_anees,
+        wrong_associations: v.wrong_associations,
+        observations: v.observations,
+        rejected_messages: v.rejected_messages,
+        restarts: v.restarts,
+    }
+}
+
+/// NEES of a 3-vector error under a row-major 3×3 covariance; `None` when it is not positive
+/// definite.
+pub fn feature_nees(est: &[f64; 3], cov: &[f64; 9], truth: &[f64; 3]) -> Option<f64> {
+    let c = nalgebra::Matrix3::from_row_slice(cov);
+    let e = nalgebra::Vector3::new(est[0] - truth[0], est[1] - truth[1], est[2] - truth[2]);
+    let chol = c.cholesky()?;
+    Some(e.dot(&chol.solve(&e)))
+}
+
+fn team(vs: &[VehicleSummary]) -> TeamSummary {
+    TeamSummary {
+        position_rmse_m: mean(vs.iter().map(|v| v.position_rmse_m)),
+        map_rmse_m: mean(vs.iter().map(|v| v.map_rmse_m)),
+        pose_anees: mean(vs.iter().map(|v| v.pose_anees)),
+        map_anees: mean(vs.iter().map(|v| v.map_anees)),
+    }
+}
+
+fn summarize_link(l: &LinkRecord) -> LinkSummary {
+    let last = l.samples.last();
+    LinkSummary {
+        link: format!("{}-{}", l.a, l.b),
+        transport: l.transport.clone(),
+        bytes_ab: last.map_or(0, |s| s.bytes_ab),
+        bytes_ba: last.map_or(0, |s| s.bytes_ba),
+        messages: last.map_or(0, |s| s.messages),
+        drops: last.map_or(0, |s| s.drops),
+        rejections: last.map_or(0, |s| s.rejections),
+        ci: l.ci,
+    }
+}
+
+/// Computes the summary of a run.
+pub fn summarize(run: &RunRecord) -> Summary {
+    let vehicles: Vec<_> = run.vehicles.iter().map(summarize_vehicle).collect();
+    let baseline = run.baseline.as_ref().map(|b| {
+        let vs: Vec<_> = b.iter().map(summarize_vehicle).collect();
+        BaselineSummary {
+            team: team(&vs),
+            vehicles: vs,
+        }
+    });
+    Summary {
+        scenario: run.scenario.clone(),
+        mode: run.mode.clone(),
+        frame: run.frame.clone(),
+        seed: run.seed,
+        duration_s: run.duration,
+        wall_time_s: run.wall_time,
+        real_time_factor: if run.wall_time > 0.0 {
+            run.duration / run.wall_time
+        } else {
+            f64::NAN
+        },
+        team: team(&vehicles),
+        vehicles,
+        links: run.links.iter().map(summarize_link).collect(),
+        baseline,
+        events: run.events.len(),
+    }
+}
+
+/// A fixed-width text table of one or more summaries side by side (one column per summary).
+pub fn table(summaries: &[(&str, &Summary)]) -> String {
+    use std::fmt::Write;
+    let mut rows: Vec<(String, Vec<String>)> = Vec::new();
+    let mut push = |label: &str, f: &dyn Fn(&Summary) -> String| {
+        rows.push((
+            label.to_string(),
+            summaries.iter().map(|(_, s)| f(s)).collect(),
+        ));
+    };
+    push("mode", &|s| s.mode.clone());
+    push("frame", &|s| s.frame.clone());
+    push("vehicles", &|s| s.vehicles.len().to_string());
+    push("sim time [s]", &|s| format!("{:.1}", s.duration_s));
+    push("wall time [s]", &|s| format!("{:.1}", s.wall_time_s));
+    push("real-time factor", &|s| {
+        format!("{:.2}", s.real_time_factor)
+    });
+    push("position RMSE [m]", &|s| {
+        format!("{:.3}", s.team.position_rmse_m)
+    });
+    push("map RMSE [m]", &|s| format!("{:.3}", s.team.map_rmse_m));
+    push("pose ANEES (1 = ideal)", &|s| {
+        format!("{:.2}", s.team.pose_anees)
+    });
+    push("map ANEES (1 = ideal)", &|s| {
+        format!("{:.2}", s.team.map_anees)
+    });
+    push("wrong associations", &|s| {
+        s.vehicles
+            .iter()
+            .map(|v| v.wrong_associations)
+            .sum::<u64>()
+            .to_string()
+    });
+    push("link bytes", &|s| {
+        s.links
+            .iter()
+            .map(|l| l.bytes_ab + l.bytes_ba)
+            .sum::<u64>()
+            .to_string()
+    });
+    push("link drops", &|s| {
+        s.links.iter().map(|l| l.drops).sum::<u64>().to_string()
+    });
+    push("baseline position RMSE [m]", &|s| {
+        s.baseline
+            .as_ref()
+            .map_or("-".into(), |b| format!("{:.3}", b.team.position_rmse_m))
+    });
+    push("baseline map RMSE [m]", &|s| {
+        s.baseline
+            .as_ref()
+            .map_or("-".into(), |b| format!("{:.3}", b.team.map_rmse_m))
+    });
+    push("baseline pose ANEES", &|s| {
+        s.baseline
+            .as_ref()
+            .map_or("-".into(), |b| format!("{:.2}", b.team.pose_anees))
+    });
+    let label_w = rows.iter().map(|r| r.0.len()).max().unwrap_or(0).max(8);
+    let col_w: Vec<usize> = (0..summaries.len())
+        .map(|i| {
+            rows.iter()
+                .map(|r| r.1[i].len())
+                .chain([summaries[i].0.len()])
+                .max()
+                .unwrap_or(0)
+        })
+        .collect();
+    let mut out = String::new();
+    let _ = write!(out, "{:label_w$}", "");
+    for (i, (name, _)) in summaries.iter().enumerate() {
+        let _ = write!(out, "  {:>w$}", name, w = col_w[i]);
+    }
+    out.push('\n');
+    for (label, vals) in &rows {
+        let _ = write!(out, "{label:label_w$}");
+        for (i, v) in vals.iter().enumerate() {
+            let _ = write!(out, "  {:>w$}", v, w = col_w[i]);
+        }
+        out.push('\n');
+    }
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn chi2_band_matches_tables() {
+        // Standard χ² table values (e.g. NIST/SEMATECH e-Handbook §1.3.6.7.4).
+        let (lo, hi) = chi2_band(3.0);
+        assert!((lo - 0.2158).abs() < 1e-3 && (hi - 9.348).abs() < 1e-3);
+        let (lo, hi) = chi2_band(6.0);
+        assert!((lo - 1.237).abs() < 1e-3 && (hi - 14.449).abs() < 1e-3);
+    }
+
+    #[test]
+    fn feature_nees_is_mahalanobis() {
+        let cov = [4.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 9.0];
+        let n = feature_nees(&[2.0, 1.0, 3.0], &cov, &[0.0, 0.0, 0.0]).unwrap();
+        assert!((n - 3.0).abs() < 1e-12); // 4/4 + 1/1 + 9/9
+        assert!(feature_nees(&[0.0; 3], &[0.0; 9], &[0.0; 3]).is_none());
+    }
+}

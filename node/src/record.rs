@@ -1,0 +1,152 @@
+//! What a run gathers: estimate and truth time series per vehicle, final maps, link statistics,
+//! fault events, and the centralized baseline. Written by the simulation or the monitor process,
+//! read by [`crate::output`].
+//!
+//! Positions are metres in the launch site's local NED frame (global-frame runs are converted
+//! from ECEF) and attitudes are the Euler triple of C_b^{n0} relative to that same frame, so every
+//! output of a run shares one frame whatever the estimator's navigation frame was.
+
+use serde::{Deserialize, Serialize};
+
+/// One estimate-vs-truth sample of a vehicle.
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+pub struct PoseSample {
+    /// Simulation time [s].
+    pub t: f64,
+    /// Estimated position, launch NED [m].
+    pub est_pos: [f64; 3],
+    /// Estimated attitude (roll, pitch, yaw) relative to launch NED [rad].
+    pub est_att: [f64; 3],
+    /// True position, launch NED [m].
+    pub truth_pos: [f64; 3],
+    /// True attitude (roll, pitch, yaw) relative to launch NED [rad].
+    pub truth_att: [f64; 3],
+    /// Position covariance, launch NED, row-major 3×3 [m²].
+    pub pos_cov: [f64; 9],
+    /// Normalised estimation error squared of the position (3 dof).
+    pub nees_pos: f64,
+    /// NEES of the pose (position and attitude, 6 dof).
+    pub nees_pose: f64,
+}
+
+impl PoseSample {
+    /// Euclidean position error [m].
+    pub fn position_error(&self) -> f64 {
+        (0..3)
+            .map(|i| (self.est_pos[i] - self.truth_pos[i]).powi(2))
+            .sum::<f64>()
+            .sqrt()
+    }
+
+    /// 1-σ position standard deviation of axis `i` [m].
+    pub fn sigma(&self, i: usize) -> f64 {
+        self.pos_cov[4 * i].max(0.0).sqrt()
+    }
+}
+
+/// One feature of a final map.
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+pub struct MapFeatureRecord {
+    /// Global feature id (descriptor).
+    pub id: u64,
+    /// Estimated position, launch NED [m].
+    pub est: [f64; 3],
+    /// Covariance, launch NED, row-major 3×3 [m²].
+    pub cov: [f64; 9],
+    /// True position, launch NED [m], when the id names a real feature.
+    pub truth: Option<[f64; 3]>,
+}
+
+/// A vehicle's record.
+#[derive(Clone, Debug, Default, Serialize, Deserialize, PartialEq)]
+pub struct VehicleRecord {
+    /// Vehicle name.
+    pub name: String,
+    /// Estimate-vs-truth samples in time order.
+    pub samples: Vec<PoseSample>,
+    /// The vehicle's map at the end of the run.
+    pub map: Vec<MapFeatureRecord>,
+    /// Observations associated to a feature other than the one observed (truth known to the
+    /// harness only).
+    pub wrong_associations: u64,
+    /// Observations processed.
+    pub observations: u64,
+    /// Received fusion messages rejected (malformed, non-neighbour, non-PD result, …).
+    pub rejected_messages: u64,
+    /// Times this vehicle's process was restarted.
+    pub restarts: u32,
+}
+
+/// One statistics sample of a link (cumulative counters at time `t`).
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+pub struct LinkSample {
+    /// Simulation time [s].
+    pub t: f64,
+    /// Bytes sent a → b so far.
+    pub bytes_ab: u64,
+    /// Bytes sent b → a so far.
+    pub bytes_ba: u64,
+    /// Messages sent in both directions so far.
+    pub messages: u64,
+    /// Messages dropped (loss, outage, bandwidth) so far.
+    pub drops: u64,
+    /// Messages rejected by a receiver so far.
+    pub rejections: u64,
+    /// Whether the link was up at `t`.
+    pub up: bool,
+}
+
+/// A link's record.
+#[derive(Clone, Debug, Default, Serialize, Deserialize, PartialEq)]
+pub struct LinkRecord {
+    /// One end.
+    pub a: String,
+    /// The other end.
+    pub b: String,
+    /// `shm`, `net` or `sim`.
+    pub transport: String,
+    /// Whether the link has fallen back to covariance intersection.
+    pub ci: bool,
+    /// Cumulative statistics over time.
+    pub samples: Vec<LinkSample>,
+}
+
+/// A fault or lifecycle event.
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+pub struct EventRecord {
+    /// Start time [s].
+    pub t: f64,
+    /// End time [s], for events with a duration (outages, partitions).
+    pub until: Option<f64>,
+    /// `outage`, `partition`, `crash`, `restart`, `hub-loss`, `ci-fallback`, ….
+    pub kind: String,
+    /// What it concerns (a link `a-b` or a vehicle name).
+    pub subject: String,
+}
+
+/// Everything a run gathered.
+#[derive(Clone, Debug, Default, Serialize, Deserialize, PartialEq)]
+pub struct RunRecord {
+    /// Scenario name.
+    pub scenario: String,
+    /// Fusion mode.
+    pub mode: String,
+    /// Estimator navigation frame (`global` or `local`).
+    pub frame: String,
+    /// World seed.
+    pub seed: u64,
+    /// Simulated duration [s].
+    pub duration: f64,
+    /// Wall-clock time of the run [s].
+    pub wall_time: f64,
+    /// Vehicles.
+    pub vehicles: Vec<VehicleRecord>,
+    /// Links.
+    pub links: Vec<LinkRecord>,
+    /// Fault and lifecycle events.
+    pub events: Vec<EventRecord>,
+    /// The centralized all-data EKF fed the same observations, when it was run.
+    pub baseline: Option<Vec<VehicleRecord>>,
+    /// True feature positions (launch NED) by id, for the map plot.
+    pub truth_features: Vec<(u64, [f64; 3])>,
+}
