@@ -1,4 +1,12 @@
 //! canopy-node: the `canopy` binary's library.
 //!
 //! # Layout
-//! (filled in as the node grows)
+//! - [`scenario`]: the scenario TOML (`[world]`, `[[vehicle]]`): serde structs, defaults, the
+//!   built-in default scenario and validation with typed errors naming the field.
+//! - [`world`]: the world simulator — seeded terrain and features, analytic trajectories with
+//!   coordinated-flight attitude, IMU synthesis (discrete inverse of the mechanization or
+//!   continuous), the terrain sensor, and per-step truth; a pure, step-able library used by the
+//!   `world` process and by `canopy sim`.
+
+pub mod scenario;
+pub mod world;
