@@ -487,8 +487,17 @@ impl VehicleConfig {
     }
 
     /// Field checks of one vehicle (paths relative to the vehicle) in a world whose Earth model
-    /// implies `world_frame`.
+    /// implies `world_frame`, including building the trajectory (bank-angle limit).
     pub fn validate(&self, world_frame: NavFrame) -> Result<(), ScenarioError> {
+        self.validate_except_trajectory(world_frame)?;
+        crate::world::trajectory::Trajectory::new(&self.trajectory)
+            .map_err(|e| e.within("trajectory"))?;
+        Ok(())
+    }
+
+    /// [`VehicleConfig::validate`] without building the trajectory (for callers that build it
+    /// themselves and get its errors there).
+    pub fn validate_except_trajectory(&self, world_frame: NavFrame) -> Result<(), ScenarioError> {
         if let Some(name) = &self.name
             && (name.is_empty()
                 || !name
@@ -510,8 +519,6 @@ impl VehicleConfig {
                 ),
             ));
         }
-        crate::world::trajectory::Trajectory::new(&self.trajectory)
-            .map_err(|e| e.within("trajectory"))?;
         self.imu.validate().map_err(|e| e.within("imu"))?;
         self.sensor
             .validate(self.imu.rate_hz)
@@ -534,8 +541,7 @@ pub struct TrajectoryConfig {
     pub centre_ne_m: [f64; 2],
     /// Mean height above the launch site [m], > 0. Default 150.
     pub altitude_m: f64,
-    /// Horizontal ground speed [m/s] in (0, 150]: exact for lawnmower and orbit, the mean over a
-    /// period for the figure-eight (whose speed varies along the curve). Default 25.
+    /// Horizontal ground speed [m/s] in (0, 150], constant along every pattern. Default 25.
     pub speed_mps: f64,
     /// Start phase as a fraction of the pattern's period, in [0, 1). Default 0.
     pub phase: f64,
@@ -593,8 +599,8 @@ pub enum ShapeConfig {
         #[serde(default = "default_true")]
         clockwise: bool,
     },
-    /// Lemniscate of Gerono: x = L/2·sin θ, y = W/2·sin 2θ in the pattern frame, θ advancing
-    /// uniformly; the speed varies along the curve (`speed_mps` is its mean).
+    /// Lemniscate of Gerono x = L/2·sin θ, y = W/2·sin 2θ (pattern frame), flown at constant
+    /// speed; it starts at the crossing heading along +x and +y.
     FigureEight {
         /// Extent along the pattern x axis [m], > 0.
         length_m: f64,
@@ -1066,5 +1072,256 @@ pub(crate) fn non_negative_at_most(field: &str, v: f64, hi: f64) -> Result<(), S
             field,
             format!("must be in [0, {hi}], got {v}"),
         ))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The example of the module documentation, verbatim.
+    const DOC_EXAMPLE: &str = r#"
+[world]
+seed = 7
+earth_model = "wgs84"           # or "flat" (local SLAM)
+origin = { lat_deg = -33.87, lon_deg = 151.21, height_m = 60.0 }
+area = { size_north_m = 2400.0, size_east_m = 2400.0 }
+features = { count = 400, max_height_above_ground_m = 10.0 }
+terrain = { relief_m = 15.0 }
+
+[[vehicle]]
+id = 1
+name = "uav1"
+trajectory = { altitude_m = 150.0, speed_mps = 25.0, shape = { kind = "orbit", radius_m = 500.0 } }
+sensor = { model = { kind = "range_bearing", sigma_range_m = 0.5, sigma_bearing_deg = 0.2 } }
+imu = { grade = "tactical", rate_hz = 100.0 }
+"#;
+
+    /// A small valid two-vehicle scenario in table syntax, edited by the rejection tests.
+    const BASE: &str = r#"
+[world]
+seed = 3
+earth_model = "flat"
+
+[[vehicle]]
+id = 1
+[vehicle.trajectory]
+altitude_m = 120
+[vehicle.trajectory.shape]
+kind = "figure_eight"
+length_m = 1500
+width_m = 700
+[vehicle.sensor]
+rate_hz = 4
+max_range_m = 400
+[vehicle.sensor.model]
+kind = "pixel"
+fu_px = 400
+fv_px = 400
+u0_px = 320
+v0_px = 240
+width_px = 640
+height_px = 480
+sigma_px = 1
+
+[[vehicle]]
+id = 2
+name = "scout"
+frame = "local"
+[vehicle.trajectory.shape]
+kind = "lawnmower"
+leg_length_m = 1000
+leg_spacing_m = 200
+legs = 3
+[vehicle.imu]
+grade = "consumer"
+rate_hz = 200
+synthesis = "continuous"
+"#;
+
+    #[test]
+    fn doc_example_and_table_syntax_parse_with_defaults() {
+        let s = Scenario::from_toml_str(DOC_EXAMPLE).unwrap();
+        assert_eq!(s.world.seed, 7);
+        assert_eq!(s.vehicles[0].imu.rate_hz, 100.0);
+        assert_eq!(s.vehicles[0].sensor.rate_hz, 2.0, "default");
+        let b = Scenario::from_toml_str(BASE).unwrap();
+        assert_eq!(b.world.earth_model, EarthModel::Flat);
+        assert_eq!(b.world.features.count, Some(400), "default");
+        assert_eq!(b.vehicles[0].display_name(), "uav1");
+        assert_eq!(b.vehicles[1].display_name(), "scout");
+        assert_eq!(
+            b.vehicles[0].trajectory.altitude_m, 120.0,
+            "TOML integer into f64"
+        );
+        assert_eq!(b.vehicles[1].trajectory.altitude_m, 150.0, "default");
+        assert_eq!(b.vehicles[1].imu.synthesis, ImuSynthesis::Continuous);
+        assert!(matches!(
+            b.vehicles[1].trajectory.shape,
+            ShapeConfig::Lawnmower { turn_ramp_fraction, .. } if turn_ramp_fraction == 0.4
+        ));
+        assert!(matches!(
+            b.vehicles[0].sensor.model(),
+            SensorModel::Pixel { .. }
+        ));
+    }
+
+    #[test]
+    fn builtin_default_is_valid_and_round_trips_through_toml() {
+        let d = Scenario::builtin_default();
+        d.validate().unwrap();
+        assert_eq!(d.vehicles.len(), 4);
+        assert_eq!(d.world.earth_model.frame(), NavFrame::Global);
+        for v in &d.vehicles {
+            assert!((100.0..=200.0).contains(&v.trajectory.altitude_m));
+            assert_eq!(v.imu.grade, ImuGrade::Tactical);
+            assert!(matches!(
+                v.sensor.model,
+                SensorModelConfig::RangeBearing { .. }
+            ));
+        }
+        let text = d.to_toml_string();
+        assert_eq!(Scenario::from_toml_str(&text).unwrap(), d);
+    }
+
+    fn invalid_field(text: &str) -> String {
+        match Scenario::from_toml_str(text) {
+            Err(ScenarioError::Invalid { field, reason }) => {
+                assert!(!reason.is_empty());
+                field
+            }
+            other => panic!("expected a field error, got {other:?}"),
+        }
+    }
+
+    /// Each bad value is rejected with the dotted path of the offending field.
+    #[test]
+    fn invalid_values_name_their_field() {
+        let cases = [
+            (
+                "seed = 3",
+                "seed = 3\norigin = { lat_deg = 95.0 }",
+                "world.origin.lat_deg",
+            ),
+            (
+                "seed = 3",
+                "seed = 3\nfeatures = { count = 10, density_per_km2 = 5.0 }",
+                "world.features",
+            ),
+            (
+                "seed = 3",
+                "seed = 3\nfeatures = { count = 0 }",
+                "world.features.count",
+            ),
+            (
+                "seed = 3",
+                "seed = 3\nterrain = { min_wavelength_m = 500.0, max_wavelength_m = 100.0 }",
+                "world.terrain.max_wavelength_m",
+            ),
+            (
+                "altitude_m = 120",
+                "altitude_m = nan",
+                "vehicle[0].trajectory.altitude_m",
+            ),
+            (
+                "altitude_m = 120",
+                "altitude_m = 120\nphase = 1.0",
+                "vehicle[0].trajectory.phase",
+            ),
+            (
+                "width_m = 700",
+                "width_m = 20",
+                "vehicle[0].trajectory.shape.width_m",
+            ),
+            ("legs = 3", "legs = 1", "vehicle[1].trajectory.shape.legs"),
+            (
+                "max_range_m = 400",
+                "max_range_m = 5",
+                "vehicle[0].sensor.max_range_m",
+            ),
+            ("rate_hz = 4", "rate_hz = 3", "vehicle[0].sensor.rate_hz"),
+            (
+                "sigma_px = 1",
+                "sigma_px = -1",
+                "vehicle[0].sensor.model.sigma_px",
+            ),
+            ("rate_hz = 200", "rate_hz = 0", "vehicle[1].imu.rate_hz"),
+            (
+                "frame = \"local\"",
+                "frame = \"global\"",
+                "vehicle[1].frame",
+            ),
+            ("id = 2", "id = 1", "vehicle[1].id"),
+            ("name = \"scout\"", "name = \"uav1\"", "vehicle[1].name"),
+            ("name = \"scout\"", "name = \"a b\"", "vehicle[1].name"),
+        ];
+        for (from, to, field) in cases {
+            assert!(BASE.contains(from), "{from}");
+            assert_eq!(invalid_field(&BASE.replacen(from, to, 1)), field, "{to}");
+        }
+        let text = BASE.replacen(
+            "[vehicle.imu]",
+            "[vehicle.initial]\nposition_sigma_m = [1.0, -1.0, 1.0]\n[vehicle.imu]",
+            1,
+        );
+        assert_eq!(
+            invalid_field(&text),
+            "vehicle[1].initial.position_sigma_m[1]"
+        );
+        let text = BASE.replacen("synthesis = \"continuous\"", "[vehicle.imu.noise]\naccel_noise_density = 1e-3\ngyro_noise_density = 1e-4\naccel_bias_rw_density = 0\ngyro_bias_rw_density = 0\naccel_bias_sigma = inf\ngyro_bias_sigma = 0", 1);
+        assert_eq!(
+            invalid_field(&text),
+            "vehicle[1].imu.noise.accel_bias_sigma"
+        );
+        assert_eq!(invalid_field("vehicle = []\n[world]\nseed = 1"), "vehicle");
+    }
+
+    /// Unknown fields anywhere are parse errors that name the field; a missing required field too.
+    #[test]
+    fn unknown_and_missing_fields_are_rejected() {
+        for (from, to, word) in [
+            ("seed = 3", "seed = 3\nsede = 4", "sede"),
+            (
+                "altitude_m = 120",
+                "altitude_m = 120\naltitude = 3",
+                "altitude",
+            ),
+            ("legs = 3", "legs = 3\nradius_m = 4", "radius_m"),
+            (
+                "sigma_px = 1",
+                "sigma_px = 1\nsigma_range_m = 1",
+                "sigma_range_m",
+            ),
+            ("grade = \"consumer\"", "grade = \"military\"", "military"),
+            ("kind = \"lawnmower\"", "kind = \"spiral\"", "spiral"),
+        ] {
+            match Scenario::from_toml_str(&BASE.replacen(from, to, 1)) {
+                Err(ScenarioError::Parse(e)) => assert!(e.to_string().contains(word), "{e}"),
+                other => panic!("{to}: expected a parse error, got {other:?}"),
+            }
+        }
+        match Scenario::from_toml_str(&BASE.replacen("legs = 3\n", "", 1)) {
+            Err(ScenarioError::Parse(e)) => assert!(e.to_string().contains("legs"), "{e}"),
+            other => panic!("expected a missing-field error, got {other:?}"),
+        }
+        assert!(matches!(
+            Scenario::load(Path::new("/nonexistent/canopy.toml")),
+            Err(ScenarioError::Io { .. })
+        ));
+    }
+
+    #[test]
+    fn density_sets_the_feature_count() {
+        let w = WorldConfig {
+            features: FeatureConfig {
+                count: None,
+                density_per_km2: Some(50.0),
+                max_height_above_ground_m: 0.0,
+            },
+            ..WorldConfig::default()
+        };
+        w.validate().unwrap();
+        // 2.4 km × 2.4 km = 5.76 km² at 50 per km².
+        assert_eq!(w.feature_count(), 288);
     }
 }

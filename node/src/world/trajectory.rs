@@ -1,8 +1,9 @@
 //! Analytic flight paths in the launch site's NED frame and their coordinated-flight attitude.
 //!
-//! A [`Trajectory`] gives position, velocity, acceleration and jerk at any time (closed forms, or
-//! Gauss–Legendre quadrature of a closed-form heading for the lawnmower's turns, accurate to
-//! ~1e-12 m), and [`coordinated_attitude`] turns (v, a, j) into the Euler attitude Ψ and its rate
+//! A [`Trajectory`] gives position, velocity, acceleration and jerk at any time, at constant
+//! horizontal speed: closed forms for the orbit; Gauss–Legendre quadrature of a closed-form
+//! heading for the lawnmower's turns; an arc-length parametrisation (quadrature plus Newton) of
+//! the figure-eight — all accurate to ~1e-10 m or better. Then [`coordinated_attitude`] turns (v, a, j) into the Euler attitude Ψ and its rate
 //! Ψ̇. The horizontal pattern is C³ (lawnmower: the curvature ramps with a quintic smootherstep,
 //! so curvature is C² in arc length; orbit and figure-eight are C^∞), hence the attitude is C¹ and
 //! the body rates are continuous.
@@ -25,6 +26,9 @@ use crate::scenario::{ScenarioError, ShapeConfig, TrajectoryConfig, in_range, po
 
 /// Largest bank angle a trajectory may require [rad] (60°: 2 g turns).
 pub const MAX_BANK: f64 = 60.0 * PI / 180.0;
+
+/// Samples over a period used to find the bank and rate envelope.
+pub const ENVELOPE_SAMPLES: usize = 4096;
 
 /// Position and its first three time derivatives in the launch NED frame.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -112,15 +116,8 @@ pub struct Trajectory {
 #[derive(Clone, Debug)]
 enum Shape {
     Lawnmower(Lawnmower),
-    Orbit {
-        radius: f64,
-        rate: f64,
-    },
-    FigureEight {
-        half_length: f64,
-        half_width: f64,
-        rate: f64,
-    },
+    Orbit { radius: f64, rate: f64 },
+    FigureEight(Gerono),
 }
 
 impl Trajectory {
@@ -212,20 +209,9 @@ impl Trajectory {
             ShapeConfig::FigureEight { length_m, width_m } => {
                 positive_at_most("shape.length_m", length_m, 1e6)?;
                 positive_at_most("shape.width_m", width_m, 1e6)?;
-                let (hl, hw) = (0.5 * length_m, 0.5 * width_m);
-                // |dp/dθ| = sqrt(hl² cos²θ + 4 hw² cos² 2θ); perimeter by composite quadrature.
-                let perimeter = integrate(0.0, TAU, 64, |th| {
-                    (hl * hl * th.cos().powi(2) + 4.0 * hw * hw * (2.0 * th).cos().powi(2)).sqrt()
-                });
-                let rate = TAU * speed / perimeter;
-                (
-                    Shape::FigureEight {
-                        half_length: hl,
-                        half_width: hw,
-                        rate,
-                    },
-                    TAU / rate,
-                )
+                let g = Gerono::new(speed, 0.5 * length_m, 0.5 * width_m);
+                let period = g.perimeter() / speed;
+                (Shape::FigureEight(g), period)
             }
         };
         let h = cfg.heading_deg.to_radians();
@@ -243,7 +229,7 @@ impl Trajectory {
         };
         // Survey one period (and one climb period) finely for the bank and rate envelope.
         let span = period.max(cfg.climb_period_s);
-        let n = 20_000;
+        let n = ENVELOPE_SAMPLES;
         let (mut bank, mut pitch, mut rates) = (0.0f64, 0.0f64, Vector3::<f64>::zeros());
         for i in 0..n {
             let s = traj.state(span * i as f64 / n as f64 - traj.time_offset);
@@ -292,7 +278,7 @@ impl Trajectory {
         self.max_bank
     }
 
-    /// Largest |φ̇|, |θ̇|, |ψ̇| over a period [rad/s] (sampled, 20 000 points).
+    /// Largest |φ̇|, |θ̇|, |ψ̇| over a period [rad/s] (sampled at [`ENVELOPE_SAMPLES`] points).
     pub fn max_attitude_rates(&self) -> Vector3<f64> {
         self.max_rates
     }
@@ -313,21 +299,7 @@ impl Trajectory {
                     j: Vector2::new(r * w * w * w * s, -r * w * w * w * c),
                 }
             }
-            Shape::FigureEight {
-                half_length: l,
-                half_width: h,
-                rate: w,
-            } => {
-                let th = w * tau;
-                let (s1, c1) = th.sin_cos();
-                let (s2, c2) = (2.0 * th).sin_cos();
-                Planar {
-                    p: Vector2::new(l * s1, h * s2),
-                    v: Vector2::new(l * w * c1, 2.0 * h * w * c2),
-                    a: Vector2::new(-l * w * w * s1, -4.0 * h * w * w * s2),
-                    j: Vector2::new(-l * w * w * w * c1, -8.0 * h * w * w * w * c2),
-                }
-            }
+            Shape::FigureEight(g) => g.planar(tau),
         };
         let r = &self.pattern_to_ned;
         let p = self.centre + r * pl.p;
@@ -541,6 +513,103 @@ impl Lawnmower {
     }
 }
 
+/// Lemniscate of Gerono r(θ) = (L/2·sin θ, W/2·sin 2θ) flown at constant speed: the arc length
+/// s(θ) = ∫|r′| is tabulated at 256 nodes and completed by Gauss–Legendre quadrature, θ(s) is
+/// found by Newton's method, and the curvature κ = (r′ × r″)/|r′|³ and dκ/ds follow from the
+/// closed-form derivatives of r, giving v = V·T, a = V²κ·N, j = V³(κ_s·N − κ²·T).
+#[derive(Clone, Debug)]
+struct Gerono {
+    speed: f64,
+    half_length: f64,
+    half_width: f64,
+    /// s at θ_k = 2πk/K, k = 0..=K.
+    arc: Vec<f64>,
+}
+
+/// Nodes of the arc-length table of [`Gerono`].
+const GERONO_NODES: usize = 256;
+
+impl Gerono {
+    fn new(speed: f64, half_length: f64, half_width: f64) -> Self {
+        let mut g = Self {
+            speed,
+            half_length,
+            half_width,
+            arc: vec![0.0; GERONO_NODES + 1],
+        };
+        let step = TAU / GERONO_NODES as f64;
+        for k in 0..GERONO_NODES {
+            let th = step * k as f64;
+            g.arc[k + 1] = g.arc[k] + g.arc_piece(th, th + step);
+        }
+        g
+    }
+
+    fn perimeter(&self) -> f64 {
+        self.arc[GERONO_NODES]
+    }
+
+    /// r′(θ), r″(θ), r‴(θ).
+    fn derivatives(&self, th: f64) -> [Vector2<f64>; 3] {
+        let (l, h) = (self.half_length, self.half_width);
+        let (s1, c1) = th.sin_cos();
+        let (s2, c2) = (2.0 * th).sin_cos();
+        [
+            Vector2::new(l * c1, 2.0 * h * c2),
+            Vector2::new(-l * s1, -4.0 * h * s2),
+            Vector2::new(-l * c1, -8.0 * h * c2),
+        ]
+    }
+
+    /// ∫ |r′| dθ over [a, b] (one table piece or less: the integrand is smooth, 16 nodes give
+    /// rounding-level accuracy).
+    fn arc_piece(&self, a: f64, b: f64) -> f64 {
+        gauss_legendre_16(a, b, |th| Vector2::new(self.derivatives(th)[0].norm(), 0.0)).x
+    }
+
+    /// θ ∈ [0, 2π) at arc length s ∈ [0, perimeter).
+    fn theta_at(&self, s: f64) -> f64 {
+        let k = self.arc.partition_point(|&a| a <= s).clamp(1, GERONO_NODES) - 1;
+        let step = TAU / GERONO_NODES as f64;
+        let th0 = step * k as f64;
+        let frac = (s - self.arc[k]) / (self.arc[k + 1] - self.arc[k]);
+        let mut th = th0 + step * frac;
+        for _ in 0..20 {
+            let err = self.arc[k] + self.arc_piece(th0, th) - s;
+            let d = err / self.derivatives(th)[0].norm();
+            th -= d;
+            // |r′| ≥ min speed scale > 0, so Newton converges quadratically from the linear guess.
+            if d.abs() < 1e-14 {
+                break;
+            }
+        }
+        th
+    }
+
+    fn planar(&self, tau: f64) -> Planar {
+        let s = (self.speed * tau).rem_euclid(self.perimeter());
+        let th = self.theta_at(s);
+        let [d1, d2, d3] = self.derivatives(th);
+        let (l, h) = (self.half_length, self.half_width);
+        let q = d1.norm();
+        let cross = d1.x * d2.y - d1.y * d2.x;
+        let kappa = cross / q.powi(3);
+        let q_dot = d1.dot(&d2) / q;
+        let cross_dot = d1.x * d3.y - d1.y * d3.x;
+        let kappa_theta = (cross_dot * q - 3.0 * cross * q_dot) / q.powi(4);
+        let kappa_s = kappa_theta / q;
+        let t = d1 / q;
+        let n = Vector2::new(-t.y, t.x);
+        let v0 = self.speed;
+        Planar {
+            p: Vector2::new(l * th.sin(), h * (2.0 * th).sin()),
+            v: t * v0,
+            a: n * (v0 * v0 * kappa),
+            j: n * (v0 * v0 * v0 * kappa_s) - t * (v0 * v0 * v0 * kappa * kappa),
+        }
+    }
+}
+
 /// 16-point Gauss–Legendre nodes on [−1, 1] and weights, by Newton iteration on P₁₆.
 fn gauss_legendre_nodes() -> &'static ([f64; 16], [f64; 16]) {
     static NODES: std::sync::OnceLock<([f64; 16], [f64; 16])> = std::sync::OnceLock::new();
@@ -582,17 +651,6 @@ fn gauss_legendre_16(a: f64, b: f64, f: impl Fn(f64) -> Vector2<f64>) -> Vector2
         sum += f(mid + half * x[i]) * w[i];
     }
     sum * half
-}
-
-/// Composite 16-point Gauss–Legendre over `pieces` equal sub-intervals (scalar).
-fn integrate(a: f64, b: f64, pieces: usize, f: impl Fn(f64) -> f64) -> f64 {
-    let h = (b - a) / pieces as f64;
-    (0..pieces)
-        .map(|i| {
-            let lo = a + h * i as f64;
-            gauss_legendre_16(lo, lo + h, |x| Vector2::new(f(x), 0.0)).x
-        })
-        .sum()
 }
 
 /// Body rate relative to the launch frame from Ψ and Ψ̇ (inverse of eq. 21.8), for callers that
@@ -815,19 +873,32 @@ mod tests {
         assert!((traj.period() - TAU * 300.0 / 25.0).abs() < 1e-9);
     }
 
+    /// The figure-eight is flown at the configured constant speed along the lemniscate of
+    /// Gerono: |v| = V everywhere, the positions lie on the curve, the chord sum over a period
+    /// equals V·period, and it crosses itself at the centre.
     #[test]
-    fn figure_eight_mean_speed_is_the_configured_speed() {
-        let cfg = all_cfgs().remove(3).1;
+    fn figure_eight_has_constant_speed_on_the_lemniscate() {
+        let mut cfg = all_cfgs().remove(3).1;
+        cfg.heading_deg = 0.0;
+        cfg.centre_ne_m = [0.0, 0.0];
+        cfg.phase = 0.0;
         let traj = Trajectory::new(&cfg).unwrap();
         let n = 20_000;
         let mut dist = 0.0;
         let mut prev = traj.kinematics(0.0).position;
+        let (hl, hw) = (750.0, 350.0);
         for i in 1..=n {
-            let p = traj
-                .kinematics(traj.period() * i as f64 / n as f64)
-                .position;
-            dist += (p - prev).xy().norm();
-            prev = p;
+            let k = traj.kinematics(traj.period() * i as f64 / n as f64);
+            assert!((k.velocity.xy().norm() - 25.0).abs() < 1e-12);
+            // On the curve: y = W/2·sin 2θ = 2·(W/2)·(x/(L/2))·cos θ ⇒ y² = W²x²(1 − x²/(L/2)²)/(L/2)².
+            let (x, y) = (k.position.x, k.position.y);
+            let u = x / hl;
+            assert!(
+                (y * y - 4.0 * hw * hw * u * u * (1.0 - u * u)).abs() < 1e-6,
+                "{x} {y}"
+            );
+            dist += (k.position - prev).xy().norm();
+            prev = k.position;
         }
         // The chord sum underestimates the arc by ~(chord κ)²/24 ≈ 1e-8 relative.
         assert!(
@@ -835,6 +906,11 @@ mod tests {
             "{}",
             dist / traj.period()
         );
+        assert!(
+            traj.kinematics(0.0).position.xy().norm() < 1e-9,
+            "starts at the crossing"
+        );
+        assert!(traj.kinematics(0.5 * traj.period()).position.xy().norm() < 1e-9);
     }
 
     #[test]
