@@ -397,8 +397,7 @@ fn sensor_respects_range_and_field_of_view() {
                     && az.abs() < 30f64.to_radians() - 1e-6
                     && el.abs() < 40f64.to_radians() - 1e-6;
                 let outside = p.x <= 0.0
-                    || r < 120.0 - 1e-6
-                    || r > 190.0 + 1e-6
+                    || !(120.0 - 1e-6..=190.0 + 1e-6).contains(&r)
                     || az.abs() > 30f64.to_radians() + 1e-6
                     || el.abs() > 40f64.to_radians() + 1e-6;
                 let seen = sf.true_ids.iter().position(|&id| id == f.id);
@@ -513,7 +512,7 @@ fn pixel_observations_stay_inside_the_image() {
             );
             let (u, vv) = (400.0 * p.y / p.x + 320.0, 400.0 * p.z / p.x + 240.0);
             assert!(p.x > 0.0 && (0.0..640.0).contains(&u) && (0.0..480.0).contains(&vv));
-            near_edge += usize::from(u < 40.0 || u > 600.0 || vv < 40.0 || vv > 440.0);
+            near_edge += usize::from(!(40.0..=600.0).contains(&u) || !(40.0..=440.0).contains(&vv));
             n += 1;
         }
     }

@@ -12,7 +12,7 @@ use rand_distr::StandardNormal;
 
 use super::imu::{ImuErrors, ImuIdeal, NavTruth, continuous_ideal, discrete_ideal};
 use super::sensor::{SensedFrame, TerrainSensor};
-use super::trajectory::Trajectory;
+use super::trajectory::{FlightState, Trajectory};
 use super::{World, rng_stream};
 use crate::scenario::{ImuSynthesis, ScenarioError, VehicleConfig};
 
@@ -249,10 +249,10 @@ impl VehicleSim {
         self.step += 1;
         // Times are k·Δt (no accumulated rounding).
         let time = self.step as f64 * self.dt;
+        let state = self.trajectory.state(time);
+        let nav = self.world.nav_truth(time, &state);
         let ideal = match self.synthesis {
-            ImuSynthesis::Discrete => {
-                discrete_ideal(self.world.frame(), &prev, &self.nav_truth_at(time))
-            }
+            ImuSynthesis::Discrete => discrete_ideal(self.world.frame(), &prev, &nav),
             ImuSynthesis::Continuous => continuous_ideal(
                 self.world.frame(),
                 self.world.launch_frame(),
@@ -260,8 +260,8 @@ impl VehicleSim {
             ),
         };
         let measured = self.imu.corrupt(&ideal);
-        self.truth = truth_at(&self.world, &self.trajectory, &self.imu, time);
-        let frame = (self.step % self.frame_every == 0).then(|| {
+        self.truth = truth_sample(&self.world, &state, &nav, &self.imu);
+        let frame = self.step.is_multiple_of(self.frame_every).then(|| {
             let nav = self.truth.nav();
             let world_from_body = self.world.world_from_body(&nav);
             let frame = self.world.frame();
@@ -355,7 +355,12 @@ fn draw_initial_estimate(
 /// Truth of a vehicle at `time` with the IMU's current biases.
 fn truth_at(world: &World, trajectory: &Trajectory, imu: &ImuErrors, time: f64) -> TruthSample {
     let s = trajectory.state(time);
-    let nav = world.nav_truth(time, &s);
+    truth_sample(world, &s, &world.nav_truth(time, &s), imu)
+}
+
+/// Assembles a truth sample from the launch-frame state, its frame image and the IMU biases.
+fn truth_sample(world: &World, s: &FlightState, nav: &NavTruth, imu: &ImuErrors) -> TruthSample {
+    let time = nav.time;
     TruthSample {
         time,
         frame: world.frame(),
