@@ -722,3 +722,19 @@ fn builtin_default_builds_and_observes() {
         assert!((100.0..=200.0).contains(&alt));
     }
 }
+
+/// A path that would fly into the terrain is rejected, naming the altitude.
+#[test]
+fn low_flight_is_rejected() {
+    let mut cfg = vehicle_cfg(lawnmower());
+    cfg.trajectory.altitude_m = 5.0;
+    match VehicleSim::new(&cfg, world(EarthModel::Flat, 1), 1) {
+        Err(crate::scenario::ScenarioError::Invalid { field, .. }) => {
+            assert_eq!(field, "trajectory.altitude_m")
+        }
+        other => panic!(
+            "expected a clearance error, got {:?}",
+            other.map(|v| v.name().to_owned())
+        ),
+    }
+}

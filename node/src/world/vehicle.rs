@@ -119,6 +119,7 @@ impl VehicleSim {
     pub fn new(cfg: &VehicleConfig, world: Arc<World>, seed: u64) -> Result<Self, ScenarioError> {
         cfg.validate_except_trajectory(world.frame())?;
         let trajectory = Trajectory::new(&cfg.trajectory).map_err(|e| e.within("trajectory"))?;
+        check_clearance(&trajectory, &world)?;
         let dt = 1.0 / cfg.imu.rate_hz;
         let frame_every = (cfg.imu.rate_hz / cfg.sensor.rate_hz).round() as u64;
         let imu = ImuErrors::new(
@@ -350,6 +351,33 @@ fn draw_initial_estimate(
         gyro_bias: Vector3::zeros(),
         covariance,
     }
+}
+
+/// Least height a trajectory must keep above the terrain [m] (features stand up to
+/// `max_height_above_ground_m` on it; the sensor needs some range).
+pub const MIN_CLEARANCE: f64 = 10.0;
+
+/// Rejects a trajectory that passes within [`MIN_CLEARANCE`] of the terrain, sampled at
+/// [`super::trajectory::ENVELOPE_SAMPLES`] points over a period.
+fn check_clearance(trajectory: &Trajectory, world: &World) -> Result<(), ScenarioError> {
+    let n = super::trajectory::ENVELOPE_SAMPLES;
+    let lowest = (0..n)
+        .map(|i| {
+            let p = trajectory
+                .kinematics(trajectory.period() * i as f64 / n as f64)
+                .position;
+            -p.z - world.terrain().height(p.x, p.y)
+        })
+        .fold(f64::INFINITY, f64::min);
+    if lowest < MIN_CLEARANCE {
+        return Err(ScenarioError::invalid(
+            "trajectory.altitude_m",
+            format!(
+                "the path comes within {lowest:.1} m of the terrain (at least {MIN_CLEARANCE} m)"
+            ),
+        ));
+    }
+    Ok(())
 }
 
 /// Truth of a vehicle at `time` with the IMU's current biases.
