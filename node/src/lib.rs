@@ -1,8 +1,16 @@
 //! canopy-node: the `canopy` binary's library.
 //!
 //! # Layout
+//! - [`scenario`]: the scenario TOML (`[world]`, `[[vehicle]]`): serde structs, defaults, the
+//!   built-in default scenario and validation with typed errors naming the field.
+//! - [`world`]: the world simulator — seeded terrain and features, analytic trajectories with
+//!   coordinated-flight attitude, IMU synthesis (discrete inverse of the mechanization or
+//!   continuous), the terrain sensor, and per-step truth; a pure, step-able library used by the
+//!   `world` process and by `canopy sim`.
 //! - [`record`]: what a run gathers (estimates vs truth, maps, link statistics, events).
 //! - [`output`]: summary.json, TUM trajectories, CSVs and report.html.
 
 pub mod output;
 pub mod record;
+pub mod scenario;
+pub mod world;

@@ -1,0 +1,1327 @@
+//! Scenario configuration: the `[world]` table and the `[[vehicle]]` array of a scenario TOML file.
+//!
+//! Every table is `deny_unknown_fields` (a typo is an error, not a silently ignored setting),
+//! every field has a documented default unless it is marked *required*, and
+//! [`Scenario::validate`] returns a typed [`ScenarioError::Invalid`] naming the offending field
+//! (e.g. `vehicle[2].sensor.max_range_m`) and the reason. Units are part of the field names.
+//!
+//! Later issues add `[fusion]`, `[[link]]` and `[faults]` tables next to these; the top-level
+//! [`Scenario`] is the only place that needs to grow.
+//!
+//! # Example
+//! ```toml
+//! [world]
+//! seed = 7
+//! earth_model = "wgs84"           # or "flat" (local SLAM)
+//! origin = { lat_deg = -33.87, lon_deg = 151.21, height_m = 60.0 }
+//! area = { size_north_m = 2400.0, size_east_m = 2400.0 }
+//! features = { count = 400, max_height_above_ground_m = 10.0 }
+//! terrain = { relief_m = 15.0 }
+//!
+//! [[vehicle]]
+//! id = 1
+//! name = "uav1"
+//! trajectory = { altitude_m = 150.0, speed_mps = 25.0, shape = { kind = "orbit", radius_m = 500.0 } }
+//! sensor = { model = { kind = "range_bearing", sigma_range_m = 0.5, sigma_bearing_deg = 0.2 } }
+//! imu = { grade = "tactical", rate_hz = 100.0 }
+//! ```
+
+use std::path::{Path, PathBuf};
+
+use canopy_fusion::imu::{ImuGrade, ImuNoise};
+use canopy_fusion::sensor::{CameraIntrinsics, SensorModel, SensorMount};
+use canopy_fusion::state::NavFrame;
+use nalgebra::{Matrix3, Vector3};
+use serde::{Deserialize, Serialize};
+
+/// A scenario's configuration error.
+#[derive(Debug, thiserror::Error)]
+pub enum ScenarioError {
+    /// The scenario file could not be read.
+    #[error("cannot read scenario {path}: {source}")]
+    Io {
+        /// The file.
+        path: PathBuf,
+        /// The I/O error.
+        source: std::io::Error,
+    },
+    /// The TOML did not parse or did not match the schema (unknown field, wrong type, …).
+    #[error("scenario TOML: {0}")]
+    Parse(#[from] toml::de::Error),
+    /// A field holds a value that is out of range or inconsistent with another field.
+    #[error("invalid `{field}`: {reason}")]
+    Invalid {
+        /// Dotted path of the field, e.g. `vehicle[2].sensor.max_range_m`.
+        field: String,
+        /// Why the value is rejected.
+        reason: String,
+    },
+}
+
+impl ScenarioError {
+    /// An [`ScenarioError::Invalid`] for `field`.
+    pub fn invalid(field: impl Into<String>, reason: impl Into<String>) -> Self {
+        Self::Invalid {
+            field: field.into(),
+            reason: reason.into(),
+        }
+    }
+
+    /// Prefixes the field path of an [`ScenarioError::Invalid`] with `prefix.` (other variants are
+    /// returned unchanged).
+    pub fn within(self, prefix: &str) -> Self {
+        match self {
+            Self::Invalid { field, reason } => Self::Invalid {
+                field: format!("{prefix}.{field}"),
+                reason,
+            },
+            other => other,
+        }
+    }
+}
+
+/// A whole scenario: the world and its vehicles.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Scenario {
+    /// The simulated world (`[world]`). Defaults to [`WorldConfig::default`].
+    #[serde(default)]
+    pub world: WorldConfig,
+    /// The vehicles (`[[vehicle]]`), at least one (*required*).
+    #[serde(rename = "vehicle")]
+    pub vehicles: Vec<VehicleConfig>,
+}
+
+impl Scenario {
+    /// Parses and validates a scenario from TOML text.
+    pub fn from_toml_str(text: &str) -> Result<Self, ScenarioError> {
+        let scenario: Scenario = toml::from_str(text)?;
+        scenario.validate()?;
+        Ok(scenario)
+    }
+
+    /// Reads, parses and validates a scenario file.
+    pub fn load(path: &Path) -> Result<Self, ScenarioError> {
+        let text = std::fs::read_to_string(path).map_err(|source| ScenarioError::Io {
+            path: path.to_path_buf(),
+            source,
+        })?;
+        Self::from_toml_str(&text)
+    }
+
+    /// The scenario as TOML text (round-trips through [`Scenario::from_toml_str`]).
+    pub fn to_toml_string(&self) -> String {
+        // Serialising plain data structs with string keys cannot fail.
+        toml::to_string_pretty(self).expect("scenario serialises to TOML")
+    }
+
+    /// The built-in default: four UAVs surveying a 2 km × 2 km area around a launch site near
+    /// Sydney at 120–180 m, range-bearing sensors looking down, tactical IMUs at 100 Hz, global
+    /// (ECEF, rotating WGS-84 Earth) frame. Two lawnmowers split the area west/east, an orbit and a
+    /// figure-eight cross both halves so that the vehicles' maps overlap.
+    pub fn builtin_default() -> Self {
+        let survey =
+            |id: u32, east: f64, altitude: f64, phase: f64, first_leg: f64| VehicleConfig {
+                id,
+                name: Some(format!("uav{id}")),
+                frame: None,
+                trajectory: TrajectoryConfig {
+                    centre_ne_m: [0.0, east],
+                    altitude_m: altitude,
+                    speed_mps: 25.0,
+                    phase,
+                    heading_deg: first_leg,
+                    shape: ShapeConfig::Lawnmower {
+                        leg_length_m: 1800.0,
+                        leg_spacing_m: 250.0,
+                        legs: 4,
+                        turn_ramp_fraction: default_turn_ramp_fraction(),
+                    },
+                    ..TrajectoryConfig::default()
+                },
+                sensor: SensorConfig::default(),
+                imu: ImuConfig::default(),
+                initial: InitialConfig::default(),
+            };
+        let mut orbit = survey(3, 0.0, 180.0, 0.25, 0.0);
+        orbit.trajectory.shape = ShapeConfig::Orbit {
+            radius_m: 650.0,
+            clockwise: true,
+        };
+        let mut eight = survey(4, 0.0, 140.0, 0.5, 45.0);
+        eight.trajectory.shape = ShapeConfig::FigureEight {
+            length_m: 1800.0,
+            width_m: 900.0,
+        };
+        Self {
+            world: WorldConfig::default(),
+            vehicles: vec![
+                survey(1, -500.0, 120.0, 0.0, 0.0),
+                survey(2, 500.0, 160.0, 0.5, 180.0),
+                orbit,
+                eight,
+            ],
+        }
+    }
+
+    /// Checks every field and cross-field constraint (including ones that need the trajectory
+    /// built, such as the bank angle its turns require).
+    pub fn validate(&self) -> Result<(), ScenarioError> {
+        self.world.validate().map_err(|e| e.within("world"))?;
+        if self.vehicles.is_empty() {
+            return Err(ScenarioError::invalid(
+                "vehicle",
+                "a scenario needs at least one [[vehicle]]",
+            ));
+        }
+        let world_frame = self.world.earth_model.frame();
+        for (i, v) in self.vehicles.iter().enumerate() {
+            let prefix = format!("vehicle[{i}]");
+            v.validate(world_frame).map_err(|e| e.within(&prefix))?;
+            for (j, other) in self.vehicles[..i].iter().enumerate() {
+                if other.id == v.id {
+                    return Err(ScenarioError::invalid(
+                        format!("{prefix}.id"),
+                        format!("id {} is already used by vehicle[{j}]", v.id),
+                    ));
+                }
+                if other.display_name() == v.display_name() {
+                    return Err(ScenarioError::invalid(
+                        format!("{prefix}.name"),
+                        format!(
+                            "name `{}` is already used by vehicle[{j}]",
+                            v.display_name()
+                        ),
+                    ));
+                }
+            }
+        }
+        Ok(())
+    }
+}
+
+/// The physics of the simulated world, which fixes the navigation frame of every vehicle.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "snake_case")]
+pub enum EarthModel {
+    /// Rotating WGS-84 Earth, normal gravity; vehicles run global (ECEF) SLAM.
+    #[default]
+    Wgs84,
+    /// Flat, non-rotating world with constant gravity `geodesy::LOCAL_GRAVITY` (the chapter's
+    /// local-SLAM assumptions, §21.2.2.1); vehicles run local (launch-site NED) SLAM.
+    Flat,
+}
+
+impl EarthModel {
+    /// The navigation frame the vehicles of this world use.
+    pub fn frame(self) -> NavFrame {
+        match self {
+            EarthModel::Wgs84 => NavFrame::Global,
+            EarthModel::Flat => NavFrame::Local,
+        }
+    }
+}
+
+/// `[world]`: launch site, feature area, terrain and features.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct WorldConfig {
+    /// Master seed of the run: terrain, features and (through [`crate::world::vehicle_seed`])
+    /// every vehicle's noise streams derive from it. Default 1. TOML integers are limited to
+    /// 0..2⁶³.
+    pub seed: u64,
+    /// Earth model, `"wgs84"` (global SLAM) or `"flat"` (local SLAM). Default `"wgs84"`.
+    pub earth_model: EarthModel,
+    /// Launch site: origin of the shared local NED frame. Default −33.87°, 151.21°, 60 m.
+    pub origin: OriginConfig,
+    /// The rectangle (in launch NED) where terrain features are scattered.
+    pub area: AreaConfig,
+    /// How many features and how high above the ground.
+    pub features: FeatureConfig,
+    /// The smooth seeded terrain surface the features sit on.
+    pub terrain: TerrainConfig,
+}
+
+impl Default for WorldConfig {
+    fn default() -> Self {
+        Self {
+            seed: 1,
+            earth_model: EarthModel::default(),
+            origin: OriginConfig::default(),
+            area: AreaConfig::default(),
+            features: FeatureConfig::default(),
+            terrain: TerrainConfig::default(),
+        }
+    }
+}
+
+impl WorldConfig {
+    /// Field checks of `[world]` (paths relative to `world`).
+    pub fn validate(&self) -> Result<(), ScenarioError> {
+        let o = &self.origin;
+        in_range(
+            "origin.lat_deg",
+            o.lat_deg,
+            -85.0,
+            85.0,
+            "the local NED frame degenerates near the poles",
+        )?;
+        in_range("origin.lon_deg", o.lon_deg, -180.0, 180.0, "longitude")?;
+        in_range(
+            "origin.height_m",
+            o.height_m,
+            -500.0,
+            10_000.0,
+            "height above the ellipsoid",
+        )?;
+        let a = &self.area;
+        finite("area.centre_north_m", a.centre_north_m)?;
+        finite("area.centre_east_m", a.centre_east_m)?;
+        positive_at_most("area.size_north_m", a.size_north_m, 200_000.0)?;
+        positive_at_most("area.size_east_m", a.size_east_m, 200_000.0)?;
+        let f = &self.features;
+        match (f.count, f.density_per_km2) {
+            (Some(_), Some(_)) => {
+                return Err(ScenarioError::invalid(
+                    "features",
+                    "give either `count` or `density_per_km2`, not both",
+                ));
+            }
+            (None, None) => {
+                return Err(ScenarioError::invalid(
+                    "features",
+                    "give `count` or `density_per_km2`",
+                ));
+            }
+            (Some(n), None) if n == 0 || n > MAX_FEATURES => {
+                return Err(ScenarioError::invalid(
+                    "features.count",
+                    format!("must be in 1..={MAX_FEATURES}"),
+                ));
+            }
+            (None, Some(d)) => positive_at_most("features.density_per_km2", d, 1e5)?,
+            _ => {}
+        }
+        let n = self.feature_count();
+        if n == 0 || n > MAX_FEATURES {
+            return Err(ScenarioError::invalid(
+                "features.density_per_km2",
+                format!("gives {n} features over the area; must be in 1..={MAX_FEATURES}"),
+            ));
+        }
+        non_negative_at_most(
+            "features.max_height_above_ground_m",
+            f.max_height_above_ground_m,
+            1000.0,
+        )?;
+        let t = &self.terrain;
+        non_negative_at_most("terrain.relief_m", t.relief_m, 2000.0)?;
+        positive_at_most("terrain.min_wavelength_m", t.min_wavelength_m, 1e6)?;
+        positive_at_most("terrain.max_wavelength_m", t.max_wavelength_m, 1e6)?;
+        if t.max_wavelength_m < t.min_wavelength_m {
+            return Err(ScenarioError::invalid(
+                "terrain.max_wavelength_m",
+                "must not be below terrain.min_wavelength_m",
+            ));
+        }
+        if t.components == 0 || t.components > 4096 {
+            return Err(ScenarioError::invalid(
+                "terrain.components",
+                "must be in 1..=4096",
+            ));
+        }
+        Ok(())
+    }
+
+    /// Number of features: `features.count`, or the density times the area, rounded.
+    pub fn feature_count(&self) -> usize {
+        match (self.features.count, self.features.density_per_km2) {
+            (Some(n), _) => n,
+            (None, Some(d)) => {
+                let km2 = self.area.size_north_m * self.area.size_east_m * 1e-6;
+                let n = (d * km2).round();
+                if n.is_finite() && n >= 0.0 && n <= (MAX_FEATURES + 1) as f64 {
+                    n as usize
+                } else {
+                    MAX_FEATURES + 1
+                }
+            }
+            (None, None) => 0,
+        }
+    }
+}
+
+/// Upper bound on the number of features of a world (memory and per-frame search cost).
+pub const MAX_FEATURES: usize = 1_000_000;
+
+/// `[world.origin]`: the launch site, origin of the shared local NED frame.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct OriginConfig {
+    /// Geodetic latitude [deg], within ±85. Default −33.87.
+    pub lat_deg: f64,
+    /// Longitude [deg], within ±180. Default 151.21.
+    pub lon_deg: f64,
+    /// Height above the WGS-84 ellipsoid [m]. Default 60.
+    pub height_m: f64,
+}
+
+impl Default for OriginConfig {
+    fn default() -> Self {
+        Self {
+            lat_deg: -33.87,
+            lon_deg: 151.21,
+            height_m: 60.0,
+        }
+    }
+}
+
+/// `[world.area]`: rectangle of the launch NED frame (north × east) where features lie.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct AreaConfig {
+    /// North coordinate of the rectangle's centre [m]. Default 0.
+    pub centre_north_m: f64,
+    /// East coordinate of the rectangle's centre [m]. Default 0.
+    pub centre_east_m: f64,
+    /// North–south extent [m], > 0. Default 2400 (the 2 km survey plus a margin).
+    pub size_north_m: f64,
+    /// East–west extent [m], > 0. Default 2400.
+    pub size_east_m: f64,
+}
+
+impl Default for AreaConfig {
+    fn default() -> Self {
+        Self {
+            centre_north_m: 0.0,
+            centre_east_m: 0.0,
+            size_north_m: 2400.0,
+            size_east_m: 2400.0,
+        }
+    }
+}
+
+/// `[world.features]`: give exactly one of `count` and `density_per_km2`.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct FeatureConfig {
+    /// Number of features. Default 400 (≈ 70 per km², 5–8 in a default sensor's footprint).
+    pub count: Option<usize>,
+    /// Features per km² of the area (alternative to `count`).
+    pub density_per_km2: Option<f64>,
+    /// Features are objects standing on the terrain: each sits a uniform random height in
+    /// [0, this] above the ground [m]. Default 10.
+    pub max_height_above_ground_m: f64,
+}
+
+impl Default for FeatureConfig {
+    fn default() -> Self {
+        Self {
+            count: Some(400),
+            density_per_km2: None,
+            max_height_above_ground_m: 10.0,
+        }
+    }
+}
+
+/// `[world.terrain]`: a smooth seeded surface, a sum of `components` plane waves with random
+/// directions and phases, wavelengths log-uniform in [min, max], amplitudes proportional to the
+/// wavelength (equal slopes), scaled to the requested RMS height and shifted so the launch site is
+/// at height 0.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct TerrainConfig {
+    /// RMS terrain height over the plane [m], ≥ 0 (0: flat ground). Default 15.
+    pub relief_m: f64,
+    /// Shortest wavelength [m], > 0. Default 150.
+    pub min_wavelength_m: f64,
+    /// Longest wavelength [m], ≥ min. Default 3000.
+    pub max_wavelength_m: f64,
+    /// Number of plane-wave components, 1..=4096. Default 24.
+    pub components: usize,
+}
+
+impl Default for TerrainConfig {
+    fn default() -> Self {
+        Self {
+            relief_m: 15.0,
+            min_wavelength_m: 150.0,
+            max_wavelength_m: 3000.0,
+            components: 24,
+        }
+    }
+}
+
+/// `[[vehicle]]`: one UAV.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct VehicleConfig {
+    /// Unique vehicle id (*required*). Also selects the vehicle's random streams.
+    pub id: u32,
+    /// Unique name used in outputs and process names. Default `uav<id>`.
+    #[serde(default)]
+    pub name: Option<String>,
+    /// Navigation frame; when given it must match the world's `earth_model` (`"global"` for
+    /// `"wgs84"`, `"local"` for `"flat"`). Default: the world's.
+    #[serde(default)]
+    pub frame: Option<NavFrame>,
+    /// Flight path (*required*).
+    pub trajectory: TrajectoryConfig,
+    /// Terrain sensor. Default [`SensorConfig::default`].
+    #[serde(default)]
+    pub sensor: SensorConfig,
+    /// Inertial measurement unit. Default [`ImuConfig::default`].
+    #[serde(default)]
+    pub imu: ImuConfig,
+    /// Initial estimate uncertainty. Default [`InitialConfig::default`].
+    #[serde(default)]
+    pub initial: InitialConfig,
+}
+
+impl VehicleConfig {
+    /// The vehicle's name: `name`, or `uav<id>`.
+    pub fn display_name(&self) -> String {
+        self.name
+            .clone()
+            .unwrap_or_else(|| format!("uav{}", self.id))
+    }
+
+    /// Field checks of one vehicle (paths relative to the vehicle) in a world whose Earth model
+    /// implies `world_frame`, including building the trajectory (bank-angle limit).
+    pub fn validate(&self, world_frame: NavFrame) -> Result<(), ScenarioError> {
+        self.validate_except_trajectory(world_frame)?;
+        crate::world::trajectory::Trajectory::new(&self.trajectory)
+            .map_err(|e| e.within("trajectory"))?;
+        Ok(())
+    }
+
+    /// [`VehicleConfig::validate`] without building the trajectory (for callers that build it
+    /// themselves and get its errors there).
+    pub fn validate_except_trajectory(&self, world_frame: NavFrame) -> Result<(), ScenarioError> {
+        if let Some(name) = &self.name
+            && (name.is_empty()
+                || !name
+                    .chars()
+                    .all(|c| c.is_ascii_alphanumeric() || c == '_' || c == '-'))
+        {
+            return Err(ScenarioError::invalid(
+                "name",
+                "must be non-empty ASCII letters, digits, `_` or `-` (it names files and services)",
+            ));
+        }
+        if let Some(frame) = self.frame
+            && frame != world_frame
+        {
+            return Err(ScenarioError::invalid(
+                "frame",
+                format!(
+                    "`{frame}` does not match the world's earth_model, which implies `{world_frame}`"
+                ),
+            ));
+        }
+        self.imu.validate().map_err(|e| e.within("imu"))?;
+        self.sensor
+            .validate(self.imu.rate_hz)
+            .map_err(|e| e.within("sensor"))?;
+        self.initial.validate().map_err(|e| e.within("initial"))?;
+        Ok(())
+    }
+}
+
+/// `[vehicle.trajectory]`: the flight path, defined in the launch site's NED frame.
+///
+/// The horizontal pattern (`shape`) is laid out in a pattern frame whose x axis points along
+/// `heading_deg` (clockwise from north) and is centred on `centre_ne_m`; the vehicle flies at
+/// `altitude_m` above the launch site plus an optional sinusoidal climb. Attitude follows from
+/// coordinated flight (see [`crate::world::trajectory`]).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct TrajectoryConfig {
+    /// Pattern centre (north, east) in launch NED [m]. Default (0, 0).
+    pub centre_ne_m: [f64; 2],
+    /// Mean height above the launch site [m], > 0. Default 150.
+    pub altitude_m: f64,
+    /// Horizontal ground speed [m/s] in (0, 150], constant along every pattern. Default 25.
+    pub speed_mps: f64,
+    /// Start phase as a fraction of the pattern's period, in [0, 1). Default 0.
+    pub phase: f64,
+    /// Direction of the pattern's x axis (lawnmower legs, figure-eight long axis; where the orbit
+    /// starts), clockwise from north [deg]. Default 0.
+    pub heading_deg: f64,
+    /// Amplitude of a sinusoidal altitude variation [m], ≥ 0 and below `altitude_m`. Default 0.
+    pub climb_amplitude_m: f64,
+    /// Period of that variation [s], > 0. Default 120.
+    pub climb_period_s: f64,
+    /// The horizontal pattern. Default: a lawnmower.
+    pub shape: ShapeConfig,
+}
+
+impl Default for TrajectoryConfig {
+    fn default() -> Self {
+        Self {
+            centre_ne_m: [0.0, 0.0],
+            altitude_m: 150.0,
+            speed_mps: 25.0,
+            phase: 0.0,
+            heading_deg: 0.0,
+            climb_amplitude_m: 0.0,
+            climb_period_s: 120.0,
+            shape: ShapeConfig::default(),
+        }
+    }
+}
+
+/// `[vehicle.trajectory.shape]`: the horizontal pattern, tagged by `kind`.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "kind", rename_all = "snake_case", deny_unknown_fields)]
+pub enum ShapeConfig {
+    /// Survey pattern: `legs` parallel legs of `leg_length_m`, `leg_spacing_m` apart, joined by
+    /// 180° turns whose curvature ramps smoothly in and out; flown back and forth over the legs
+    /// (0, 1, …, n−1, n−2, …, 1, 0, …) so the pattern is periodic and revisits old ground. The
+    /// turn size follows from the spacing; its bank angle must stay below 60°.
+    Lawnmower {
+        /// Length of each straight leg [m], > 0.
+        leg_length_m: f64,
+        /// Distance between adjacent legs [m], > 0.
+        leg_spacing_m: f64,
+        /// Number of legs, ≥ 2.
+        legs: u32,
+        /// Fraction of each turn's arc length spent ramping the curvature up (and the same
+        /// fraction ramping it down), in (0, 0.5]. Default 0.4.
+        #[serde(default = "default_turn_ramp_fraction")]
+        turn_ramp_fraction: f64,
+    },
+    /// Circle of `radius_m` around the centre.
+    Orbit {
+        /// Radius [m], > 0.
+        radius_m: f64,
+        /// Clockwise seen from above (right turns). Default true.
+        #[serde(default = "default_true")]
+        clockwise: bool,
+    },
+    /// Lemniscate of Gerono x = L/2·sin θ, y = W/2·sin 2θ (pattern frame), flown at constant
+    /// speed; it starts at the crossing heading along +x and +y.
+    FigureEight {
+        /// Extent along the pattern x axis [m], > 0.
+        length_m: f64,
+        /// Extent across [m], > 0.
+        width_m: f64,
+    },
+}
+
+impl Default for ShapeConfig {
+    fn default() -> Self {
+        ShapeConfig::Lawnmower {
+            leg_length_m: 1800.0,
+            leg_spacing_m: 250.0,
+            legs: 5,
+            turn_ramp_fraction: default_turn_ramp_fraction(),
+        }
+    }
+}
+
+fn default_turn_ramp_fraction() -> f64 {
+    0.4
+}
+
+fn default_true() -> bool {
+    true
+}
+
+/// Which way a sensor is mounted on the body.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "snake_case")]
+pub enum MountOrientation {
+    /// Boresight along body z (down), image "down" towards the tail ([`SensorMount::downward`]).
+    #[default]
+    Down,
+    /// Boresight along body x (forward): sensor frame = body frame.
+    Forward,
+}
+
+/// `[vehicle.sensor]`: the terrain sensor.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct SensorConfig {
+    /// Measurement model and noise. Default: range-bearing, σ 0.5 m and 0.2°.
+    pub model: SensorModelConfig,
+    /// Frame rate [Hz], > 0; the IMU rate must be an integer multiple of it. Default 2.
+    pub rate_hz: f64,
+    /// Mounting orientation. Default `"down"`.
+    pub orientation: MountOrientation,
+    /// Lever arm p_sb^b: sensor origin from the centre of mass, body axes [m]. Default
+    /// (0.3, 0, 0.1).
+    pub lever_arm_m: [f64; 3],
+    /// Features nearer than this are not seen [m], ≥ 0. Default 10.
+    pub min_range_m: f64,
+    /// Features farther than this are not seen [m], > min. Default 500.
+    pub max_range_m: f64,
+    /// Field of view: |azimuth| (eq. 21.41, atan(y^s/x^s)) at most this [deg], in (0, 90).
+    /// Default 45. Pixel sensors must in addition project inside the image.
+    pub half_fov_azimuth_deg: f64,
+    /// Field of view: |elevation| (eq. 21.41) at most this [deg], in (0, 90). Default 45.
+    pub half_fov_elevation_deg: f64,
+    /// At most this many observations per frame, nearest first, ≥ 1. Default 8.
+    pub max_observations: usize,
+    /// Probability that an observation's descriptor is wrong, in [0, 1]. Default 0.
+    pub mismatch_probability: f64,
+    /// Of the wrong descriptors, the fraction that are random ids naming no feature (the rest
+    /// name another, real feature), in [0, 1]. Default 0.5.
+    pub mismatch_random_id_fraction: f64,
+}
+
+impl Default for SensorConfig {
+    fn default() -> Self {
+        Self {
+            model: SensorModelConfig::default(),
+            rate_hz: 2.0,
+            orientation: MountOrientation::Down,
+            lever_arm_m: [0.3, 0.0, 0.1],
+            min_range_m: 10.0,
+            max_range_m: 500.0,
+            half_fov_azimuth_deg: 45.0,
+            half_fov_elevation_deg: 45.0,
+            max_observations: 8,
+            mismatch_probability: 0.0,
+            mismatch_random_id_fraction: 0.5,
+        }
+    }
+}
+
+impl SensorConfig {
+    /// The estimator-facing sensor model.
+    pub fn model(&self) -> SensorModel {
+        self.model.model()
+    }
+
+    /// The estimator-facing mount (C_b^s and the lever arm of eq. 21.45).
+    pub fn mount(&self) -> SensorMount {
+        let lever = Vector3::from(self.lever_arm_m);
+        match self.orientation {
+            MountOrientation::Down => SensorMount::downward(lever),
+            MountOrientation::Forward => SensorMount {
+                sensor_from_body: Matrix3::identity(),
+                lever_arm_body: lever,
+            },
+        }
+    }
+
+    /// Field checks (paths relative to `sensor`); `imu_rate_hz` must be a multiple of the rate.
+    pub fn validate(&self, imu_rate_hz: f64) -> Result<(), ScenarioError> {
+        self.model.validate().map_err(|e| e.within("model"))?;
+        positive_at_most("rate_hz", self.rate_hz, 1000.0)?;
+        let ratio = imu_rate_hz / self.rate_hz;
+        // Rates are user-typed decimals: 1e-9 relative slack absorbs their binary rounding only.
+        if (ratio - ratio.round()).abs() > 1e-9 * ratio || ratio.round() < 1.0 {
+            return Err(ScenarioError::invalid(
+                "rate_hz",
+                format!("the IMU rate {imu_rate_hz} Hz must be an integer multiple of it"),
+            ));
+        }
+        for (i, l) in self.lever_arm_m.iter().enumerate() {
+            in_range(&format!("lever_arm_m[{i}]"), *l, -100.0, 100.0, "lever arm")?;
+        }
+        non_negative_at_most("min_range_m", self.min_range_m, 1e6)?;
+        positive_at_most("max_range_m", self.max_range_m, 1e6)?;
+        if self.max_range_m <= self.min_range_m {
+            return Err(ScenarioError::invalid(
+                "max_range_m",
+                "must exceed min_range_m",
+            ));
+        }
+        for (name, v) in [
+            ("half_fov_azimuth_deg", self.half_fov_azimuth_deg),
+            ("half_fov_elevation_deg", self.half_fov_elevation_deg),
+        ] {
+            if !(v > 0.0 && v < 90.0) {
+                return Err(ScenarioError::invalid(name, "must be in (0, 90) degrees"));
+            }
+        }
+        if self.max_observations == 0 {
+            return Err(ScenarioError::invalid(
+                "max_observations",
+                "must be at least 1",
+            ));
+        }
+        in_range(
+            "mismatch_probability",
+            self.mismatch_probability,
+            0.0,
+            1.0,
+            "a probability",
+        )?;
+        in_range(
+            "mismatch_random_id_fraction",
+            self.mismatch_random_id_fraction,
+            0.0,
+            1.0,
+            "a fraction",
+        )?;
+        Ok(())
+    }
+}
+
+/// `[vehicle.sensor.model]`: measurement kind and noise, tagged by `kind`.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "kind", rename_all = "snake_case", deny_unknown_fields)]
+pub enum SensorModelConfig {
+    /// Range, azimuth, elevation (eq. 21.41).
+    RangeBearing {
+        /// Range noise σ [m], ≥ 0.
+        sigma_range_m: f64,
+        /// Azimuth and elevation noise σ [deg], ≥ 0.
+        sigma_bearing_deg: f64,
+    },
+    /// Azimuth, elevation (eq. 21.42).
+    Bearing {
+        /// Azimuth and elevation noise σ [deg], ≥ 0.
+        sigma_bearing_deg: f64,
+    },
+    /// Pinhole camera pixels (eq. 21.43).
+    Pixel {
+        /// Focal length along u [px], > 0.
+        fu_px: f64,
+        /// Focal length along v [px], > 0.
+        fv_px: f64,
+        /// Principal point u_0 [px].
+        u0_px: f64,
+        /// Principal point v_0 [px].
+        v0_px: f64,
+        /// Image width [px], > 0 (valid u in [0, width)).
+        width_px: f64,
+        /// Image height [px], > 0 (valid v in [0, height)).
+        height_px: f64,
+        /// Pixel noise σ [px], ≥ 0.
+        sigma_px: f64,
+    },
+}
+
+impl Default for SensorModelConfig {
+    fn default() -> Self {
+        SensorModelConfig::RangeBearing {
+            sigma_range_m: 0.5,
+            sigma_bearing_deg: 0.2,
+        }
+    }
+}
+
+impl SensorModelConfig {
+    /// The estimator-facing model (angles converted to radians).
+    pub fn model(&self) -> SensorModel {
+        match *self {
+            SensorModelConfig::RangeBearing {
+                sigma_range_m,
+                sigma_bearing_deg,
+            } => SensorModel::RangeBearing {
+                sigma_range: sigma_range_m,
+                sigma_bearing: sigma_bearing_deg.to_radians(),
+            },
+            SensorModelConfig::Bearing { sigma_bearing_deg } => SensorModel::Bearing {
+                sigma_bearing: sigma_bearing_deg.to_radians(),
+            },
+            SensorModelConfig::Pixel {
+                fu_px,
+                fv_px,
+                u0_px,
+                v0_px,
+                width_px,
+                height_px,
+                sigma_px,
+            } => SensorModel::Pixel {
+                camera: CameraIntrinsics {
+                    fu: fu_px,
+                    fv: fv_px,
+                    u0: u0_px,
+                    v0: v0_px,
+                    width: width_px,
+                    height: height_px,
+                },
+                sigma_pixel: sigma_px,
+            },
+        }
+    }
+
+    fn validate(&self) -> Result<(), ScenarioError> {
+        match *self {
+            SensorModelConfig::RangeBearing {
+                sigma_range_m,
+                sigma_bearing_deg,
+            } => {
+                non_negative_at_most("sigma_range_m", sigma_range_m, 1e4)?;
+                non_negative_at_most("sigma_bearing_deg", sigma_bearing_deg, 30.0)?;
+            }
+            SensorModelConfig::Bearing { sigma_bearing_deg } => {
+                non_negative_at_most("sigma_bearing_deg", sigma_bearing_deg, 30.0)?;
+            }
+            SensorModelConfig::Pixel {
+                fu_px,
+                fv_px,
+                u0_px,
+                v0_px,
+                width_px,
+                height_px,
+                sigma_px,
+            } => {
+                positive_at_most("fu_px", fu_px, 1e6)?;
+                positive_at_most("fv_px", fv_px, 1e6)?;
+                positive_at_most("width_px", width_px, 1e6)?;
+                positive_at_most("height_px", height_px, 1e6)?;
+                finite("u0_px", u0_px)?;
+                finite("v0_px", v0_px)?;
+                non_negative_at_most("sigma_px", sigma_px, 1e3)?;
+            }
+        }
+        Ok(())
+    }
+}
+
+/// How the noise-free IMU sample of an interval (t_{k−1}, t_k] is synthesised from the truth.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "snake_case")]
+pub enum ImuSynthesis {
+    /// Invert the estimator's discrete mechanization on the truth at t_{k−1} and t_k: a perfect
+    /// IMU then reproduces the true velocity and attitude exactly through that mechanization.
+    #[default]
+    Discrete,
+    /// Evaluate the continuous-time specific force and body rate of the analytic trajectory at
+    /// the interval midpoint: independent of the discrete formulas, so it exposes sign errors
+    /// that two implementations of the same discrete formula would share.
+    Continuous,
+}
+
+/// `[vehicle.imu]`: grade, rate, synthesis.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct ImuConfig {
+    /// Named grade (`navigation`, `tactical`, `consumer`, `perfect`). Default `tactical`.
+    pub grade: ImuGrade,
+    /// Sample rate [Hz], in (0, 10000]. Default 100.
+    pub rate_hz: f64,
+    /// Noise-free sample synthesis. Default `discrete`.
+    pub synthesis: ImuSynthesis,
+    /// Replaces the grade's noise figures when given.
+    pub noise: Option<ImuNoiseConfig>,
+}
+
+impl Default for ImuConfig {
+    fn default() -> Self {
+        Self {
+            grade: ImuGrade::Tactical,
+            rate_hz: 100.0,
+            synthesis: ImuSynthesis::Discrete,
+            noise: None,
+        }
+    }
+}
+
+impl ImuConfig {
+    /// The effective noise model: the override, or the grade's.
+    pub fn noise_model(&self) -> ImuNoise {
+        match &self.noise {
+            Some(n) => ImuNoise {
+                accel_noise_density: n.accel_noise_density,
+                gyro_noise_density: n.gyro_noise_density,
+                accel_bias_rw_density: n.accel_bias_rw_density,
+                gyro_bias_rw_density: n.gyro_bias_rw_density,
+                accel_bias_sigma: n.accel_bias_sigma,
+                gyro_bias_sigma: n.gyro_bias_sigma,
+            },
+            None => self.grade.noise(),
+        }
+    }
+
+    /// Field checks (paths relative to `imu`).
+    pub fn validate(&self) -> Result<(), ScenarioError> {
+        positive_at_most("rate_hz", self.rate_hz, 10_000.0)?;
+        if let Some(n) = &self.noise {
+            for (name, v) in [
+                ("noise.accel_noise_density", n.accel_noise_density),
+                ("noise.gyro_noise_density", n.gyro_noise_density),
+                ("noise.accel_bias_rw_density", n.accel_bias_rw_density),
+                ("noise.gyro_bias_rw_density", n.gyro_bias_rw_density),
+                ("noise.accel_bias_sigma", n.accel_bias_sigma),
+                ("noise.gyro_bias_sigma", n.gyro_bias_sigma),
+            ] {
+                non_negative_at_most(name, v, 100.0)?;
+            }
+        }
+        Ok(())
+    }
+}
+
+/// `[vehicle.imu.noise]`: explicit noise figures (all required when the table is present);
+/// see [`ImuNoise`] for units.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ImuNoiseConfig {
+    /// Accelerometer white-noise density [m/s²/√Hz].
+    pub accel_noise_density: f64,
+    /// Gyro white-noise density [rad/s/√Hz].
+    pub gyro_noise_density: f64,
+    /// Accelerometer bias random-walk density [m/s³/√Hz].
+    pub accel_bias_rw_density: f64,
+    /// Gyro bias random-walk density [rad/s²/√Hz].
+    pub gyro_bias_rw_density: f64,
+    /// 1-σ turn-on accelerometer bias [m/s²].
+    pub accel_bias_sigma: f64,
+    /// 1-σ turn-on gyro bias [rad/s].
+    pub gyro_bias_sigma: f64,
+}
+
+/// `[vehicle.initial]`: the initial estimate's uncertainty. It sets the estimator's initial
+/// covariance and, with `draw_offset`, the distribution the initial truth-minus-estimate offset is
+/// drawn from (so the initial error is consistent with the covariance). Bias uncertainty comes
+/// from the IMU's turn-on σ.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct InitialConfig {
+    /// Position σ along the vehicle's local north, east, down [m], ≥ 0. Default (2, 2, 3).
+    pub position_sigma_m: [f64; 3],
+    /// Velocity σ along north, east, down [m/s], ≥ 0. Default (0.1, 0.1, 0.1).
+    pub velocity_sigma_mps: [f64; 3],
+    /// Roll, pitch, yaw σ [deg], ≥ 0. Default (0.2, 0.2, 0.5).
+    pub attitude_sigma_deg: [f64; 3],
+    /// Draw the initial estimate's offset from these σ (otherwise the estimate starts at the
+    /// truth, with the same covariance). Default true.
+    pub draw_offset: bool,
+}
+
+impl Default for InitialConfig {
+    fn default() -> Self {
+        Self {
+            position_sigma_m: [2.0, 2.0, 3.0],
+            velocity_sigma_mps: [0.1, 0.1, 0.1],
+            attitude_sigma_deg: [0.2, 0.2, 0.5],
+            draw_offset: true,
+        }
+    }
+}
+
+impl InitialConfig {
+    /// Field checks (paths relative to `initial`).
+    pub fn validate(&self) -> Result<(), ScenarioError> {
+        for i in 0..3 {
+            non_negative_at_most(
+                &format!("position_sigma_m[{i}]"),
+                self.position_sigma_m[i],
+                1e5,
+            )?;
+            non_negative_at_most(
+                &format!("velocity_sigma_mps[{i}]"),
+                self.velocity_sigma_mps[i],
+                1e3,
+            )?;
+            non_negative_at_most(
+                &format!("attitude_sigma_deg[{i}]"),
+                self.attitude_sigma_deg[i],
+                30.0,
+            )?;
+        }
+        Ok(())
+    }
+}
+
+/// Finite value check.
+pub(crate) fn finite(field: &str, v: f64) -> Result<(), ScenarioError> {
+    if v.is_finite() {
+        Ok(())
+    } else {
+        Err(ScenarioError::invalid(
+            field,
+            format!("must be finite, got {v}"),
+        ))
+    }
+}
+
+/// `lo ≤ v ≤ hi` (finite) check.
+pub(crate) fn in_range(
+    field: &str,
+    v: f64,
+    lo: f64,
+    hi: f64,
+    what: &str,
+) -> Result<(), ScenarioError> {
+    if v.is_finite() && v >= lo && v <= hi {
+        Ok(())
+    } else {
+        Err(ScenarioError::invalid(
+            field,
+            format!("{what}: must be in [{lo}, {hi}], got {v}"),
+        ))
+    }
+}
+
+/// `0 < v ≤ hi` check.
+pub(crate) fn positive_at_most(field: &str, v: f64, hi: f64) -> Result<(), ScenarioError> {
+    if v.is_finite() && v > 0.0 && v <= hi {
+        Ok(())
+    } else {
+        Err(ScenarioError::invalid(
+            field,
+            format!("must be positive and at most {hi}, got {v}"),
+        ))
+    }
+}
+
+/// `0 ≤ v ≤ hi` check.
+pub(crate) fn non_negative_at_most(field: &str, v: f64, hi: f64) -> Result<(), ScenarioError> {
+    if v.is_finite() && (0.0..=hi).contains(&v) {
+        Ok(())
+    } else {
+        Err(ScenarioError::invalid(
+            field,
+            format!("must be in [0, {hi}], got {v}"),
+        ))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The example of the module documentation, verbatim.
+    const DOC_EXAMPLE: &str = r#"
+[world]
+seed = 7
+earth_model = "wgs84"           # or "flat" (local SLAM)
+origin = { lat_deg = -33.87, lon_deg = 151.21, height_m = 60.0 }
+area = { size_north_m = 2400.0, size_east_m = 2400.0 }
+features = { count = 400, max_height_above_ground_m = 10.0 }
+terrain = { relief_m = 15.0 }
+
+[[vehicle]]
+id = 1
+name = "uav1"
+trajectory = { altitude_m = 150.0, speed_mps = 25.0, shape = { kind = "orbit", radius_m = 500.0 } }
+sensor = { model = { kind = "range_bearing", sigma_range_m = 0.5, sigma_bearing_deg = 0.2 } }
+imu = { grade = "tactical", rate_hz = 100.0 }
+"#;
+
+    /// A small valid two-vehicle scenario in table syntax, edited by the rejection tests.
+    const BASE: &str = r#"
+[world]
+seed = 3
+earth_model = "flat"
+
+[[vehicle]]
+id = 1
+[vehicle.trajectory]
+altitude_m = 120
+[vehicle.trajectory.shape]
+kind = "figure_eight"
+length_m = 1500
+width_m = 700
+[vehicle.sensor]
+rate_hz = 4
+max_range_m = 400
+[vehicle.sensor.model]
+kind = "pixel"
+fu_px = 400
+fv_px = 400
+u0_px = 320
+v0_px = 240
+width_px = 640
+height_px = 480
+sigma_px = 1
+
+[[vehicle]]
+id = 2
+name = "scout"
+frame = "local"
+[vehicle.trajectory.shape]
+kind = "lawnmower"
+leg_length_m = 1000
+leg_spacing_m = 200
+legs = 3
+[vehicle.imu]
+grade = "consumer"
+rate_hz = 200
+synthesis = "continuous"
+"#;
+
+    #[test]
+    fn doc_example_and_table_syntax_parse_with_defaults() {
+        let s = Scenario::from_toml_str(DOC_EXAMPLE).unwrap();
+        assert_eq!(s.world.seed, 7);
+        assert_eq!(s.vehicles[0].imu.rate_hz, 100.0);
+        assert_eq!(s.vehicles[0].sensor.rate_hz, 2.0, "default");
+        let b = Scenario::from_toml_str(BASE).unwrap();
+        assert_eq!(b.world.earth_model, EarthModel::Flat);
+        assert_eq!(b.world.features.count, Some(400), "default");
+        assert_eq!(b.vehicles[0].display_name(), "uav1");
+        assert_eq!(b.vehicles[1].display_name(), "scout");
+        assert_eq!(
+            b.vehicles[0].trajectory.altitude_m, 120.0,
+            "TOML integer into f64"
+        );
+        assert_eq!(b.vehicles[1].trajectory.altitude_m, 150.0, "default");
+        assert_eq!(b.vehicles[1].imu.synthesis, ImuSynthesis::Continuous);
+        assert!(matches!(
+            b.vehicles[1].trajectory.shape,
+            ShapeConfig::Lawnmower { turn_ramp_fraction, .. } if turn_ramp_fraction == 0.4
+        ));
+        assert!(matches!(
+            b.vehicles[0].sensor.model(),
+            SensorModel::Pixel { .. }
+        ));
+    }
+
+    #[test]
+    fn builtin_default_is_valid_and_round_trips_through_toml() {
+        let d = Scenario::builtin_default();
+        d.validate().unwrap();
+        assert_eq!(d.vehicles.len(), 4);
+        assert_eq!(d.world.earth_model.frame(), NavFrame::Global);
+        for v in &d.vehicles {
+            assert!((100.0..=200.0).contains(&v.trajectory.altitude_m));
+            assert_eq!(v.imu.grade, ImuGrade::Tactical);
+            assert!(matches!(
+                v.sensor.model,
+                SensorModelConfig::RangeBearing { .. }
+            ));
+        }
+        let text = d.to_toml_string();
+        assert_eq!(Scenario::from_toml_str(&text).unwrap(), d);
+    }
+
+    fn invalid_field(text: &str) -> String {
+        match Scenario::from_toml_str(text) {
+            Err(ScenarioError::Invalid { field, reason }) => {
+                assert!(!reason.is_empty());
+                field
+            }
+            other => panic!("expected a field error, got {other:?}"),
+        }
+    }
+
+    /// Each bad value is rejected with the dotted path of the offending field.
+    #[test]
+    fn invalid_values_name_their_field() {
+        let cases = [
+            (
+                "seed = 3",
+                "seed = 3\norigin = { lat_deg = 95.0 }",
+                "world.origin.lat_deg",
+            ),
+            (
+                "seed = 3",
+                "seed = 3\nfeatures = { count = 10, density_per_km2 = 5.0 }",
+                "world.features",
+            ),
+            (
+                "seed = 3",
+                "seed = 3\nfeatures = { count = 0 }",
+                "world.features.count",
+            ),
+            (
+                "seed = 3",
+                "seed = 3\nterrain = { min_wavelength_m = 500.0, max_wavelength_m = 100.0 }",
+                "world.terrain.max_wavelength_m",
+            ),
+            (
+                "altitude_m = 120",
+                "altitude_m = nan",
+                "vehicle[0].trajectory.altitude_m",
+            ),
+            (
+                "altitude_m = 120",
+                "altitude_m = 120\nphase = 1.0",
+                "vehicle[0].trajectory.phase",
+            ),
+            (
+                "width_m = 700",
+                "width_m = 20",
+                "vehicle[0].trajectory.shape.width_m",
+            ),
+            ("legs = 3", "legs = 1", "vehicle[1].trajectory.shape.legs"),
+            (
+                "max_range_m = 400",
+                "max_range_m = 5",
+                "vehicle[0].sensor.max_range_m",
+            ),
+            ("rate_hz = 4", "rate_hz = 3", "vehicle[0].sensor.rate_hz"),
+            (
+                "sigma_px = 1",
+                "sigma_px = -1",
+                "vehicle[0].sensor.model.sigma_px",
+            ),
+            ("rate_hz = 200", "rate_hz = 0", "vehicle[1].imu.rate_hz"),
+            (
+                "frame = \"local\"",
+                "frame = \"global\"",
+                "vehicle[1].frame",
+            ),
+            ("id = 2", "id = 1", "vehicle[1].id"),
+            ("name = \"scout\"", "name = \"uav1\"", "vehicle[1].name"),
+            ("name = \"scout\"", "name = \"a b\"", "vehicle[1].name"),
+        ];
+        for (from, to, field) in cases {
+            assert!(BASE.contains(from), "{from}");
+            assert_eq!(invalid_field(&BASE.replacen(from, to, 1)), field, "{to}");
+        }
+        let text = BASE.replacen(
+            "[vehicle.imu]",
+            "[vehicle.initial]\nposition_sigma_m = [1.0, -1.0, 1.0]\n[vehicle.imu]",
+            1,
+        );
+        assert_eq!(
+            invalid_field(&text),
+            "vehicle[1].initial.position_sigma_m[1]"
+        );
+        let text = BASE.replacen("synthesis = \"continuous\"", "[vehicle.imu.noise]\naccel_noise_density = 1e-3\ngyro_noise_density = 1e-4\naccel_bias_rw_density = 0\ngyro_bias_rw_density = 0\naccel_bias_sigma = inf\ngyro_bias_sigma = 0", 1);
+        assert_eq!(
+            invalid_field(&text),
+            "vehicle[1].imu.noise.accel_bias_sigma"
+        );
+        assert_eq!(invalid_field("vehicle = []\n[world]\nseed = 1"), "vehicle");
+    }
+
+    /// Unknown fields anywhere are parse errors that name the field; a missing required field too.
+    #[test]
+    fn unknown_and_missing_fields_are_rejected() {
+        for (from, to, word) in [
+            ("seed = 3", "seed = 3\nsede = 4", "sede"),
+            (
+                "altitude_m = 120",
+                "altitude_m = 120\naltitude = 3",
+                "altitude",
+            ),
+            ("legs = 3", "legs = 3\nradius_m = 4", "radius_m"),
+            (
+                "sigma_px = 1",
+                "sigma_px = 1\nsigma_range_m = 1",
+                "sigma_range_m",
+            ),
+            ("grade = \"consumer\"", "grade = \"military\"", "military"),
+            ("kind = \"lawnmower\"", "kind = \"spiral\"", "spiral"),
+        ] {
+            match Scenario::from_toml_str(&BASE.replacen(from, to, 1)) {
+                Err(ScenarioError::Parse(e)) => assert!(e.to_string().contains(word), "{e}"),
+                other => panic!("{to}: expected a parse error, got {other:?}"),
+            }
+        }
+        match Scenario::from_toml_str(&BASE.replacen("legs = 3\n", "", 1)) {
+            Err(ScenarioError::Parse(e)) => assert!(e.to_string().contains("legs"), "{e}"),
+            other => panic!("expected a missing-field error, got {other:?}"),
+        }
+        assert!(matches!(
+            Scenario::load(Path::new("/nonexistent/canopy.toml")),
+            Err(ScenarioError::Io { .. })
+        ));
+    }
+
+    #[test]
+    fn density_sets_the_feature_count() {
+        let w = WorldConfig {
+            features: FeatureConfig {
+                count: None,
+                density_per_km2: Some(50.0),
+                max_height_above_ground_m: 0.0,
+            },
+            ..WorldConfig::default()
+        };
+        w.validate().unwrap();
+        // 2.4 km × 2.4 km = 5.76 km² at 50 per km².
+        assert_eq!(w.feature_count(), 288);
+    }
+}

@@ -1,0 +1,404 @@
+//! One simulated vehicle: trajectory, IMU, terrain sensor and truth, stepped at the IMU rate.
+
+use std::sync::Arc;
+
+use canopy_fusion::geodesy::{ecef_from_ned, ecef_to_geodetic};
+use canopy_fusion::rotation::wrap_angle;
+use canopy_fusion::sensor::{ImuSample, SensorModel, SensorMount};
+use canopy_fusion::state::{ACC_BIAS, ATT, GYRO_BIAS, NavFrame, POS, VEHICLE_DIM, VEL};
+use nalgebra::{Matrix3, SMatrix, Vector3};
+use rand::Rng;
+use rand_distr::StandardNormal;
+
+use super::imu::{ImuErrors, ImuIdeal, NavTruth, continuous_ideal, discrete_ideal};
+use super::sensor::{SensedFrame, TerrainSensor};
+use super::trajectory::{FlightState, Trajectory};
+use super::{World, rng_stream};
+use crate::scenario::{ImuSynthesis, ScenarioError, VehicleConfig};
+
+/// Vehicle random streams (of the vehicle seed).
+const STREAM_IMU_WHITE: u64 = 1;
+const STREAM_IMU_WALK: u64 = 2;
+const STREAM_SENSOR_NOISE: u64 = 3;
+const STREAM_MISMATCH: u64 = 4;
+const STREAM_INITIAL: u64 = 5;
+
+/// Truth of one vehicle at one IMU step.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct TruthSample {
+    /// Simulation time [s].
+    pub time: f64,
+    /// The frame of `position`, `velocity`, `attitude`.
+    pub frame: NavFrame,
+    /// p^e (global) or p^n (local) [m].
+    pub position: Vector3<f64>,
+    /// v^e or v^n [m/s].
+    pub velocity: Vector3<f64>,
+    /// Ψ of C_b^n, n the local-level frame at the current position (global) or launch NED
+    /// (local) [rad].
+    pub attitude: Vector3<f64>,
+    /// True accelerometer bias δf^b [m/s²] (in effect for the IMU sample ending at `time`).
+    pub accel_bias: Vector3<f64>,
+    /// True gyro bias δω^b [rad/s].
+    pub gyro_bias: Vector3<f64>,
+    /// Position in the launch NED frame [m] (outputs, plots).
+    pub launch_position: Vector3<f64>,
+    /// Velocity in the launch NED frame [m/s].
+    pub launch_velocity: Vector3<f64>,
+    /// Ψ of C_b^{n0}, attitude relative to the launch NED frame [rad].
+    pub launch_attitude: Vector3<f64>,
+}
+
+impl TruthSample {
+    /// The navigation part (time, p, v, Ψ).
+    pub fn nav(&self) -> NavTruth {
+        NavTruth {
+            time: self.time,
+            position: self.position,
+            velocity: self.velocity,
+            attitude: self.attitude,
+        }
+    }
+}
+
+/// What one IMU step produces.
+#[derive(Clone, Debug, PartialEq)]
+pub struct StepOutput {
+    /// The measured IMU sample (what the estimator receives).
+    pub imu: ImuSample,
+    /// The same interval's noise-free, bias-free sample (configured synthesis).
+    pub imu_ideal: ImuSample,
+    /// A terrain-sensor frame, when the sensor fires at this step.
+    pub frame: Option<SensedFrame>,
+    /// The truth at the end of the step.
+    pub truth: TruthSample,
+}
+
+/// The estimator's initial state and covariance for a vehicle (15-state block, named indices of
+/// `fusion::state`).
+#[derive(Clone, Debug, PartialEq)]
+pub struct InitialEstimate {
+    /// Simulation time [s] (0).
+    pub time: f64,
+    /// Position estimate in the vehicle's frame [m].
+    pub position: Vector3<f64>,
+    /// Velocity estimate [m/s].
+    pub velocity: Vector3<f64>,
+    /// Attitude estimate Ψ [rad].
+    pub attitude: Vector3<f64>,
+    /// Accelerometer bias estimate (zero) [m/s²].
+    pub accel_bias: Vector3<f64>,
+    /// Gyro bias estimate (zero) [rad/s].
+    pub gyro_bias: Vector3<f64>,
+    /// Covariance of (p, v, Ψ, δf, δω), 15 × 15: the `[vehicle.initial]` σ along the vehicle's
+    /// local north/east/down (rotated into ECEF for global), and the IMU's turn-on bias σ.
+    pub covariance: SMatrix<f64, VEHICLE_DIM, VEHICLE_DIM>,
+}
+
+/// One simulated vehicle.
+#[derive(Clone, Debug)]
+pub struct VehicleSim {
+    id: u32,
+    name: String,
+    world: Arc<World>,
+    trajectory: Trajectory,
+    synthesis: ImuSynthesis,
+    dt: f64,
+    frame_every: u64,
+    imu: ImuErrors,
+    sensor: TerrainSensor,
+    step: u64,
+    truth: TruthSample,
+    initial_truth: TruthSample,
+    initial_estimate: InitialEstimate,
+}
+
+impl VehicleSim {
+    /// Sets up a vehicle in `world` with its own `seed` (see [`super::vehicle_seed`]). Validates
+    /// the vehicle's configuration (error paths relative to the vehicle).
+    pub fn new(cfg: &VehicleConfig, world: Arc<World>, seed: u64) -> Result<Self, ScenarioError> {
+        cfg.validate_except_trajectory(world.frame())?;
+        let trajectory = Trajectory::new(&cfg.trajectory).map_err(|e| e.within("trajectory"))?;
+        check_clearance(&trajectory, &world)?;
+        let dt = 1.0 / cfg.imu.rate_hz;
+        let frame_every = (cfg.imu.rate_hz / cfg.sensor.rate_hz).round() as u64;
+        let imu = ImuErrors::new(
+            cfg.imu.noise_model(),
+            dt,
+            rng_stream(seed, STREAM_IMU_WHITE),
+            rng_stream(seed, STREAM_IMU_WALK),
+        );
+        let sensor = TerrainSensor::new(
+            &cfg.sensor,
+            rng_stream(seed, STREAM_SENSOR_NOISE),
+            rng_stream(seed, STREAM_MISMATCH),
+        );
+        let truth = truth_at(&world, &trajectory, &imu, 0.0);
+        let initial_estimate = draw_initial_estimate(cfg, &world, &truth, seed);
+        Ok(Self {
+            id: cfg.id,
+            name: cfg.display_name(),
+            world,
+            trajectory,
+            synthesis: cfg.imu.synthesis,
+            dt,
+            frame_every,
+            imu,
+            sensor,
+            step: 0,
+            truth,
+            initial_truth: truth,
+            initial_estimate,
+        })
+    }
+
+    /// Vehicle id.
+    pub fn id(&self) -> u32 {
+        self.id
+    }
+
+    /// Vehicle name.
+    pub fn name(&self) -> &str {
+        &self.name
+    }
+
+    /// Navigation frame.
+    pub fn frame(&self) -> NavFrame {
+        self.world.frame()
+    }
+
+    /// The world.
+    pub fn world(&self) -> &Arc<World> {
+        &self.world
+    }
+
+    /// The trajectory.
+    pub fn trajectory(&self) -> &Trajectory {
+        &self.trajectory
+    }
+
+    /// IMU sample period Δt [s].
+    pub fn imu_dt(&self) -> f64 {
+        self.dt
+    }
+
+    /// IMU steps between terrain-sensor frames.
+    pub fn frame_every(&self) -> u64 {
+        self.frame_every
+    }
+
+    /// Steps taken so far.
+    pub fn step_index(&self) -> u64 {
+        self.step
+    }
+
+    /// Current simulation time [s].
+    pub fn time(&self) -> f64 {
+        self.truth.time
+    }
+
+    /// The sensor model the estimator must use.
+    pub fn sensor_model(&self) -> SensorModel {
+        *self.sensor.model()
+    }
+
+    /// The sensor mount the estimator must use.
+    pub fn sensor_mount(&self) -> SensorMount {
+        *self.sensor.mount()
+    }
+
+    /// Truth at the current step.
+    pub fn truth(&self) -> &TruthSample {
+        &self.truth
+    }
+
+    /// Truth at time 0 (the estimator's starting point).
+    pub fn initial_truth(&self) -> &TruthSample {
+        &self.initial_truth
+    }
+
+    /// The estimator's initial state and covariance (truth plus the drawn offset).
+    pub fn initial_estimate(&self) -> &InitialEstimate {
+        &self.initial_estimate
+    }
+
+    /// Noise-free kinematic truth (p, v, Ψ in the vehicle's frame) at any time.
+    pub fn nav_truth_at(&self, time: f64) -> NavTruth {
+        self.world.nav_truth(time, &self.trajectory.state(time))
+    }
+
+    /// The noise-free, bias-free IMU sample of the interval (t0, t1] by either synthesis.
+    pub fn ideal_imu(&self, t0: f64, t1: f64, synthesis: ImuSynthesis) -> ImuIdeal {
+        match synthesis {
+            ImuSynthesis::Discrete => discrete_ideal(
+                self.world.frame(),
+                &self.nav_truth_at(t0),
+                &self.nav_truth_at(t1),
+            ),
+            ImuSynthesis::Continuous => continuous_ideal(
+                self.world.frame(),
+                self.world.launch_frame(),
+                &self.trajectory.state(0.5 * (t0 + t1)),
+            ),
+        }
+    }
+
+    /// Advances one IMU period: the IMU sample of (t_{k−1}, t_k], a sensor frame at t_k when
+    /// k is a multiple of [`VehicleSim::frame_every`], and the truth at t_k.
+    pub fn step(&mut self) -> StepOutput {
+        let prev = self.truth.nav();
+        self.step += 1;
+        // Times are k·Δt (no accumulated rounding).
+        let time = self.step as f64 * self.dt;
+        let state = self.trajectory.state(time);
+        let nav = self.world.nav_truth(time, &state);
+        let ideal = match self.synthesis {
+            ImuSynthesis::Discrete => discrete_ideal(self.world.frame(), &prev, &nav),
+            ImuSynthesis::Continuous => continuous_ideal(
+                self.world.frame(),
+                self.world.launch_frame(),
+                &self.trajectory.state(0.5 * (prev.time + time)),
+            ),
+        };
+        let measured = self.imu.corrupt(&ideal);
+        self.truth = truth_sample(&self.world, &state, &nav, &self.imu);
+        let frame = self.step.is_multiple_of(self.frame_every).then(|| {
+            let nav = self.truth.nav();
+            let world_from_body = self.world.world_from_body(&nav);
+            let frame = self.world.frame();
+            self.sensor.observe(
+                time,
+                &world_from_body,
+                &nav.position,
+                self.world.features(),
+                |f| f.position(frame),
+            )
+        });
+        let sample = |m: &ImuIdeal| ImuSample {
+            time,
+            dt: self.dt,
+            specific_force: m.specific_force,
+            angular_rate: m.angular_rate,
+        };
+        StepOutput {
+            imu: sample(&measured),
+            imu_ideal: sample(&ideal),
+            frame,
+            truth: self.truth,
+        }
+    }
+}
+
+/// Draws the initial estimate: truth plus an offset from the configured σ (module doc of
+/// [`InitialEstimate`]).
+fn draw_initial_estimate(
+    cfg: &VehicleConfig,
+    world: &World,
+    truth: &TruthSample,
+    seed: u64,
+) -> InitialEstimate {
+    let mut rng = rng_stream(seed, STREAM_INITIAL);
+    let mut draw = |sigma: [f64; 3]| -> Vector3<f64> {
+        let n: [f64; 3] = [
+            rng.sample(StandardNormal),
+            rng.sample(StandardNormal),
+            rng.sample(StandardNormal),
+        ];
+        if cfg.initial.draw_offset {
+            Vector3::new(n[0] * sigma[0], n[1] * sigma[1], n[2] * sigma[2])
+        } else {
+            Vector3::zeros()
+        }
+    };
+    let ic = &cfg.initial;
+    let att_sigma = ic.attitude_sigma_deg.map(f64::to_radians);
+    let dp = draw(ic.position_sigma_m);
+    let dv = draw(ic.velocity_sigma_mps);
+    let datt = draw(att_sigma);
+    // NED offsets and σ are along the vehicle's local level; rotate them into ECEF.
+    let rot = match world.frame() {
+        NavFrame::Local => Matrix3::identity(),
+        NavFrame::Global => {
+            let g = ecef_to_geodetic(&truth.position);
+            ecef_from_ned(g.lat, g.lon)
+        }
+    };
+    let diag = |s: [f64; 3]| Matrix3::from_diagonal(&Vector3::from(s).map(|x| x * x));
+    let noise = cfg.imu.noise_model();
+    let mut covariance = SMatrix::<f64, VEHICLE_DIM, VEHICLE_DIM>::zeros();
+    covariance
+        .fixed_view_mut::<3, 3>(POS, POS)
+        .copy_from(&(rot * diag(ic.position_sigma_m) * rot.transpose()));
+    covariance
+        .fixed_view_mut::<3, 3>(VEL, VEL)
+        .copy_from(&(rot * diag(ic.velocity_sigma_mps) * rot.transpose()));
+    covariance
+        .fixed_view_mut::<3, 3>(ATT, ATT)
+        .copy_from(&diag(att_sigma));
+    covariance
+        .fixed_view_mut::<3, 3>(ACC_BIAS, ACC_BIAS)
+        .copy_from(&diag([noise.accel_bias_sigma; 3]));
+    covariance
+        .fixed_view_mut::<3, 3>(GYRO_BIAS, GYRO_BIAS)
+        .copy_from(&diag([noise.gyro_bias_sigma; 3]));
+    let t = truth;
+    InitialEstimate {
+        time: t.time,
+        position: t.position + rot * dp,
+        velocity: t.velocity + rot * dv,
+        attitude: (t.attitude + datt).map(wrap_angle),
+        accel_bias: Vector3::zeros(),
+        gyro_bias: Vector3::zeros(),
+        covariance,
+    }
+}
+
+/// Least height a trajectory must keep above the terrain [m] (features stand up to
+/// `max_height_above_ground_m` on it; the sensor needs some range).
+pub const MIN_CLEARANCE: f64 = 10.0;
+
+/// Rejects a trajectory that passes within [`MIN_CLEARANCE`] of the terrain, sampled at
+/// [`super::trajectory::ENVELOPE_SAMPLES`] points over a period.
+fn check_clearance(trajectory: &Trajectory, world: &World) -> Result<(), ScenarioError> {
+    let n = super::trajectory::ENVELOPE_SAMPLES;
+    let lowest = (0..n)
+        .map(|i| {
+            let p = trajectory
+                .kinematics(trajectory.period() * i as f64 / n as f64)
+                .position;
+            -p.z - world.terrain().height(p.x, p.y)
+        })
+        .fold(f64::INFINITY, f64::min);
+    if lowest < MIN_CLEARANCE {
+        return Err(ScenarioError::invalid(
+            "trajectory.altitude_m",
+            format!(
+                "the path comes within {lowest:.1} m of the terrain (at least {MIN_CLEARANCE} m)"
+            ),
+        ));
+    }
+    Ok(())
+}
+
+/// Truth of a vehicle at `time` with the IMU's current biases.
+fn truth_at(world: &World, trajectory: &Trajectory, imu: &ImuErrors, time: f64) -> TruthSample {
+    let s = trajectory.state(time);
+    truth_sample(world, &s, &world.nav_truth(time, &s), imu)
+}
+
+/// Assembles a truth sample from the launch-frame state, its frame image and the IMU biases.
+fn truth_sample(world: &World, s: &FlightState, nav: &NavTruth, imu: &ImuErrors) -> TruthSample {
+    let time = nav.time;
+    TruthSample {
+        time,
+        frame: world.frame(),
+        position: nav.position,
+        velocity: nav.velocity,
+        attitude: nav.attitude,
+        accel_bias: imu.accel_bias(),
+        gyro_bias: imu.gyro_bias(),
+        launch_position: s.kinematics.position,
+        launch_velocity: s.kinematics.velocity,
+        launch_attitude: s.attitude,
+    }
+}
