@@ -10,10 +10,14 @@
 //! - [`sensor`]: the estimator's inputs (IMU samples, terrain observations, sensor models).
 //! - [`imu`]: IMU error model and grades (21.13–21.17).
 //! - [`info`]: map information keyed by feature id (21.86, 21.87).
+//! - [`ins`]: INS mechanization in both frames with ∇F, ∇G and Q (21.19–21.38).
+//! - [`observation`]: terrain observation models, J_1 initialization and their Jacobians (21.41–21.50).
 
 pub mod geodesy;
 pub mod imu;
 pub mod info;
+pub mod ins;
+pub mod observation;
 pub mod rotation;
 pub mod sensor;
 pub mod state;
