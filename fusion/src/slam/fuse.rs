@@ -1,0 +1,246 @@
+//! Fuse-back of received map information (eqs. 21.92, 21.93 and 21.96–21.99, corrected as in
+//! design.md §4: only the received delta is added, never the node's own information again).
+//!
+//! The information-form addition Y_joint += Eᵀ ΔY E, y_joint += Eᵀ Δy (E selects the delta's
+//! features; Δy is w.r.t. x_m − o, `info` module) is done in covariance form without inverting P:
+//!
+//! 1. New features u (never seen) are augmented with their conditional given the known ones k:
+//!    B = ΔY_uu⁻¹ ΔY_uk, x_u = ΔY_uu⁻¹ (Δy_u − ΔY_uk (x_k − o)) + o, P_u· = −B P_k·,
+//!    P_uu = ΔY_uu⁻¹ + B P_kk Bᵀ (ΔY_uu must be positive definite).
+//! 2. The remaining information on the known features is the Schur complement
+//!    Ȳ = ΔY_kk − ΔY_ku ΔY_uu⁻¹ ΔY_uk, ȳ = Δy_k − ΔY_ku ΔY_uu⁻¹ Δy_u. With Ȳ = V Λ Vᵀ (rank r,
+//!    eigenvalues below 1e-12·max|λ| dropped) it is applied as a pseudo-measurement
+//!    H = |Λ|^½ Vᵀ E_k, noise D = sign(Λ), innovation ν = D |Λ|^{-½} Vᵀ (ȳ − Ȳ (x_k − o)), so that
+//!    Hᵀ D⁻¹ H = Ȳ and Hᵀ D⁻¹ ν = ȳ − Ȳ(x_k − o): the Kalman update equals the information
+//!    update exactly. Joseph form when every sign is positive; P − K Mᵀ otherwise (indefinite
+//!    deltas from a CI fusion upstream).
+//! 3. Positive definiteness of the fused joint is checked *before* anything changes: with
+//!    Y = P⁻¹ the fused information is PD iff ΔY_uu ≻ 0 and P_kk⁻¹ + Ȳ ≻ 0 (Schur complements;
+//!    P_kk⁻¹ is the marginal information of the known features), i.e. iff I + Lᵀ Ȳ L ≻ 0 with
+//!    P_kk = L Lᵀ (Cholesky).
+//!
+//! Cost O(n²·r + n·k²) with r ≤ 3·(features in the delta): only the changed feature blocks
+//! enter.
+
+use super::update::{UpdateForm, all_finite};
+use super::{SlamError, SlamFilter, SlotKind};
+use crate::info::MapInformation;
+use crate::sensor::FeatureId;
+use faer::linalg::matmul::matmul;
+use faer::linalg::solvers::DenseSolveCore;
+use faer::prelude::*;
+use faer::{Accum, Mat, Side};
+use std::collections::HashSet;
+
+/// What a fusion did.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct FuseReport {
+    /// Features added to the state (in the order of the delta).
+    pub new_features: Vec<FeatureId>,
+    /// Number of features of the delta that the filter already held.
+    pub known_features: usize,
+    /// Rank of the pseudo-measurement applied to the known features.
+    pub rank: usize,
+    /// Number of negative eigen-directions of that information (indefinite deltas).
+    pub negative_directions: usize,
+}
+
+/// Gathers the rows/cols `ri`×`ci` of a matrix.
+fn gather(m: MatRef<'_, f64>, ri: &[usize], ci: &[usize]) -> Mat<f64> {
+    Mat::from_fn(ri.len(), ci.len(), |i, j| m[(ri[i], ci[j])])
+}
+
+impl SlamFilter {
+    fn validate_information(&self, delta: &MapInformation) -> Result<(), SlamError> {
+        let k = 3 * delta.ids.len();
+        if delta.matrix.nrows() != k || delta.matrix.ncols() != k || delta.vector.nrows() != k {
+            return Err(SlamError::InvalidInformation(format!(
+                "{} ids but a {}×{} matrix and a {}-vector",
+                delta.ids.len(),
+                delta.matrix.nrows(),
+                delta.matrix.ncols(),
+                delta.vector.nrows()
+            )));
+        }
+        let mut seen = HashSet::new();
+        if let Some(d) = delta.ids.iter().find(|id| !seen.insert(**id)) {
+            return Err(SlamError::InvalidInformation(format!("duplicate feature id {d}")));
+        }
+        if !all_finite(delta.matrix.as_ref())
+            || !(0..k).all(|i| delta.vector[i].is_finite())
+            || !delta.origin.iter().all(|v| v.is_finite())
+        {
+            return Err(SlamError::InvalidInformation("non-finite value".into()));
+        }
+        // Team origins are one configured constant; a mismatch beyond 1 µm is a wiring error.
+        if (delta.origin - self.config.origin).norm() > 1e-6 {
+            return Err(SlamError::OriginMismatch);
+        }
+        let scale = delta.matrix.norm_max();
+        for j in 0..k {
+            for i in j + 1..k {
+                // Symmetric up to round-off of the sender's own arithmetic (1e-9 relative).
+                if (delta.matrix[(i, j)] - delta.matrix[(j, i)]).abs() > 1e-9 * scale {
+                    return Err(SlamError::InvalidInformation(format!("matrix is not symmetric at ({i}, {j})")));
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// Adds received map information (ΔY, Δy) to the joint filter (module docs). On any error the
+    /// filter's estimate is unchanged.
+    pub fn fuse_map_information(&mut self, delta: &MapInformation) -> Result<FuseReport, SlamError> {
+        self.validate_information(delta)?;
+        let sym = Mat::from_fn(delta.matrix.nrows(), delta.matrix.ncols(), |i, j| {
+            0.5 * (delta.matrix[(i, j)] + delta.matrix[(j, i)])
+        });
+        let o = self.config.origin;
+        // Partition the delta's 3-blocks into known (in the filter) and new features.
+        let mut known_pos = Vec::new(); // delta indices
+        let mut known_state = Vec::new(); // state indices
+        let mut new_pos = Vec::new();
+        let mut new_ids = Vec::new();
+        for (b, &id) in delta.ids.iter().enumerate() {
+            match self.layout.feature_offset(id) {
+                Some(off) => {
+                    known_pos.extend(3 * b..3 * b + 3);
+                    known_state.extend(off..off + 3);
+                }
+                None => {
+                    new_pos.extend(3 * b..3 * b + 3);
+                    new_ids.push(id);
+                }
+            }
+        }
+        let (nk, nu) = (known_pos.len(), new_pos.len());
+        let mut report = FuseReport { known_features: nk / 3, ..Default::default() };
+        if nk + nu == 0 {
+            return Ok(report);
+        }
+        let xk_minus_o = Col::from_fn(nk, |i| self.x[known_state[i]] - o[i % 3]);
+        let y_kk = gather(sym.as_ref(), &known_pos, &known_pos);
+        let dy_k = Col::from_fn(nk, |i| delta.vector[known_pos[i]]);
+
+        // Step 1 quantities (no mutation yet).
+        let (schur, schur_vec, new_block) = if nu > 0 {
+            let y_uu = gather(sym.as_ref(), &new_pos, &new_pos);
+            let y_uk = gather(sym.as_ref(), &new_pos, &known_pos);
+            let dy_u = Col::from_fn(nu, |i| delta.vector[new_pos[i]]);
+            let llt = y_uu
+                .llt(Side::Lower)
+                .map_err(|_| SlamError::NotPositiveDefinite("information on new features ΔY_uu"))?;
+            let y_uu_inv = llt.inverse();
+            let b = llt.solve(&y_uk); // ΔY_uu⁻¹ ΔY_uk
+            let a = llt.solve(dy_u.as_mat()); // ΔY_uu⁻¹ Δy_u
+            let schur = &y_kk - y_uk.transpose() * &b;
+            let schur_vec = &dy_k - y_uk.transpose() * a.col(0);
+            let x_u = Col::from_fn(nu, |i| a[(i, 0)] + o[i % 3]) - &b * &xk_minus_o;
+            (schur, schur_vec, Some((b, y_uu_inv, x_u)))
+        } else {
+            (y_kk, dy_k, None)
+        };
+
+        // Step 3: PD check of the fused joint, before any mutation (map blocks are never stale).
+        if nk > 0 {
+            let p_kk = gather(self.p.as_ref(), &known_state, &known_state);
+            let l = p_kk
+                .llt(Side::Lower)
+                .map_err(|_| SlamError::NotPositiveDefinite("filter map covariance"))?
+                .L()
+                .to_owned();
+            let t = Mat::<f64>::identity(nk, nk) + l.transpose() * &schur * &l;
+            if t.llt(Side::Lower).is_err() {
+                return Err(SlamError::NotPositiveDefinite("fused information"));
+            }
+        }
+        if let Some((b, y_uu_inv, x_u)) = &new_block
+            && (!all_finite(b.as_ref()) || !all_finite(y_uu_inv.as_ref()) || !(0..nu).all(|i| x_u[i].is_finite()))
+        {
+            return Err(SlamError::NumericalFailure("new-feature conditional"));
+        }
+
+        // Pseudo-measurement factors of Ȳ (still no mutation).
+        let pseudo = if nk > 0 {
+            let evd = schur
+                .self_adjoint_eigen(Side::Lower)
+                .map_err(|_| SlamError::NumericalFailure("eigendecomposition of the delta"))?;
+            let lambda: Vec<f64> = (0..nk).map(|i| evd.S().column_vector()[i]).collect();
+            let vmat = evd.U().to_owned();
+            let max = lambda.iter().fold(0.0_f64, |m, l| m.max(l.abs()));
+            // Directions with |λ| ≤ 1e-12·max carry no information at double precision.
+            let keep: Vec<usize> = (0..nk).filter(|&i| max > 0.0 && lambda[i].abs() > 1e-12 * max).collect();
+            let r = keep.len();
+            // H_k = |Λ|^½ Vᵀ (r × nk), D = sign(Λ), ν = D |Λ|^{-½} Vᵀ (ȳ − Ȳ (x_k − o)).
+            let g = &schur_vec - &schur * &xk_minus_o;
+            let h_k = Mat::from_fn(r, nk, |a, j| lambda[keep[a]].abs().sqrt() * vmat[(j, keep[a])]);
+            let signs: Vec<f64> = keep.iter().map(|&i| lambda[i].signum()).collect();
+            let nu_vec = Col::from_fn(r, |a| {
+                let vg: f64 = (0..nk).map(|j| vmat[(j, keep[a])] * g[j]).sum();
+                signs[a] * vg / lambda[keep[a]].abs().sqrt()
+            });
+            Some((h_k, signs, nu_vec))
+        } else {
+            None
+        };
+
+        // Mutation starts here. Flushing changes only the representation of P.
+        self.flush();
+        let n0 = self.dim();
+        if let Some((b, y_uu_inv, x_u)) = &new_block {
+            // P_u· = −B P_k·, P_uu = ΔY_uu⁻¹ + B P_kk Bᵀ.
+            let p_k_all = Mat::from_fn(nk, n0, |i, j| self.p[(known_state[i], j)]);
+            let mut p_u_all = Mat::zeros(nu, n0);
+            if nk > 0 {
+                matmul(p_u_all.as_mut(), Accum::Replace, b.as_ref(), p_k_all.as_ref(), -1.0, Par::Seq);
+            }
+            let mut p_uu = y_uu_inv.clone();
+            if nk > 0 {
+                let p_kk = gather(self.p.as_ref(), &known_state, &known_state);
+                p_uu += b * &p_kk * b.transpose();
+            }
+            self.grow(nu);
+            for (f, &id) in new_ids.iter().enumerate() {
+                let off = self.layout.push(SlotKind::Feature(id));
+                debug_assert_eq!(off, n0 + 3 * f);
+            }
+            for i in 0..nu {
+                self.x[n0 + i] = x_u[i];
+                for j in 0..n0 {
+                    self.p[(n0 + i, j)] = p_u_all[(i, j)];
+                    self.p[(j, n0 + i)] = p_u_all[(i, j)];
+                }
+                for j in 0..nu {
+                    self.p[(n0 + i, n0 + j)] = 0.5 * (p_uu[(i, j)] + p_uu[(j, i)]);
+                }
+            }
+            report.new_features = new_ids.clone();
+        }
+        if let Some((h_k, signs, nu_vec)) = pseudo {
+            let r = signs.len();
+            report.rank = r;
+            report.negative_directions = signs.iter().filter(|s| **s < 0.0).count();
+            if r > 0 {
+                let n = self.dim();
+                // M = P Hᵀ = P[:, k] H_kᵀ; S = H_k M[k, :] + D.
+                let p_nk = Mat::from_fn(n, nk, |i, j| self.p[(i, known_state[j])]);
+                let m = &p_nk * h_k.transpose();
+                let m_k = gather(m.as_ref(), &known_state, &(0..r).collect::<Vec<_>>());
+                let mut s = &h_k * &m_k;
+                for (a, sg) in signs.iter().enumerate() {
+                    s[(a, a)] += sg;
+                }
+                let form = if report.negative_directions == 0 { UpdateForm::Joseph } else { UpdateForm::Indefinite };
+                if let Err(e) = self.kalman_apply(m, s, &nu_vec, form) {
+                    // Roll back the augmentation: the new features are the last slots.
+                    for id in &new_ids {
+                        self.layout.remove(SlotKind::Feature(*id));
+                    }
+                    self.truncate_to(n0);
+                    return Err(e);
+                }
+            }
+        }
+        Ok(report)
+    }
+}
