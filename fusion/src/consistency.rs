@@ -49,7 +49,10 @@ pub fn nees(error: &DVector<f64>, covariance: &DMatrix<f64>) -> Result<f64, Cons
     if !error.iter().chain(covariance.iter()).all(|v| v.is_finite()) {
         return Err(ConsistencyError::NonFinite);
     }
-    let chol = covariance.clone().cholesky().ok_or(ConsistencyError::NotPositiveDefinite)?;
+    let chol = covariance
+        .clone()
+        .cholesky()
+        .ok_or(ConsistencyError::NotPositiveDefinite)?;
     let mut w = error.clone();
     chol.l().solve_lower_triangular_mut(&mut w);
     Ok(w.norm_squared())
@@ -60,13 +63,18 @@ pub fn chi2_quantile(dof: f64, probability: f64) -> Result<f64, ConsistencyError
     if !(dof > 0.0 && dof.is_finite() && probability > 0.0 && probability < 1.0) {
         return Err(ConsistencyError::InvalidQuantile { dof, probability });
     }
-    let d = ChiSquared::new(dof).map_err(|_| ConsistencyError::InvalidQuantile { dof, probability })?;
+    let d =
+        ChiSquared::new(dof).map_err(|_| ConsistencyError::InvalidQuantile { dof, probability })?;
     Ok(d.inverse_cdf(probability))
 }
 
 /// Two-sided `confidence` band for the average NEES over `runs` Monte Carlo runs of `dof`-dimensional
 /// errors: [χ²_{runs·dof}((1−c)/2), χ²_{runs·dof}((1+c)/2)] / runs.
-pub fn anees_band(runs: usize, dof: usize, confidence: f64) -> Result<(f64, f64), ConsistencyError> {
+pub fn anees_band(
+    runs: usize,
+    dof: usize,
+    confidence: f64,
+) -> Result<(f64, f64), ConsistencyError> {
     let n = (runs * dof) as f64;
     let tail = (1.0 - confidence) / 2.0;
     let lo = chi2_quantile(n, tail)?;
@@ -125,8 +133,14 @@ mod tests {
         assert!((nees(&e, &p).unwrap() - expected).abs() < 1e-14);
         let bad = DMatrix::from_row_slice(2, 2, &[1.0, 2.0, 2.0, 1.0]);
         assert_eq!(nees(&e, &bad), Err(ConsistencyError::NotPositiveDefinite));
-        assert_eq!(nees(&DVector::from_vec(vec![f64::NAN, 0.0]), &p), Err(ConsistencyError::NonFinite));
-        assert!(matches!(nees(&DVector::zeros(3), &p), Err(ConsistencyError::DimensionMismatch { .. })));
+        assert_eq!(
+            nees(&DVector::from_vec(vec![f64::NAN, 0.0]), &p),
+            Err(ConsistencyError::NonFinite)
+        );
+        assert!(matches!(
+            nees(&DVector::zeros(3), &p),
+            Err(ConsistencyError::DimensionMismatch { .. })
+        ));
     }
 
     #[test]

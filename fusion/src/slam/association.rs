@@ -64,7 +64,11 @@ struct FrameContext<'a> {
 impl SlamFilter {
     /// Indices of the vehicle's (p, Ψ) states: the only vehicle states H depends on.
     fn pose_index(voff: usize, k: usize) -> usize {
-        if k < 3 { voff + POS + k } else { voff + ATT + k - 3 }
+        if k < 3 {
+            voff + POS + k
+        } else {
+            voff + ATT + k - 3
+        }
     }
 
     fn candidate(
@@ -79,7 +83,13 @@ impl SlamFilter {
         let pred = ctx.model.predict(&ctx.pose, &m)?;
         let d = pred.z.len();
         let innovation = ctx.model.innovation(z, &pred.z);
-        let h_vehicle = DMatrix::from_fn(d, 6, |i, j| if j < 3 { pred.d_position[(i, j)] } else { pred.d_attitude[(i, j - 3)] });
+        let h_vehicle = DMatrix::from_fn(d, 6, |i, j| {
+            if j < 3 {
+                pred.d_position[(i, j)]
+            } else {
+                pred.d_attitude[(i, j - 3)]
+            }
+        });
         let h_feature = DMatrix::from_fn(d, 3, |i, j| pred.d_feature[(i, j)]);
         let p_vm = Mat6x3::from_fn(|i, j| self.p[(Self::pose_index(ctx.voff, i), offset + j)]);
         let p_mm = DMatrix::from_fn(3, 3, |i, j| self.p[(offset + i, offset + j)]);
@@ -92,7 +102,17 @@ impl SlamFilter {
             + &h_feature * &p_mm * h_feature.transpose()
             + &ctx.r;
         let nis = nis(&innovation, &s);
-        Ok(UpdateItem { obs, feature, offset, innovation, h_vehicle, h_feature, p_vm, s, nis })
+        Ok(UpdateItem {
+            obs,
+            feature,
+            offset,
+            innovation,
+            h_vehicle,
+            h_feature,
+            p_vm,
+            s,
+            nis,
+        })
     }
 
     /// Associates every observation of a frame against the prior (see [`AssociationMode`]).
@@ -104,12 +124,16 @@ impl SlamFilter {
         descriptors: &[FeatureId],
     ) -> AssociationPlan {
         let voff = self.layout.vehicle_offset(vehicle);
-        let state = self.vehicle_state(vehicle).expect("vehicle validated by the caller");
+        let state = self
+            .vehicle_state(vehicle)
+            .expect("vehicle validated by the caller");
         let ctx = FrameContext {
             model,
             pose: model.sensor_pose(&state.position, &state.attitude),
             voff,
-            p_vv: Mat6::from_fn(|i, j| self.p[(Self::pose_index(voff, i), Self::pose_index(voff, j))]),
+            p_vv: Mat6::from_fn(|i, j| {
+                self.p[(Self::pose_index(voff, i), Self::pose_index(voff, j))]
+            }),
             r: model.noise_covariance(),
         };
         let d = model.measurement_dim();
@@ -140,13 +164,23 @@ impl SlamFilter {
                         continue;
                     };
                     match self.candidate(&ctx, i, z, id, offset) {
-                        Err(_) => plan.outcomes[i] = ObservationOutcome::Rejected(RejectReason::DegenerateGeometry),
+                        Err(_) => {
+                            plan.outcomes[i] =
+                                ObservationOutcome::Rejected(RejectReason::DegenerateGeometry)
+                        }
                         Ok(c) if c.nis <= gate => {
-                            plan.outcomes[i] = ObservationOutcome::Associated { feature: id, nis: c.nis };
+                            plan.outcomes[i] = ObservationOutcome::Associated {
+                                feature: id,
+                                nis: c.nis,
+                            };
                             plan.updates.push(c);
                         }
                         Ok(c) => {
-                            plan.outcomes[i] = ObservationOutcome::Rejected(RejectReason::GateFailed { feature: id, nis: c.nis })
+                            plan.outcomes[i] =
+                                ObservationOutcome::Rejected(RejectReason::GateFailed {
+                                    feature: id,
+                                    nis: c.nis,
+                                })
                         }
                     }
                 }
@@ -184,7 +218,10 @@ impl SlamFilter {
                     match choice {
                         Some(k) => {
                             let c = cands[i].swap_remove(*k);
-                            plan.outcomes[i] = ObservationOutcome::Associated { feature: c.feature, nis: c.nis };
+                            plan.outcomes[i] = ObservationOutcome::Associated {
+                                feature: c.feature,
+                                nis: c.nis,
+                            };
                             plan.updates.push(c);
                         }
                         None if !cands[i].is_empty() => {
@@ -234,7 +271,12 @@ struct Jcbb<'a> {
 }
 
 impl<'a> Jcbb<'a> {
-    fn new(filter: &'a SlamFilter, ctx: &'a FrameContext<'a>, cands: &'a [Vec<UpdateItem>], max_nodes: usize) -> Self {
+    fn new(
+        filter: &'a SlamFilter,
+        ctx: &'a FrameContext<'a>,
+        cands: &'a [Vec<UpdateItem>],
+        max_nodes: usize,
+    ) -> Self {
         Self {
             filter,
             ctx,
@@ -257,7 +299,11 @@ impl<'a> Jcbb<'a> {
     /// Joint NIS of the current hypothesis: stacked ν and S with the cross-covariances between
     /// pairings (H_a P H_bᵀ through the shared vehicle pose and the features' correlation).
     fn joint_nis(&self) -> f64 {
-        let items: Vec<&UpdateItem> = self.current.iter().map(|&(i, k)| &self.cands[i][k]).collect();
+        let items: Vec<&UpdateItem> = self
+            .current
+            .iter()
+            .map(|&(i, k)| &self.cands[i][k])
+            .collect();
         let d = self.ctx.r.nrows();
         let dim = d * items.len();
         let mut s = DMatrix::zeros(dim, dim);
@@ -271,7 +317,9 @@ impl<'a> Jcbb<'a> {
                 } else {
                     let p_va = DMatrix::from_fn(6, 3, |i, j| ia.p_vm[(i, j)]);
                     let p_vb = DMatrix::from_fn(6, 3, |i, j| ib.p_vm[(i, j)]);
-                    let p_ab = DMatrix::from_fn(3, 3, |i, j| self.filter.p[(ia.offset + i, ib.offset + j)]);
+                    let p_ab = DMatrix::from_fn(3, 3, |i, j| {
+                        self.filter.p[(ia.offset + i, ib.offset + j)]
+                    });
                     &ia.h_vehicle * &p_vv * ib.h_vehicle.transpose()
                         + &ia.h_vehicle * p_vb * ib.h_feature.transpose()
                         + &ia.h_feature * p_va.transpose() * ib.h_vehicle.transpose()
@@ -279,7 +327,8 @@ impl<'a> Jcbb<'a> {
                 };
                 s.view_mut((a * d, b * d), (d, d)).copy_from(&block);
                 if a != b {
-                    s.view_mut((b * d, a * d), (d, d)).copy_from(&block.transpose());
+                    s.view_mut((b * d, a * d), (d, d))
+                        .copy_from(&block.transpose());
                 }
             }
         }

@@ -64,7 +64,9 @@ impl SlamFilter {
         }
         let mut seen = HashSet::new();
         if let Some(d) = delta.ids.iter().find(|id| !seen.insert(**id)) {
-            return Err(SlamError::InvalidInformation(format!("duplicate feature id {d}")));
+            return Err(SlamError::InvalidInformation(format!(
+                "duplicate feature id {d}"
+            )));
         }
         if !all_finite(delta.matrix.as_ref())
             || !(0..k).all(|i| delta.vector[i].is_finite())
@@ -81,7 +83,9 @@ impl SlamFilter {
             for i in j + 1..k {
                 // Symmetric up to round-off of the sender's own arithmetic (1e-9 relative).
                 if (delta.matrix[(i, j)] - delta.matrix[(j, i)]).abs() > 1e-9 * scale {
-                    return Err(SlamError::InvalidInformation(format!("matrix is not symmetric at ({i}, {j})")));
+                    return Err(SlamError::InvalidInformation(format!(
+                        "matrix is not symmetric at ({i}, {j})"
+                    )));
                 }
             }
         }
@@ -90,7 +94,10 @@ impl SlamFilter {
 
     /// Adds received map information (ΔY, Δy) to the joint filter (module docs). On any error the
     /// filter's estimate is unchanged.
-    pub fn fuse_map_information(&mut self, delta: &MapInformation) -> Result<FuseReport, SlamError> {
+    pub fn fuse_map_information(
+        &mut self,
+        delta: &MapInformation,
+    ) -> Result<FuseReport, SlamError> {
         self.validate_information(delta)?;
         let sym = Mat::from_fn(delta.matrix.nrows(), delta.matrix.ncols(), |i, j| {
             0.5 * (delta.matrix[(i, j)] + delta.matrix[(j, i)])
@@ -114,7 +121,10 @@ impl SlamFilter {
             }
         }
         let (nk, nu) = (known_pos.len(), new_pos.len());
-        let mut report = FuseReport { known_features: nk / 3, ..Default::default() };
+        let mut report = FuseReport {
+            known_features: nk / 3,
+            ..Default::default()
+        };
         if nk + nu == 0 {
             return Ok(report);
         }
@@ -155,7 +165,9 @@ impl SlamFilter {
             }
         }
         if let Some((b, y_uu_inv, x_u)) = &new_block
-            && (!all_finite(b.as_ref()) || !all_finite(y_uu_inv.as_ref()) || !(0..nu).all(|i| x_u[i].is_finite()))
+            && (!all_finite(b.as_ref())
+                || !all_finite(y_uu_inv.as_ref())
+                || !(0..nu).all(|i| x_u[i].is_finite()))
         {
             return Err(SlamError::NumericalFailure("new-feature conditional"));
         }
@@ -169,11 +181,15 @@ impl SlamFilter {
             let vmat = evd.U().to_owned();
             let max = lambda.iter().fold(0.0_f64, |m, l| m.max(l.abs()));
             // Directions with |λ| ≤ 1e-12·max carry no information at double precision.
-            let keep: Vec<usize> = (0..nk).filter(|&i| max > 0.0 && lambda[i].abs() > 1e-12 * max).collect();
+            let keep: Vec<usize> = (0..nk)
+                .filter(|&i| max > 0.0 && lambda[i].abs() > 1e-12 * max)
+                .collect();
             let r = keep.len();
             // H_k = |Λ|^½ Vᵀ (r × nk), D = sign(Λ), ν = D |Λ|^{-½} Vᵀ (ȳ − Ȳ (x_k − o)).
             let g = &schur_vec - &schur * &xk_minus_o;
-            let h_k = Mat::from_fn(r, nk, |a, j| lambda[keep[a]].abs().sqrt() * vmat[(j, keep[a])]);
+            let h_k = Mat::from_fn(r, nk, |a, j| {
+                lambda[keep[a]].abs().sqrt() * vmat[(j, keep[a])]
+            });
             let signs: Vec<f64> = keep.iter().map(|&i| lambda[i].signum()).collect();
             let nu_vec = Col::from_fn(r, |a| {
                 let vg: f64 = (0..nk).map(|j| vmat[(j, keep[a])] * g[j]).sum();
@@ -192,7 +208,14 @@ impl SlamFilter {
             let p_k_all = Mat::from_fn(nk, n0, |i, j| self.p[(known_state[i], j)]);
             let mut p_u_all = Mat::zeros(nu, n0);
             if nk > 0 {
-                matmul(p_u_all.as_mut(), Accum::Replace, b.as_ref(), p_k_all.as_ref(), -1.0, Par::Seq);
+                matmul(
+                    p_u_all.as_mut(),
+                    Accum::Replace,
+                    b.as_ref(),
+                    p_k_all.as_ref(),
+                    -1.0,
+                    Par::Seq,
+                );
             }
             let mut p_uu = y_uu_inv.clone();
             if nk > 0 {
@@ -230,7 +253,11 @@ impl SlamFilter {
                 for (a, sg) in signs.iter().enumerate() {
                     s[(a, a)] += sg;
                 }
-                let form = if report.negative_directions == 0 { UpdateForm::Joseph } else { UpdateForm::Indefinite };
+                let form = if report.negative_directions == 0 {
+                    UpdateForm::Joseph
+                } else {
+                    UpdateForm::Indefinite
+                };
                 if let Err(e) = self.kalman_apply(m, s, &nu_vec, form) {
                     // Roll back the augmentation: the new features are the last slots.
                     for id in &new_ids {

@@ -85,7 +85,8 @@ impl Layout {
 
     /// Offset of vehicle block `v` (panics on an unknown vehicle; callers validate first).
     pub fn vehicle_offset(&self, v: usize) -> usize {
-        self.offset(SlotKind::Vehicle(v)).expect("vehicle index validated by the caller")
+        self.offset(SlotKind::Vehicle(v))
+            .expect("vehicle index validated by the caller")
     }
 
     /// Offset of a feature, if the filter holds it.
@@ -114,7 +115,10 @@ impl Layout {
     /// Appends a block at the end of the state and returns its offset. Panics if the block is
     /// already present (callers check ids first).
     pub fn push(&mut self, kind: SlotKind) -> usize {
-        assert!(!self.index.contains_key(&kind), "slot {kind:?} already present");
+        assert!(
+            !self.index.contains_key(&kind),
+            "slot {kind:?} already present"
+        );
         let offset = self.dim;
         self.index.insert(kind, self.slots.len());
         self.slots.push(Slot { kind, offset });

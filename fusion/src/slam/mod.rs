@@ -72,7 +72,10 @@ pub struct AssociationConfig {
 
 impl Default for AssociationConfig {
     fn default() -> Self {
-        Self { mode: AssociationMode::Descriptor, gate_probability: 0.95 }
+        Self {
+            mode: AssociationMode::Descriptor,
+            gate_probability: 0.95,
+        }
     }
 }
 
@@ -196,15 +199,24 @@ pub struct FrameReport {
 impl FrameReport {
     /// Number of associated observations.
     pub fn associated(&self) -> usize {
-        self.outcomes.iter().filter(|o| matches!(o, ObservationOutcome::Associated { .. })).count()
+        self.outcomes
+            .iter()
+            .filter(|o| matches!(o, ObservationOutcome::Associated { .. }))
+            .count()
     }
     /// Number of initialized features.
     pub fn initialized(&self) -> usize {
-        self.outcomes.iter().filter(|o| matches!(o, ObservationOutcome::Initialized { .. })).count()
+        self.outcomes
+            .iter()
+            .filter(|o| matches!(o, ObservationOutcome::Initialized { .. }))
+            .count()
     }
     /// Number of rejected observations.
     pub fn rejected(&self) -> usize {
-        self.outcomes.iter().filter(|o| matches!(o, ObservationOutcome::Rejected(_))).count()
+        self.outcomes
+            .iter()
+            .filter(|o| matches!(o, ObservationOutcome::Rejected(_)))
+            .count()
     }
 }
 
@@ -239,11 +251,15 @@ impl SlamFilter {
     /// A filter with the given vehicles and an empty map.
     pub fn new(config: SlamConfig, vehicles: &[VehicleSetup]) -> Result<Self, SlamError> {
         if vehicles.is_empty() {
-            return Err(SlamError::InvalidConfig("at least one vehicle is required".into()));
+            return Err(SlamError::InvalidConfig(
+                "at least one vehicle is required".into(),
+            ));
         }
         let p_gate = config.association.gate_probability;
         if !(p_gate > 0.0 && p_gate < 1.0) {
-            return Err(SlamError::InvalidConfig(format!("gate probability {p_gate} not in (0, 1)")));
+            return Err(SlamError::InvalidConfig(format!(
+                "gate probability {p_gate} not in (0, 1)"
+            )));
         }
         if !config.origin.iter().all(|v| v.is_finite()) {
             return Err(SlamError::InvalidConfig("origin is not finite".into()));
@@ -255,7 +271,9 @@ impl SlamFilter {
         let mut slots = Vec::with_capacity(vehicles.len());
         for (v, setup) in vehicles.iter().enumerate() {
             if !setup.state.is_finite() {
-                return Err(SlamError::InvalidConfig(format!("vehicle {v}: non-finite initial state")));
+                return Err(SlamError::InvalidConfig(format!(
+                    "vehicle {v}: non-finite initial state"
+                )));
             }
             if !is_symmetric_pd(&setup.covariance) {
                 return Err(SlamError::InvalidConfig(format!(
@@ -271,7 +289,11 @@ impl SlamFilter {
                 }
             }
             slots.push(VehicleSlot {
-                model: ObservationModel { frame: config.frame, sensor: setup.sensor, mount: setup.mount },
+                model: ObservationModel {
+                    frame: config.frame,
+                    sensor: setup.sensor,
+                    mount: setup.mount,
+                },
                 imu_noise: setup.imu_noise,
                 pending: SMatrix::identity(),
                 has_pending: false,
@@ -280,9 +302,20 @@ impl SlamFilter {
         // Gate thresholds for the measurement sizes (2, 3); JCBB computes larger ones on demand.
         let mut gates = vec![f64::NAN];
         for dof in 1..=3 {
-            gates.push(chi2_quantile(dof as f64, p_gate).map_err(|e| SlamError::InvalidConfig(e.to_string()))?);
+            gates.push(
+                chi2_quantile(dof as f64, p_gate)
+                    .map_err(|e| SlamError::InvalidConfig(e.to_string()))?,
+            );
         }
-        Ok(Self { config, vehicles: slots, layout, x, p, next_fresh: 0, gates })
+        Ok(Self {
+            config,
+            vehicles: slots,
+            layout,
+            x,
+            p,
+            next_fresh: 0,
+            gates,
+        })
     }
 
     /// Filter options.
@@ -322,7 +355,10 @@ impl SlamFilter {
 
     /// The observation model of a vehicle.
     pub fn observation_model(&self, vehicle: usize) -> Result<&ObservationModel, SlamError> {
-        self.vehicles.get(vehicle).map(|v| &v.model).ok_or(SlamError::UnknownVehicle(vehicle))
+        self.vehicles
+            .get(vehicle)
+            .map(|v| &v.model)
+            .ok_or(SlamError::UnknownVehicle(vehicle))
     }
 
     fn check_vehicle(&self, vehicle: usize) -> Result<usize, SlamError> {
@@ -336,13 +372,17 @@ impl SlamFilter {
     /// The vehicle's state estimate.
     pub fn vehicle_state(&self, vehicle: usize) -> Result<VehicleState, SlamError> {
         let off = self.check_vehicle(vehicle)?;
-        Ok(VehicleState::from_vector(&ins::VehicleVector::from_fn(|i, _| self.x[off + i])))
+        Ok(VehicleState::from_vector(&ins::VehicleVector::from_fn(
+            |i, _| self.x[off + i],
+        )))
     }
 
     /// The vehicle's 15×15 covariance P_vv (always current).
     pub fn vehicle_covariance(&self, vehicle: usize) -> Result<VehicleCovariance, SlamError> {
         let off = self.check_vehicle(vehicle)?;
-        Ok(VehicleCovariance::from_fn(|i, j| self.p[(off + i, off + j)]))
+        Ok(VehicleCovariance::from_fn(|i, j| {
+            self.p[(off + i, off + j)]
+        }))
     }
 
     /// The vehicle's pose (position, Euler attitude).
@@ -361,7 +401,10 @@ impl SlamFilter {
 
     /// Features (id, position) in state order.
     pub fn features(&self) -> Vec<(FeatureId, Vector3<f64>)> {
-        self.layout.features().map(|(id, off)| (id, self.vec3_at(off))).collect()
+        self.layout
+            .features()
+            .map(|(id, off)| (id, self.vec3_at(off)))
+            .collect()
     }
 
     /// One feature's position estimate.
@@ -371,7 +414,9 @@ impl SlamFilter {
 
     /// One feature's 3×3 covariance.
     pub fn feature_covariance(&self, id: FeatureId) -> Option<Matrix3<f64>> {
-        self.layout.feature_offset(id).map(|off| self.mat3_at(off, off))
+        self.layout
+            .feature_offset(id)
+            .map(|off| self.mat3_at(off, off))
     }
 
     /// The map marginal (x_m, P_mm) of eqs. 21.84/21.85 keyed by feature id, in state order.
@@ -462,7 +507,8 @@ impl SlamFilter {
     fn gate(&mut self, dof: usize) -> f64 {
         while self.gates.len() <= dof {
             let d = self.gates.len() as f64;
-            let g = chi2_quantile(d, self.config.association.gate_probability).unwrap_or(f64::INFINITY);
+            let g =
+                chi2_quantile(d, self.config.association.gate_probability).unwrap_or(f64::INFINITY);
             self.gates.push(g);
         }
         self.gates[dof]
@@ -475,7 +521,9 @@ impl SlamFilter {
             return descriptor;
         }
         loop {
-            let id = FRESH_ID_BASE | (u64::from(self.config.fresh_id_namespace) << 32) | (self.next_fresh & 0xFFFF_FFFF);
+            let id = FRESH_ID_BASE
+                | (u64::from(self.config.fresh_id_namespace) << 32)
+                | (self.next_fresh & 0xFFFF_FFFF);
             self.next_fresh += 1;
             if !self.layout.has_feature(id) {
                 return id;
@@ -486,7 +534,11 @@ impl SlamFilter {
     /// Associates, updates and initializes from one terrain-sensor frame of `vehicle` (module
     /// docs). Validation errors are returned before anything changes; numerical failures of
     /// single observations are reported as [`RejectReason::NumericalFailure`].
-    pub fn process_frame(&mut self, vehicle: usize, frame: &ObservationFrame) -> Result<FrameReport, SlamError> {
+    pub fn process_frame(
+        &mut self,
+        vehicle: usize,
+        frame: &ObservationFrame,
+    ) -> Result<FrameReport, SlamError> {
         self.check_vehicle(vehicle)?;
         if !frame.time.is_finite() {
             return Err(SlamError::NonFiniteTime);
@@ -496,7 +548,11 @@ impl SlamFilter {
             .observations
             .iter()
             .enumerate()
-            .map(|(index, o)| model.measurement_vector(&o.z).map_err(|source| SlamError::Observation { index, source }))
+            .map(|(index, o)| {
+                model
+                    .measurement_vector(&o.z)
+                    .map_err(|source| SlamError::Observation { index, source })
+            })
             .collect::<Result<Vec<_>, _>>()?;
         self.flush();
         let descriptors: Vec<FeatureId> = frame.observations.iter().map(|o| o.descriptor).collect();
@@ -510,7 +566,10 @@ impl SlamFilter {
         for &i in &plan.initializations {
             match self.initialize_feature(vehicle, &model, &zs[i], descriptors[i]) {
                 Ok(id) => report.outcomes[i] = ObservationOutcome::Initialized { feature: id },
-                Err(_) => report.outcomes[i] = ObservationOutcome::Rejected(RejectReason::NumericalFailure),
+                Err(_) => {
+                    report.outcomes[i] =
+                        ObservationOutcome::Rejected(RejectReason::NumericalFailure)
+                }
             }
         }
         Ok(report)

@@ -60,7 +60,13 @@ impl SlamFilter {
     /// K = M S⁻¹, x ← x + K ν, and P ← P − K Mᵀ − M Kᵀ + K S Kᵀ (Joseph form expanded for the
     /// optimal-gain structure, O(n²·m)), computed as P − K Mᵀ + (K S − M) Kᵀ in one rank-2m
     /// product, then symmetrised. Everything that can fail is checked before P or x change.
-    pub(super) fn kalman_apply(&mut self, m: Mat<f64>, s: Mat<f64>, nu: &Col<f64>, form: UpdateForm) -> Result<(), SlamError> {
+    pub(super) fn kalman_apply(
+        &mut self,
+        m: Mat<f64>,
+        s: Mat<f64>,
+        nu: &Col<f64>,
+        form: UpdateForm,
+    ) -> Result<(), SlamError> {
         let r = s.nrows();
         let n = self.dim();
         let mut s = s;
@@ -71,13 +77,16 @@ impl SlamFilter {
                 s[(j, i)] = a;
             }
         }
-        if !all_finite(s.as_ref()) || !all_finite(m.as_ref()) || !(0..r).all(|i| nu[i].is_finite()) {
+        if !all_finite(s.as_ref()) || !all_finite(m.as_ref()) || !(0..r).all(|i| nu[i].is_finite())
+        {
             return Err(SlamError::NumericalFailure("update inputs"));
         }
         // Kᵀ = S⁻¹ Mᵀ (S symmetric).
         let kt: Mat<f64> = match form {
             UpdateForm::Joseph => {
-                let llt = s.llt(Side::Lower).map_err(|_| SlamError::NotPositiveDefinite("innovation covariance S"))?;
+                let llt = s
+                    .llt(Side::Lower)
+                    .map_err(|_| SlamError::NotPositiveDefinite("innovation covariance S"))?;
                 llt.solve(m.transpose())
             }
             UpdateForm::Indefinite => s.partial_piv_lu().solve(m.transpose()),
@@ -98,10 +107,24 @@ impl SlamFilter {
                 lhs.as_mut().submatrix_mut(0, r, n, r).copy_from(&ks_m);
                 rhs.as_mut().submatrix_mut(0, 0, n, r).copy_from(-&m);
                 rhs.as_mut().submatrix_mut(0, r, n, r).copy_from(&k);
-                matmul(self.p.as_mut(), Accum::Add, lhs.as_ref(), rhs.transpose(), 1.0, Par::Seq);
+                matmul(
+                    self.p.as_mut(),
+                    Accum::Add,
+                    lhs.as_ref(),
+                    rhs.transpose(),
+                    1.0,
+                    Par::Seq,
+                );
             }
             UpdateForm::Indefinite => {
-                matmul(self.p.as_mut(), Accum::Add, k.as_ref(), m.transpose(), -1.0, Par::Seq);
+                matmul(
+                    self.p.as_mut(),
+                    Accum::Add,
+                    k.as_ref(),
+                    m.transpose(),
+                    -1.0,
+                    Par::Seq,
+                );
             }
         }
         self.symmetrize();
@@ -139,10 +162,25 @@ impl SlamFilter {
         let mut r = Mat::zeros(m, m);
         for (k, it) in items.iter().enumerate() {
             let row = k * d;
-            let off = self.layout.feature_offset(it.feature).ok_or(SlamError::NumericalFailure("feature slot"))?;
-            blocks.push(HBlock { row, col: voff + POS, mat: Mat::from_fn(d, 3, |i, j| it.h_vehicle[(i, j)]) });
-            blocks.push(HBlock { row, col: voff + ATT, mat: Mat::from_fn(d, 3, |i, j| it.h_vehicle[(i, j + 3)]) });
-            blocks.push(HBlock { row, col: off, mat: to_faer(&it.h_feature) });
+            let off = self
+                .layout
+                .feature_offset(it.feature)
+                .ok_or(SlamError::NumericalFailure("feature slot"))?;
+            blocks.push(HBlock {
+                row,
+                col: voff + POS,
+                mat: Mat::from_fn(d, 3, |i, j| it.h_vehicle[(i, j)]),
+            });
+            blocks.push(HBlock {
+                row,
+                col: voff + ATT,
+                mat: Mat::from_fn(d, 3, |i, j| it.h_vehicle[(i, j + 3)]),
+            });
+            blocks.push(HBlock {
+                row,
+                col: off,
+                mat: to_faer(&it.h_feature),
+            });
             for i in 0..d {
                 nu[row + i] = it.innovation[i];
             }
@@ -183,7 +221,8 @@ impl SlamFilter {
         }
         for it in items {
             if self.observation_update(vehicle, model, &[it]).is_err() {
-                report.outcomes[it.obs] = ObservationOutcome::Rejected(RejectReason::NumericalFailure);
+                report.outcomes[it.obs] =
+                    ObservationOutcome::Rejected(RejectReason::NumericalFailure);
             }
         }
     }
@@ -225,16 +264,49 @@ impl SlamFilter {
         let jp = Mat::from_fn(3, 3, |i, j| init.d_position[(i, j)]);
         let ja = Mat::from_fn(3, 3, |i, j| init.d_attitude[(i, j)]);
         let mut cross = Mat::zeros(3, n);
-        matmul(cross.as_mut(), Accum::Add, jp.as_ref(), self.p.as_ref().submatrix(voff + POS, 0, 3, n), 1.0, Par::Seq);
-        matmul(cross.as_mut(), Accum::Add, ja.as_ref(), self.p.as_ref().submatrix(voff + ATT, 0, 3, n), 1.0, Par::Seq);
+        matmul(
+            cross.as_mut(),
+            Accum::Add,
+            jp.as_ref(),
+            self.p.as_ref().submatrix(voff + POS, 0, 3, n),
+            1.0,
+            Par::Seq,
+        );
+        matmul(
+            cross.as_mut(),
+            Accum::Add,
+            ja.as_ref(),
+            self.p.as_ref().submatrix(voff + ATT, 0, 3, n),
+            1.0,
+            Par::Seq,
+        );
         let r = model.noise_covariance();
         let jz = init.d_measurement;
-        let jr = DMatrix::from_fn(3, 3, |i, j| jz[(i, j)]) * &r * DMatrix::from_fn(3, 3, |i, j| jz[(j, i)]);
+        let jr = DMatrix::from_fn(3, 3, |i, j| jz[(i, j)])
+            * &r
+            * DMatrix::from_fn(3, 3, |i, j| jz[(j, i)]);
         let mut pmm = Mat::from_fn(3, 3, |i, j| jr[(i, j)]);
-        matmul(pmm.as_mut(), Accum::Add, cross.as_ref().submatrix(0, voff + POS, 3, 3), jp.transpose(), 1.0, Par::Seq);
-        matmul(pmm.as_mut(), Accum::Add, cross.as_ref().submatrix(0, voff + ATT, 3, 3), ja.transpose(), 1.0, Par::Seq);
+        matmul(
+            pmm.as_mut(),
+            Accum::Add,
+            cross.as_ref().submatrix(0, voff + POS, 3, 3),
+            jp.transpose(),
+            1.0,
+            Par::Seq,
+        );
+        matmul(
+            pmm.as_mut(),
+            Accum::Add,
+            cross.as_ref().submatrix(0, voff + ATT, 3, 3),
+            ja.transpose(),
+            1.0,
+            Par::Seq,
+        );
         let pmm = Mat::from_fn(3, 3, |i, j| 0.5 * (pmm[(i, j)] + pmm[(j, i)]));
-        if !all_finite(cross.as_ref()) || !all_finite(pmm.as_ref()) || !init.feature.iter().all(|v| v.is_finite()) {
+        if !all_finite(cross.as_ref())
+            || !all_finite(pmm.as_ref())
+            || !init.feature.iter().all(|v| v.is_finite())
+        {
             return Err(SlamError::NumericalFailure("feature initialization"));
         }
         if pmm.llt(Side::Lower).is_err() {
