@@ -8,12 +8,13 @@
 //!    B = ΔY_uu⁻¹ ΔY_uk, x_u = ΔY_uu⁻¹ (Δy_u − ΔY_uk (x_k − o)) + o, P_u· = −B P_k·,
 //!    P_uu = ΔY_uu⁻¹ + B P_kk Bᵀ (ΔY_uu must be positive definite).
 //! 2. The remaining information on the known features is the Schur complement
-//!    Ȳ = ΔY_kk − ΔY_ku ΔY_uu⁻¹ ΔY_uk, ȳ = Δy_k − ΔY_ku ΔY_uu⁻¹ Δy_u. With Ȳ = V Λ Vᵀ (rank r,
-//!    eigenvalues below 1e-12·max|λ| dropped) it is applied as a pseudo-measurement
-//!    H = |Λ|^½ Vᵀ E_k, noise D = sign(Λ), innovation ν = D |Λ|^{-½} Vᵀ (ȳ − Ȳ (x_k − o)), so that
-//!    Hᵀ D⁻¹ H = Ȳ and Hᵀ D⁻¹ ν = ȳ − Ȳ(x_k − o): the Kalman update equals the information
-//!    update exactly. Joseph form when every sign is positive; P − K Mᵀ otherwise (indefinite
-//!    deltas from a CI fusion upstream).
+//!    Ȳ = ΔY_kk − ΔY_ku ΔY_uu⁻¹ ΔY_uk, ȳ = Δy_k − ΔY_ku ΔY_uu⁻¹ Δy_u, and g = ȳ − Ȳ (x_k − o).
+//!    It is applied as a pseudo-measurement with Hᵀ D⁻¹ H = Ȳ and Hᵀ D⁻¹ ν = g, so the Kalman
+//!    update equals the information update exactly: if Ȳ is positive definite, Ȳ = L Lᵀ,
+//!    H = Lᵀ E_k, D = I, ν = L⁻¹ g (Joseph form); otherwise Ȳ = V Λ Vᵀ (rank r, eigenvalues below
+//!    1e-12·max|λ| dropped), H = |Λ|^½ Vᵀ E_k, D = sign(Λ), ν = D |Λ|^{-½} Vᵀ g, Joseph form when
+//!    every sign is positive (PSD, low rank) and P − K Mᵀ otherwise (indefinite deltas from a CI
+//!    fusion upstream).
 //! 3. Positive definiteness of the fused joint is checked *before* anything changes: with
 //!    Y = P⁻¹ the fused information is PD iff ΔY_uu ≻ 0 and P_kk⁻¹ + Ȳ ≻ 0 (Schur complements;
 //!    P_kk⁻¹ is the marginal information of the known features), i.e. iff I + Lᵀ Ȳ L ≻ 0 with
@@ -174,28 +175,37 @@ impl SlamFilter {
 
         // Pseudo-measurement factors of Ȳ (still no mutation).
         let pseudo = if nk > 0 {
-            let evd = schur
-                .self_adjoint_eigen(Side::Lower)
-                .map_err(|_| SlamError::NumericalFailure("eigendecomposition of the delta"))?;
-            let lambda: Vec<f64> = (0..nk).map(|i| evd.S().column_vector()[i]).collect();
-            let vmat = evd.U().to_owned();
-            let max = lambda.iter().fold(0.0_f64, |m, l| m.max(l.abs()));
-            // Directions with |λ| ≤ 1e-12·max carry no information at double precision.
-            let keep: Vec<usize> = (0..nk)
-                .filter(|&i| max > 0.0 && lambda[i].abs() > 1e-12 * max)
-                .collect();
-            let r = keep.len();
-            // H_k = |Λ|^½ Vᵀ (r × nk), D = sign(Λ), ν = D |Λ|^{-½} Vᵀ (ȳ − Ȳ (x_k − o)).
             let g = &schur_vec - &schur * &xk_minus_o;
-            let h_k = Mat::from_fn(r, nk, |a, j| {
-                lambda[keep[a]].abs().sqrt() * vmat[(j, keep[a])]
-            });
-            let signs: Vec<f64> = keep.iter().map(|&i| lambda[i].signum()).collect();
-            let nu_vec = Col::from_fn(r, |a| {
-                let vg: f64 = (0..nk).map(|j| vmat[(j, keep[a])] * g[j]).sum();
-                signs[a] * vg / lambda[keep[a]].abs().sqrt()
-            });
-            Some((h_k, signs, nu_vec))
+            if let Ok(llt) = schur.llt(Side::Lower) {
+                // Positive definite (the common case): Ȳ = L Lᵀ, H_k = Lᵀ, D = I, ν = L⁻¹ g,
+                // so Hᵀ H = Ȳ and Hᵀ ν = g; k³/3 instead of an eigendecomposition.
+                let l = llt.L().to_owned();
+                let mut nu_vec = g;
+                l.solve_lower_triangular_in_place(nu_vec.as_mat_mut());
+                Some((l.transpose().to_owned(), vec![1.0; nk], nu_vec))
+            } else {
+                let evd = schur
+                    .self_adjoint_eigen(Side::Lower)
+                    .map_err(|_| SlamError::NumericalFailure("eigendecomposition of the delta"))?;
+                let lambda: Vec<f64> = (0..nk).map(|i| evd.S().column_vector()[i]).collect();
+                let vmat = evd.U().to_owned();
+                let max = lambda.iter().fold(0.0_f64, |m, l| m.max(l.abs()));
+                // Directions with |λ| ≤ 1e-12·max carry no information at double precision.
+                let keep: Vec<usize> = (0..nk)
+                    .filter(|&i| max > 0.0 && lambda[i].abs() > 1e-12 * max)
+                    .collect();
+                let r = keep.len();
+                // H_k = |Λ|^½ Vᵀ (r × nk), D = sign(Λ), ν = D |Λ|^{-½} Vᵀ g.
+                let h_k = Mat::from_fn(r, nk, |a, j| {
+                    lambda[keep[a]].abs().sqrt() * vmat[(j, keep[a])]
+                });
+                let signs: Vec<f64> = keep.iter().map(|&i| lambda[i].signum()).collect();
+                let nu_vec = Col::from_fn(r, |a| {
+                    let vg: f64 = (0..nk).map(|j| vmat[(j, keep[a])] * g[j]).sum();
+                    signs[a] * vg / lambda[keep[a]].abs().sqrt()
+                });
+                Some((h_k, signs, nu_vec))
+            }
         } else {
             None
         };

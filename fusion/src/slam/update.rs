@@ -7,6 +7,7 @@ use crate::observation::ObservationModel;
 use crate::sensor::FeatureId;
 use crate::state::{ATT, POS};
 use faer::linalg::matmul::matmul;
+use faer::linalg::matmul::triangular::{self, BlockStructure};
 use faer::prelude::*;
 use faer::{Accum, Mat, Side};
 use nalgebra::{DMatrix, DVector};
@@ -27,6 +28,21 @@ pub(super) enum UpdateForm {
     Joseph,
     /// P − K Mᵀ with an indefinite "noise" (fusion of indefinite information, LU on S).
     Indefinite,
+}
+
+/// dst_lower += alpha · lhs · rhsᵀ, touching only the lower triangle (incl. diagonal) of dst.
+fn lower_add(dst: MatMut<'_, f64>, lhs: MatRef<'_, f64>, rhs: MatRef<'_, f64>, alpha: f64) {
+    triangular::matmul(
+        dst,
+        BlockStructure::TriangularLower,
+        Accum::Add,
+        lhs,
+        BlockStructure::Rectangular,
+        rhs.transpose(),
+        BlockStructure::Rectangular,
+        alpha,
+        Par::Seq,
+    );
 }
 
 fn to_faer(m: &DMatrix<f64>) -> Mat<f64> {
@@ -57,9 +73,10 @@ impl SlamFilter {
     }
 
     /// Kalman update with M = P Hᵀ, S = H P Hᵀ + R and innovation ν (eqs. 21.56–21.60):
-    /// K = M S⁻¹, x ← x + K ν, and P ← P − K Mᵀ − M Kᵀ + K S Kᵀ (Joseph form expanded for the
-    /// optimal-gain structure, O(n²·m)), computed as P − K Mᵀ + (K S − M) Kᵀ in one rank-2m
-    /// product, then symmetrised. Everything that can fail is checked before P or x change.
+    /// K = M S⁻¹, x ← x + K ν, and P ← P − K Mᵀ − M Kᵀ + K S Kᵀ (the Joseph form
+    /// (I−KH)P(I−KH)ᵀ + KRKᵀ expanded, O(n²·m)), computed as P − K Mᵀ + (K S − M) Kᵀ in one
+    /// rank-2m product on the lower triangle only (the sum is symmetric), then mirrored so P is
+    /// exactly symmetric. Everything that can fail is checked before P or x change.
     pub(super) fn kalman_apply(
         &mut self,
         m: Mat<f64>,
@@ -107,41 +124,25 @@ impl SlamFilter {
                 lhs.as_mut().submatrix_mut(0, r, n, r).copy_from(&ks_m);
                 rhs.as_mut().submatrix_mut(0, 0, n, r).copy_from(-&m);
                 rhs.as_mut().submatrix_mut(0, r, n, r).copy_from(&k);
-                matmul(
-                    self.p.as_mut(),
-                    Accum::Add,
-                    lhs.as_ref(),
-                    rhs.transpose(),
-                    1.0,
-                    Par::Seq,
-                );
+                lower_add(self.p.as_mut(), lhs.as_ref(), rhs.as_ref(), 1.0);
             }
             UpdateForm::Indefinite => {
-                matmul(
-                    self.p.as_mut(),
-                    Accum::Add,
-                    k.as_ref(),
-                    m.transpose(),
-                    -1.0,
-                    Par::Seq,
-                );
+                lower_add(self.p.as_mut(), k.as_ref(), m.as_ref(), -1.0);
             }
         }
-        self.symmetrize();
+        self.mirror_lower();
         for i in 0..n {
             self.x[i] += dx[i];
         }
         Ok(())
     }
 
-    /// P ← (P + Pᵀ)/2.
-    pub(super) fn symmetrize(&mut self) {
+    /// Copies the lower triangle of P onto the upper one (P exactly symmetric).
+    pub(super) fn mirror_lower(&mut self) {
         let n = self.dim();
         for j in 0..n {
             for i in j + 1..n {
-                let a = 0.5 * (self.p[(i, j)] + self.p[(j, i)]);
-                self.p[(i, j)] = a;
-                self.p[(j, i)] = a;
+                self.p[(j, i)] = self.p[(i, j)];
             }
         }
     }
