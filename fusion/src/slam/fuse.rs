@@ -28,10 +28,23 @@ use super::{SlamError, SlamFilter, SlotKind};
 use crate::info::MapInformation;
 use crate::sensor::FeatureId;
 use faer::linalg::matmul::matmul;
+use faer::linalg::matmul::triangular::{self, BlockStructure};
 use faer::linalg::solvers::DenseSolveCore;
 use faer::prelude::*;
 use faer::{Accum, Mat, Side};
 use std::collections::HashSet;
+
+/// How the information on already-known features was applied.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum FuseMethod {
+    /// No known feature in the delta.
+    #[default]
+    None,
+    /// Pseudo-measurement Kalman update, O(n²·r) (deltas on few features).
+    PseudoMeasurement,
+    /// Map-information route, ≈ two k×k Cholesky inverses (deltas covering ≥ half the state).
+    MapInformation,
+}
 
 /// What a fusion did.
 #[derive(Clone, Debug, Default, PartialEq)]
@@ -40,10 +53,13 @@ pub struct FuseReport {
     pub new_features: Vec<FeatureId>,
     /// Number of features of the delta that the filter already held.
     pub known_features: usize,
-    /// Rank of the pseudo-measurement applied to the known features.
-    pub rank: usize,
-    /// Number of negative eigen-directions of that information (indefinite deltas).
-    pub negative_directions: usize,
+    /// How the known-feature information was applied.
+    pub method: FuseMethod,
+    /// Rank of the pseudo-measurement (pseudo-measurement route only).
+    pub rank: Option<usize>,
+    /// Negative eigen-directions of the information (pseudo-measurement route only; the
+    /// Cholesky fast path for positive definite deltas reports 0).
+    pub negative_directions: Option<usize>,
 }
 
 /// Gathers the rows/cols `ri`×`ci` of a matrix.
@@ -151,20 +167,6 @@ impl SlamFilter {
         } else {
             (y_kk, dy_k, None)
         };
-
-        // Step 3: PD check of the fused joint, before any mutation (map blocks are never stale).
-        if nk > 0 {
-            let p_kk = gather(self.p.as_ref(), &known_state, &known_state);
-            let l = p_kk
-                .llt(Side::Lower)
-                .map_err(|_| SlamError::NotPositiveDefinite("filter map covariance"))?
-                .L()
-                .to_owned();
-            let t = Mat::<f64>::identity(nk, nk) + l.transpose() * &schur * &l;
-            if t.llt(Side::Lower).is_err() {
-                return Err(SlamError::NotPositiveDefinite("fused information"));
-            }
-        }
         if let Some((b, y_uu_inv, x_u)) = &new_block
             && (!all_finite(b.as_ref())
                 || !all_finite(y_uu_inv.as_ref())
@@ -173,45 +175,22 @@ impl SlamFilter {
             return Err(SlamError::NumericalFailure("new-feature conditional"));
         }
 
-        // Pseudo-measurement factors of Ȳ (still no mutation).
-        let pseudo = if nk > 0 {
-            let g = &schur_vec - &schur * &xk_minus_o;
-            if let Ok(llt) = schur.llt(Side::Lower) {
-                // Positive definite (the common case): Ȳ = L Lᵀ, H_k = Lᵀ, D = I, ν = L⁻¹ g,
-                // so Hᵀ H = Ȳ and Hᵀ ν = g; k³/3 instead of an eigendecomposition.
-                let l = llt.L().to_owned();
-                let mut nu_vec = g;
-                l.solve_lower_triangular_in_place(nu_vec.as_mat_mut());
-                Some((l.transpose().to_owned(), vec![1.0; nk], nu_vec))
-            } else {
-                let evd = schur
-                    .self_adjoint_eigen(Side::Lower)
-                    .map_err(|_| SlamError::NumericalFailure("eigendecomposition of the delta"))?;
-                let lambda: Vec<f64> = (0..nk).map(|i| evd.S().column_vector()[i]).collect();
-                let vmat = evd.U().to_owned();
-                let max = lambda.iter().fold(0.0_f64, |m, l| m.max(l.abs()));
-                // Directions with |λ| ≤ 1e-12·max carry no information at double precision.
-                let keep: Vec<usize> = (0..nk)
-                    .filter(|&i| max > 0.0 && lambda[i].abs() > 1e-12 * max)
-                    .collect();
-                let r = keep.len();
-                // H_k = |Λ|^½ Vᵀ (r × nk), D = sign(Λ), ν = D |Λ|^{-½} Vᵀ g.
-                let h_k = Mat::from_fn(r, nk, |a, j| {
-                    lambda[keep[a]].abs().sqrt() * vmat[(j, keep[a])]
-                });
-                let signs: Vec<f64> = keep.iter().map(|&i| lambda[i].signum()).collect();
-                let nu_vec = Col::from_fn(r, |a| {
-                    let vg: f64 = (0..nk).map(|j| vmat[(j, keep[a])] * g[j]).sum();
-                    signs[a] * vg / lambda[keep[a]].abs().sqrt()
-                });
-                Some((h_k, signs, nu_vec))
-            }
-        } else {
+        // Everything that can fail for the known-feature part is computed before any mutation
+        // (map blocks are never stale, so no flush is needed for P_kk).
+        let route = if nk == 0 {
             None
+        } else {
+            let g = &schur_vec - &schur * &xk_minus_o;
+            if 2 * nk >= self.dim() + nu {
+                Some(self.prepare_map_route(&known_state, &schur, g)?)
+            } else {
+                Some(self.prepare_pseudo_route(&known_state, &schur, g)?)
+            }
         };
 
         // Mutation starts here. Flushing changes only the representation of P.
         self.flush();
+        self.map_generation += 1;
         let n0 = self.dim();
         if let Some((b, y_uu_inv, x_u)) = &new_block {
             // P_u· = −B P_k·, P_uu = ΔY_uu⁻¹ + B P_kk Bᵀ.
@@ -249,35 +228,248 @@ impl SlamFilter {
             }
             report.new_features = new_ids.clone();
         }
-        if let Some((h_k, signs, nu_vec)) = pseudo {
-            let r = signs.len();
-            report.rank = r;
-            report.negative_directions = signs.iter().filter(|s| **s < 0.0).count();
-            if r > 0 {
-                let n = self.dim();
-                // M = P Hᵀ = P[:, k] H_kᵀ; S = H_k M[k, :] + D.
-                let p_nk = Mat::from_fn(n, nk, |i, j| self.p[(i, known_state[j])]);
-                let m = &p_nk * h_k.transpose();
-                let m_k = gather(m.as_ref(), &known_state, &(0..r).collect::<Vec<_>>());
-                let mut s = &h_k * &m_k;
-                for (a, sg) in signs.iter().enumerate() {
-                    s[(a, a)] += sg;
-                }
-                let form = if report.negative_directions == 0 {
-                    UpdateForm::Joseph
-                } else {
-                    UpdateForm::Indefinite
-                };
-                if let Err(e) = self.kalman_apply(m, s, &nu_vec, form) {
-                    // Roll back the augmentation: the new features are the last slots.
-                    for id in &new_ids {
-                        self.layout.remove(SlotKind::Feature(*id));
-                    }
-                    self.truncate_to(n0);
-                    return Err(e);
-                }
+        let result = match route {
+            None => Ok(()),
+            Some(Route::Pseudo { h_k, signs, nu }) => {
+                report.method = FuseMethod::PseudoMeasurement;
+                report.rank = Some(signs.len());
+                report.negative_directions = Some(signs.iter().filter(|s| **s < 0.0).count());
+                self.apply_pseudo_route(&known_state, &h_k, &signs, &nu)
             }
+            Some(Route::Map {
+                p_aa,
+                p_aa_post,
+                y_aa,
+                dx_a,
+            }) => {
+                report.method = FuseMethod::MapInformation;
+                self.apply_map_route(&known_state, &p_aa, &p_aa_post, &y_aa, &dx_a)
+            }
+        };
+        if let Err(e) = result {
+            // Roll back the augmentation: the new features are the last slots.
+            for id in &new_ids {
+                self.layout.remove(SlotKind::Feature(*id));
+            }
+            self.truncate_to(n0);
+            return Err(e);
         }
         Ok(report)
     }
+
+    /// Pseudo-measurement route (small deltas): factors of Ȳ with Hᵀ D⁻¹ H = Ȳ, Hᵀ D⁻¹ ν = g.
+    /// The PD check of the fused result is implied when Ȳ ⪰ 0 and explicit otherwise.
+    fn prepare_pseudo_route(
+        &self,
+        known_state: &[usize],
+        schur: &Mat<f64>,
+        g: Col<f64>,
+    ) -> Result<Route, SlamError> {
+        let nk = known_state.len();
+        if let Ok(llt) = schur.llt(Side::Lower) {
+            // Positive definite (the common case): Ȳ = L Lᵀ, H_k = Lᵀ, D = I, ν = L⁻¹ g;
+            // k³/3 instead of an eigendecomposition, and PD + PD needs no check.
+            let l = llt.L().to_owned();
+            let mut nu = g;
+            l.solve_lower_triangular_in_place(nu.as_mat_mut());
+            return Ok(Route::Pseudo {
+                h_k: l.transpose().to_owned(),
+                signs: vec![1.0; nk],
+                nu,
+            });
+        }
+        let evd = schur
+            .self_adjoint_eigen(Side::Lower)
+            .map_err(|_| SlamError::NumericalFailure("eigendecomposition of the delta"))?;
+        let lambda: Vec<f64> = (0..nk).map(|i| evd.S().column_vector()[i]).collect();
+        if lambda.iter().any(|l| *l < 0.0) {
+            // Fused information PD ⇔ P_kk⁻¹ + Ȳ ≻ 0 ⇔ I + Lᵀ Ȳ L ≻ 0 with P_kk = L Lᵀ.
+            let p_kk = gather(self.p.as_ref(), known_state, known_state);
+            let l = p_kk
+                .llt(Side::Lower)
+                .map_err(|_| SlamError::NotPositiveDefinite("filter map covariance"))?
+                .L()
+                .to_owned();
+            let t = Mat::<f64>::identity(nk, nk) + l.transpose() * schur * &l;
+            if t.llt(Side::Lower).is_err() {
+                return Err(SlamError::NotPositiveDefinite("fused information"));
+            }
+        }
+        let vmat = evd.U().to_owned();
+        let max = lambda.iter().fold(0.0_f64, |m, l| m.max(l.abs()));
+        // Directions with |λ| ≤ 1e-12·max carry no information at double precision.
+        let keep: Vec<usize> = (0..nk)
+            .filter(|&i| max > 0.0 && lambda[i].abs() > 1e-12 * max)
+            .collect();
+        let r = keep.len();
+        // H_k = |Λ|^½ Vᵀ (r × nk), D = sign(Λ), ν = D |Λ|^{-½} Vᵀ g.
+        let h_k = Mat::from_fn(r, nk, |a, j| {
+            lambda[keep[a]].abs().sqrt() * vmat[(j, keep[a])]
+        });
+        let signs: Vec<f64> = keep.iter().map(|&i| lambda[i].signum()).collect();
+        let nu = Col::from_fn(r, |a| {
+            let vg: f64 = (0..nk).map(|j| vmat[(j, keep[a])] * g[j]).sum();
+            signs[a] * vg / lambda[keep[a]].abs().sqrt()
+        });
+        Ok(Route::Pseudo { h_k, signs, nu })
+    }
+
+    /// Kalman update with the pseudo-measurement: M = P[:, k] H_kᵀ, S = H_k M[k, :] + D.
+    fn apply_pseudo_route(
+        &mut self,
+        known_state: &[usize],
+        h_k: &Mat<f64>,
+        signs: &[f64],
+        nu: &Col<f64>,
+    ) -> Result<(), SlamError> {
+        let r = signs.len();
+        if r == 0 {
+            return Ok(());
+        }
+        let n = self.dim();
+        let p_nk = Mat::from_fn(n, known_state.len(), |i, j| self.p[(i, known_state[j])]);
+        let m = &p_nk * h_k.transpose();
+        let m_k = gather(m.as_ref(), known_state, &(0..r).collect::<Vec<_>>());
+        let mut s = h_k * &m_k;
+        for (a, sg) in signs.iter().enumerate() {
+            s[(a, a)] += sg;
+        }
+        let form = if signs.iter().all(|s| *s > 0.0) {
+            UpdateForm::Joseph
+        } else {
+            UpdateForm::Indefinite
+        };
+        self.kalman_apply(m, s, nu, form)
+    }
+
+    /// Map-information route (deltas covering at least half the state): with a = the delta's
+    /// known features, Y_aa = P_aa⁻¹ is the marginal information, P_aa⁺ = (Y_aa + Ȳ)⁻¹ (its
+    /// Cholesky is the PD check), and everything else follows from the unchanged conditional of
+    /// the other states b given a: with C = P_ba Y_aa, P_ba⁺ = C P_aa⁺,
+    /// P_bb⁺ = P_bb + C (P_aa⁺ − P_aa) Cᵀ, x_a⁺ = x_a + P_aa⁺ g, x_b⁺ = x_b + C (x_a⁺ − x_a).
+    /// Cost ≈ two k×k Cholesky inverses + O(n_b·k² + n_b²·k).
+    fn prepare_map_route(
+        &self,
+        known_state: &[usize],
+        schur: &Mat<f64>,
+        g: Col<f64>,
+    ) -> Result<Route, SlamError> {
+        let p_aa = gather(self.p.as_ref(), known_state, known_state);
+        let y_aa = match &self.info_cache {
+            // A whole-map delta: Y_aa is the cached map information, permuted to delta order.
+            Some((generation, y))
+                if *generation == self.map_generation && y.nrows() == known_state.len() =>
+            {
+                let mut pos = vec![usize::MAX; self.dim()];
+                for (i, (_, off)) in self.layout.features().enumerate() {
+                    for c in 0..3 {
+                        pos[off + c] = 3 * i + c;
+                    }
+                }
+                let perm: Vec<usize> = known_state.iter().map(|s| pos[*s]).collect();
+                gather(y.as_ref(), &perm, &perm)
+            }
+            _ => p_aa
+                .llt(Side::Lower)
+                .map_err(|_| SlamError::NotPositiveDefinite("filter map covariance"))?
+                .inverse(),
+        };
+        let post = &y_aa + schur;
+        let p_aa_post = post
+            .llt(Side::Lower)
+            .map_err(|_| SlamError::NotPositiveDefinite("fused information"))?
+            .inverse();
+        let dx_a = &p_aa_post * &g;
+        if !all_finite(p_aa_post.as_ref())
+            || !all_finite(y_aa.as_ref())
+            || !all_finite(dx_a.as_mat())
+        {
+            return Err(SlamError::NumericalFailure("map-information fusion"));
+        }
+        Ok(Route::Map {
+            p_aa,
+            p_aa_post,
+            y_aa,
+            dx_a,
+        })
+    }
+
+    fn apply_map_route(
+        &mut self,
+        known_state: &[usize],
+        p_aa: &Mat<f64>,
+        p_aa_post: &Mat<f64>,
+        y_aa: &Mat<f64>,
+        dx_a: &Col<f64>,
+    ) -> Result<(), SlamError> {
+        let n = self.dim();
+        let mut in_a = vec![false; n];
+        for &i in known_state {
+            in_a[i] = true;
+        }
+        let rest: Vec<usize> = (0..n).filter(|i| !in_a[*i]).collect();
+        let p_ba = gather(self.p.as_ref(), &rest, known_state);
+        let c = &p_ba * y_aa;
+        let p_ba_post = &c * p_aa_post;
+        let dx_b = &c * dx_a;
+        let mut p_bb = gather(self.p.as_ref(), &rest, &rest);
+        let c_delta = &c * (p_aa_post - p_aa);
+        triangular::matmul(
+            p_bb.as_mut(),
+            BlockStructure::TriangularLower,
+            Accum::Add,
+            c_delta.as_ref(),
+            BlockStructure::Rectangular,
+            c.transpose(),
+            BlockStructure::Rectangular,
+            1.0,
+            Par::Seq,
+        );
+        if !all_finite(p_bb.as_ref())
+            || !all_finite(p_ba_post.as_ref())
+            || !all_finite(dx_b.as_mat())
+        {
+            return Err(SlamError::NumericalFailure("map-information fusion"));
+        }
+        for (jj, &j) in rest.iter().enumerate() {
+            for (ii, &i) in rest.iter().enumerate().skip(jj) {
+                self.p[(i, j)] = p_bb[(ii, jj)];
+                self.p[(j, i)] = p_bb[(ii, jj)];
+            }
+            for (aa, &a) in known_state.iter().enumerate() {
+                self.p[(j, a)] = p_ba_post[(jj, aa)];
+                self.p[(a, j)] = p_ba_post[(jj, aa)];
+            }
+        }
+        for (bb, &b) in known_state.iter().enumerate() {
+            for (aa, &a) in known_state.iter().enumerate() {
+                // P_aa⁺ from a Cholesky inverse is symmetric (faer mirrors it).
+                self.p[(a, b)] = p_aa_post[(aa, bb)];
+            }
+        }
+        for (aa, &a) in known_state.iter().enumerate() {
+            self.x[a] += dx_a[aa];
+        }
+        for (jj, &j) in rest.iter().enumerate() {
+            self.x[j] += dx_b[jj];
+        }
+        Ok(())
+    }
+}
+
+/// The known-feature part of a fusion, prepared before any mutation.
+enum Route {
+    /// Pseudo-measurement factors.
+    Pseudo {
+        h_k: Mat<f64>,
+        signs: Vec<f64>,
+        nu: Col<f64>,
+    },
+    /// Map-information route quantities.
+    Map {
+        p_aa: Mat<f64>,
+        p_aa_post: Mat<f64>,
+        y_aa: Mat<f64>,
+        dx_a: Col<f64>,
+    },
 }

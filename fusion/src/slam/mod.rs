@@ -26,16 +26,17 @@ mod fuse;
 pub mod layout;
 mod update;
 
-pub use fuse::FuseReport;
+pub use fuse::{FuseMethod, FuseReport};
 pub use layout::{Layout, PoseId, Slot, SlotKind};
 
 use crate::consistency::chi2_quantile;
 use crate::imu::ImuNoise;
-use crate::info::MapMarginal;
+use crate::info::{MapInformation, MapMarginal};
 use crate::ins::{self, InsError, VehicleCovariance, VehicleState};
 use crate::observation::{ObservationError, ObservationModel};
 use crate::sensor::{FeatureId, ImuSample, ObservationFrame, SensorModel, SensorMount};
 use crate::state::{NavFrame, VEHICLE_DIM};
+use faer::linalg::solvers::DenseSolveCore;
 use faer::{Col, Mat};
 use nalgebra::{Matrix3, SMatrix, Vector3};
 
@@ -240,6 +241,11 @@ pub struct SlamFilter {
     next_fresh: u64,
     /// χ² gate thresholds at `gate_probability`, index = degrees of freedom (0 unused).
     gates: Vec<f64>,
+    /// Bumped whenever x_m or P_mm may change (updates, augmentation, fusion; not prediction).
+    map_generation: u64,
+    /// Y_mm = P_mm⁻¹ from the last [`SlamFilter::map_information`], valid while
+    /// `map_generation` is unchanged (reused by the map-information fusion route).
+    info_cache: Option<(u64, Mat<f64>)>,
 }
 
 fn is_symmetric_pd(m: &SMatrix<f64, VEHICLE_DIM, VEHICLE_DIM>) -> bool {
@@ -308,6 +314,8 @@ impl SlamFilter {
             );
         }
         Ok(Self {
+            map_generation: 0,
+            info_cache: None,
             config,
             vehicles: slots,
             layout,
@@ -430,6 +438,37 @@ impl SlamFilter {
             mean: Col::from_fn(k, |i| self.x[idx[i]]),
             covariance: Mat::from_fn(k, k, |i, j| self.p[(idx[i], idx[j])]),
         }
+    }
+
+    /// The map information (Y, y) = (P_mm⁻¹, P_mm⁻¹ (x_m − o)) of eqs. 21.86/21.87 with the
+    /// origin convention of `info`, keyed by feature id in state order. The inverse is cached
+    /// until the map changes, and a later fusion of a whole-map delta reuses it.
+    pub fn map_information(&mut self) -> Result<MapInformation, SlamError> {
+        let mm = self.map_marginal();
+        let k = mm.mean.nrows();
+        let y = match &self.info_cache {
+            Some((generation, y)) if *generation == self.map_generation && y.nrows() == k => {
+                y.clone()
+            }
+            _ => {
+                let y = mm
+                    .covariance
+                    .llt(faer::Side::Lower)
+                    .map_err(|_| SlamError::NotPositiveDefinite("map covariance"))?
+                    .inverse();
+                self.info_cache = Some((self.map_generation, y.clone()));
+                y
+            }
+        };
+        let o = self.config.origin;
+        let centred = Col::from_fn(k, |i| mm.mean[i] - o[i % 3]);
+        let vector = &y * &centred;
+        Ok(MapInformation {
+            ids: mm.ids,
+            origin: o,
+            matrix: y,
+            vector,
+        })
     }
 
     /// The full state vector x.
@@ -555,6 +594,7 @@ impl SlamFilter {
             })
             .collect::<Result<Vec<_>, _>>()?;
         self.flush();
+        self.map_generation += 1;
         let descriptors: Vec<FeatureId> = frame.observations.iter().map(|o| o.descriptor).collect();
         let plan = self.associate(vehicle, &model, &zs, &descriptors);
         let mut report = FrameReport {

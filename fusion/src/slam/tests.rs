@@ -522,20 +522,25 @@ fn random_spd(k: usize, scale: f64, rng: &mut ChaCha8Rng) -> DMatrix<f64> {
 fn fusion_matches_dense_information_form_and_adds_exactly_to_the_map_marginal() {
     let mut rng = ChaCha8Rng::seed_from_u64(6);
     // (case, ids of the delta): known only, known + new, only new, low rank, indefinite.
-    for case in 0..5 {
+    // Cases: 0 known only, 1 known + new, 2 only new, 3 low rank, 4 indefinite (pseudo-
+    // measurement route); 5 whole map PD, 6 whole map indefinite, 7 whole map + new (map route).
+    for case in 0..8 {
         let mut f = SlamFilter::new(
             config(NavFrame::Local, AssociationMode::Descriptor),
             &[vehicle(Vector3::new(0.0, 0.0, -100.0))],
         )
         .unwrap();
         f.config.origin = Vector3::new(5.0, -3.0, 1.0);
-        randomize(&mut f, 5, &mut rng);
+        let n_feat = if case == 7 { 8 } else { 5 };
+        randomize(&mut f, n_feat, &mut rng);
         f.predict(0, &imu(0.0)).unwrap(); // pending Φ must be flushed by the fusion
         let ids: Vec<FeatureId> = match case {
             0 => vec![101, 103],
             1 => vec![102, 900, 104, 901],
             2 => vec![900, 901],
-            _ => vec![100, 101, 102],
+            3 | 4 => vec![100, 101, 102],
+            5 | 6 => vec![104, 100, 101, 102, 103],
+            _ => vec![100, 101, 102, 903, 103, 104, 105, 106, 107],
         };
         let k = 3 * ids.len();
         let mut y = random_spd(k, 2.0, &mut rng);
@@ -544,7 +549,7 @@ fn fusion_matches_dense_information_form_and_adds_exactly_to_the_map_marginal() 
             let u = DMatrix::from_fn(k, 2, |_, _| rng.random::<f64>() - 0.5);
             y = &u * u.transpose() * 3.0;
         }
-        if case == 4 {
+        if case == 4 || case == 6 {
             // Indefinite: subtract a bit of information along one direction (as a CI upstream
             // may), small enough that the fused result stays positive definite.
             let u = DVector::from_fn(k, |_, _| rng.random::<f64>() - 0.5).normalize();
@@ -561,12 +566,25 @@ fn fusion_matches_dense_information_form_and_adds_exactly_to_the_map_marginal() 
         let d = delta(ids.clone(), y.clone(), &target, f.origin());
         let (x_ref, p_ref) = dense_fusion_reference(&f, &d);
         let (ids0, y0, v0) = marginal_information(&f);
-        let rep = f.fuse_map_information(&d).unwrap();
-        if case == 4 {
-            assert!(rep.negative_directions > 0);
+        if case == 5 || case == 7 {
+            // map_information() matches the independent inverse, and primes the cache that the
+            // whole-map route then reuses (cases 5, 7; case 6 computes its own inverse).
+            let mi = f.map_information().unwrap();
+            assert_eq!(mi.ids, ids0);
+            let ey = (to_dense(&mi.matrix) - &y0).abs().max() / y0.abs().max();
+            let ev = (col_to_dense(&mi.vector) - &v0).abs().max() / v0.abs().max();
+            // Two independent inverses of a κ ≲ 1e3 matrix: 1e-11 relative.
+            assert!(ey < 1e-11 && ev < 1e-11, "{ey} {ev}");
         }
-        if case == 3 {
-            assert_eq!(rep.rank, 2);
+        let rep = f.fuse_map_information(&d).unwrap();
+        match case {
+            3 => assert_eq!(rep.rank, Some(2)),
+            4 => assert!(rep.negative_directions.unwrap() > 0),
+            5..=7 => assert_eq!(rep.method, FuseMethod::MapInformation),
+            _ => {}
+        }
+        if case < 2 || case == 3 || case == 4 {
+            assert_eq!(rep.method, FuseMethod::PseudoMeasurement);
         }
         let p = to_dense(&f.p);
         let x = col_to_dense(&f.x);
@@ -677,6 +695,38 @@ fn bad_information_is_rejected_and_leaves_the_filter_unchanged() {
         assert_eq!(snapshot(&f), before, "{what} changed the filter");
     }
     assert!(f.fuse_map_information(&good).is_ok());
+
+    // The map-information route (delta over the whole map) checks PD the same way.
+    let mut g = SlamFilter::new(
+        config(NavFrame::Local, AssociationMode::Descriptor),
+        &[vehicle(Vector3::new(0.0, 0.0, -100.0))],
+    )
+    .unwrap();
+    randomize(&mut g, 5, &mut rng);
+    g.predict(0, &imu(0.0)).unwrap();
+    let before = snapshot(&g);
+    let ids: Vec<FeatureId> = (100..105).collect();
+    let bad = delta(
+        ids.clone(),
+        -random_spd(15, 50.0, &mut rng),
+        &DVector::zeros(15),
+        Vector3::zeros(),
+    );
+    assert_eq!(
+        g.fuse_map_information(&bad),
+        Err(SlamError::NotPositiveDefinite("fused information"))
+    );
+    assert_eq!(snapshot(&g), before);
+    let ok = delta(
+        ids,
+        random_spd(15, 1.0, &mut rng),
+        &DVector::zeros(15),
+        Vector3::zeros(),
+    );
+    assert_eq!(
+        g.fuse_map_information(&ok).unwrap().method,
+        FuseMethod::MapInformation
+    );
 }
 
 /// A row of ground features spaced `spacing` m east, the vehicle 100 m above them, its estimate
