@@ -128,8 +128,11 @@ mod tests {
         // Correlated 2×2: closed-form inverse.
         let p = DMatrix::from_row_slice(2, 2, &[2.0, 0.5, 0.5, 1.0]);
         let e = DVector::from_vec(vec![1.0, -1.0]);
-        let det = 2.0 - 0.25;
-        let expected = (1.0 * 1.0 * 1.0 - 2.0 * 0.5 * 1.0 * -1.0 + 2.0 * 1.0) / det;
+        // P⁻¹ = [[p11, −p01], [−p01, p00]] / det, so ε = (e0² p11 − 2 e0 e1 p01 + e1² p00) / det.
+        let (p00, p01, p11) = (2.0, 0.5, 1.0);
+        let (e0, e1) = (1.0, -1.0);
+        let det = p00 * p11 - p01 * p01;
+        let expected = (e0 * e0 * p11 - 2.0 * e0 * e1 * p01 + e1 * e1 * p00) / det;
         assert!((nees(&e, &p).unwrap() - expected).abs() < 1e-14);
         let bad = DMatrix::from_row_slice(2, 2, &[1.0, 2.0, 2.0, 1.0]);
         assert_eq!(nees(&e, &bad), Err(ConsistencyError::NotPositiveDefinite));

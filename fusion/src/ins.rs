@@ -232,10 +232,7 @@ fn frame_terms(frame: NavFrame, p: &Vector3<f64>, v: &Vector3<f64>) -> FrameTerm
             let nav_rate = geodesy::earth_rate_ned(g.lat) + geodesy::transport_rate_ned(&g, &v_ned);
             let (d_dlat, d_dh, d_dvn) = nav_rate_partials(&g, &v_ned);
             // ω_in depends on p through (λ, h) and through v^n = C_neᵀ(p) v.
-            let mut vn_dp = Matrix3::zeros();
-            for j in 0..3 {
-                vn_dp.set_column(j, &(c_dp[j].transpose() * v));
-            }
+            let vn_dp = Matrix3::from_columns(&c_dp.map(|d| d.transpose() * v));
             let geo_part = Matrix3::from_columns(&[d_dlat, Vector3::zeros(), d_dh]) * geo_from_p;
             FrameTerms {
                 ecef_from_ned: c_ne,
@@ -293,10 +290,7 @@ pub fn propagate_with_jacobians(
         a_dp.set_column(j, &(a_dp.column(j) + t.ecef_from_ned_dp[j] * c_bn * f));
     }
     let a_dv = -2.0 * skew(&t.earth_rate);
-    let mut a_datt = Matrix3::zeros();
-    for j in 0..3 {
-        a_datt.set_column(j, &(t.ecef_from_ned * c_bn_d[j] * f));
-    }
+    let a_datt = Matrix3::from_columns(&c_bn_d.map(|d| t.ecef_from_ned * d * f));
     let a_dbias = -c_be;
 
     // ∂(Ψ rate)/∂(p, v, Ψ, δω) with Ψ̇ = E(Ψ)(ω − C_bnᵀ ω_in).

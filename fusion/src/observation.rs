@@ -454,8 +454,11 @@ mod tests {
         m
     }
 
-    /// (frame, vehicle position, attitude, feature) cases: a feature ≈ 200 m below and ahead.
-    fn cases() -> Vec<(NavFrame, Vector3<f64>, Vector3<f64>, Vector3<f64>)> {
+    /// (frame, vehicle position, attitude, feature).
+    type Case = (NavFrame, Vector3<f64>, Vector3<f64>, Vector3<f64>);
+
+    /// Cases: a feature ≈ 200 m below and ahead, in both frames.
+    fn cases() -> Vec<Case> {
         let att = Vector3::new(0.1, -0.05, 0.7);
         let local_p = Vector3::new(50.0, 20.0, -200.0);
         let local_m = Vector3::new(90.0, 45.0, 3.0);
