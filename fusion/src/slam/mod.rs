@@ -246,6 +246,8 @@ pub struct SlamFilter {
     /// Y_mm = P_mm⁻¹ from the last [`SlamFilter::map_information`], valid while
     /// `map_generation` is unchanged (reused by the map-information fusion route).
     info_cache: Option<(u64, Mat<f64>)>,
+    /// Reserved row/column capacity of P (see `grow`).
+    capacity: usize,
 }
 
 fn is_symmetric_pd(m: &SMatrix<f64, VEHICLE_DIM, VEHICLE_DIM>) -> bool {
@@ -314,6 +316,7 @@ impl SlamFilter {
             );
         }
         Ok(Self {
+            capacity: n,
             map_generation: 0,
             info_cache: None,
             config,

@@ -232,9 +232,12 @@ impl SlamFilter {
     pub(super) fn grow(&mut self, k: usize) {
         let n = self.dim();
         let new_n = n + k;
-        // Capacity doubling keeps repeated augmentation amortized O(n²) in total copying.
-        let cap = new_n.next_power_of_two();
-        self.p.reserve(cap, cap);
+        // Geometric (×1.5) capacity growth keeps repeated augmentation amortized O(n²) in total
+        // copying while bounding the unused memory to ≈ 2.25× of P at worst.
+        if new_n > self.capacity {
+            self.capacity = new_n.max(self.capacity + self.capacity / 2);
+            self.p.reserve(self.capacity, self.capacity);
+        }
         self.p.resize_with(new_n, new_n, |_, _| 0.0);
         self.x.resize_with(new_n, |_| 0.0);
     }
