@@ -2,7 +2,7 @@
 //! closed-form truths (straight level flight in the local frame, a vehicle at rest on the
 //! rotating Earth in the global frame), synthetic IMU samples and terrain observations.
 
-use canopy_fusion::consistency::{anees_band, nees, vehicle_error};
+use canopy_fusion::consistency::{anees_band, chi2_quantile, nees, vehicle_error};
 use canopy_fusion::geodesy::{self, Geodetic, LocalFrame};
 use canopy_fusion::imu::{ImuGrade, ImuNoise};
 use canopy_fusion::ins::{VehicleCovariance, VehicleState};
@@ -301,8 +301,9 @@ fn global_hover_noise_free_stays_at_truth() {
 /// Two vehicles in one centralized filter (M = 2) with IMU and measurement noise drawn from the
 /// filter's own models: a small Monte Carlo of the final vehicle errors must have an average
 /// NEES inside the two-sided 95 % ANEES band (the filter is neither over- nor under-confident on
-/// a short run, where linearisation errors are still small). The seeds are fixed, so the test is
-/// deterministic; a consistent filter lands outside the band for 5 % of seed choices.
+/// a short run, where linearisation errors are still small), and the map marginal's NEES summed
+/// over runs must lie in its two-sided 95 % χ² band. The seeds are fixed, so the test is
+/// deterministic; a consistent filter lands outside a band for 5 % of seed choices.
 #[test]
 fn two_vehicle_centralized_monte_carlo_is_consistent() {
     const RUNS: usize = 40;
@@ -314,6 +315,7 @@ fn two_vehicle_centralized_monte_carlo_is_consistent() {
     let dt = 0.01;
     let mut nees_pose = Vec::new();
     let (mut observed, mut rejected) = (0usize, 0usize);
+    let (mut map_nees, mut map_dof) = (0.0, 0usize);
     for run in 0..RUNS {
         let mut rng = ChaCha8Rng::seed_from_u64(1000 + run as u64);
         let std = Normal::new(0.0, 1.0).unwrap();
@@ -421,6 +423,20 @@ fn two_vehicle_centralized_monte_carlo_is_consistent() {
         }
         let p = DMatrix::from_fn(idx.len(), idx.len(), |i, j| p_joint[(idx[i], idx[j])]);
         nees_pose.push(nees(&e, &p).unwrap());
+        // The whole map: NEES of the map marginal against the true feature positions.
+        let mm = slam.map_marginal();
+        let k = mm.mean.nrows();
+        let em = DVector::from_fn(k, |i, _| {
+            let truth = features
+                .iter()
+                .find(|(id, _)| *id == mm.ids[i / 3])
+                .unwrap()
+                .1;
+            mm.mean[i] - truth[i % 3]
+        });
+        let pm = DMatrix::from_fn(k, k, |i, j| mm.covariance[(i, j)]);
+        map_nees += nees(&em, &pm).unwrap();
+        map_dof += k;
     }
     let runs = nees_pose.len();
     let anees = nees_pose.iter().sum::<f64>() / runs as f64;
@@ -437,5 +453,18 @@ fn two_vehicle_centralized_monte_carlo_is_consistent() {
     assert!(
         anees > lo && anees < hi,
         "ANEES {anees} outside [{lo}, {hi}]"
+    );
+    // Σ NEES over runs of the map marginal is χ² with Σ dof degrees of freedom if consistent.
+    let (mlo, mhi) = (
+        chi2_quantile(map_dof as f64, 0.025).unwrap(),
+        chi2_quantile(map_dof as f64, 0.975).unwrap(),
+    );
+    println!(
+        "map: Σ NEES {map_nees:.1} over Σ dof {map_dof} (per dof {:.3}), 95 % band [{mlo:.1}, {mhi:.1}]",
+        map_nees / map_dof as f64
+    );
+    assert!(
+        map_nees > mlo && map_nees < mhi,
+        "map NEES {map_nees} outside [{mlo}, {mhi}]"
     );
 }
