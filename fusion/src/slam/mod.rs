@@ -597,9 +597,12 @@ impl SlamFilter {
             })
             .collect::<Result<Vec<_>, _>>()?;
         self.flush();
-        self.map_generation += 1;
         let descriptors: Vec<FeatureId> = frame.observations.iter().map(|o| o.descriptor).collect();
         let plan = self.associate(vehicle, &model, &zs, &descriptors);
+        if !plan.updates.is_empty() || !plan.initializations.is_empty() {
+            // The map (and so the cached map information) may change below.
+            self.map_generation += 1;
+        }
         let mut report = FrameReport {
             outcomes: plan.outcomes.clone(),
             jcbb_nodes: plan.jcbb_nodes,
