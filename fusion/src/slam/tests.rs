@@ -882,3 +882,54 @@ fn construction_rejects_invalid_setups() {
     c.association.gate_probability = 1.0;
     assert!(SlamFilter::new(c, &[vehicle(Vector3::zeros())]).is_err());
 }
+
+#[test]
+fn map_information_cache_follows_map_changes() {
+    let mut rng = ChaCha8Rng::seed_from_u64(8);
+    let mut f = SlamFilter::new(
+        config(NavFrame::Local, AssociationMode::Descriptor),
+        &[vehicle(Vector3::new(0.0, 0.0, -100.0))],
+    )
+    .unwrap();
+    randomize(&mut f, 4, &mut rng);
+    let check = |f: &mut SlamFilter| {
+        let (ids, y, v) = marginal_information(f);
+        let mi = f.map_information().unwrap();
+        assert_eq!(mi.ids, ids);
+        // Independent nalgebra inverse vs faer Cholesky inverse, κ ≲ 1e3: 1e-11 relative.
+        assert!((to_dense(&mi.matrix) - &y).abs().max() < 1e-11 * y.abs().max());
+        assert!((col_to_dense(&mi.vector) - &v).abs().max() < 1e-11 * v.abs().max().max(1.0));
+    };
+    check(&mut f);
+    // Prediction does not change the map: the cache stays valid and correct.
+    f.predict(0, &imu(0.0)).unwrap();
+    check(&mut f);
+    // An update and an initialization change it.
+    let est = f.vehicle_state(0).unwrap();
+    let z = observe(&f, 0, &est, &f.feature(101).unwrap());
+    let frame = ObservationFrame {
+        time: 0.0,
+        observations: vec![
+            Observation {
+                descriptor: 101,
+                z: rb(&(z.clone() + DVector::from_vec(vec![0.2, 0.001, 0.0]))),
+            },
+            Observation {
+                descriptor: 55,
+                z: rb(&DVector::from_vec(vec![90.0, 0.3, -0.2])),
+            },
+        ],
+    };
+    let r = f.process_frame(0, &frame).unwrap();
+    assert_eq!((r.associated(), r.initialized()), (1, 1));
+    check(&mut f);
+    // A fusion changes it too.
+    let d = delta(
+        vec![100],
+        random_spd(3, 1.0, &mut rng),
+        &DVector::zeros(3),
+        Vector3::zeros(),
+    );
+    f.fuse_map_information(&d).unwrap();
+    check(&mut f);
+}
