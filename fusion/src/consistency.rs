@@ -124,6 +124,7 @@ mod tests {
         // Diagonal covariance: ε = Σ e_i²/σ_i².
         let p = DMatrix::from_diagonal(&DVector::from_vec(vec![4.0, 1.0, 0.25]));
         let e = DVector::from_vec(vec![2.0, 1.0, 0.5]);
+        // Cholesky of a diagonal matrix is exact up to one rounding per entry.
         assert!((nees(&e, &p).unwrap() - 3.0).abs() < 1e-14);
         // Correlated 2×2: closed-form inverse.
         let p = DMatrix::from_row_slice(2, 2, &[2.0, 0.5, 0.5, 1.0]);
@@ -133,6 +134,7 @@ mod tests {
         let (e0, e1) = (1.0, -1.0);
         let det = p00 * p11 - p01 * p01;
         let expected = (e0 * e0 * p11 - 2.0 * e0 * e1 * p01 + e1 * e1 * p00) / det;
+        // 2×2 Cholesky vs the closed form: a few roundings on O(1) values.
         assert!((nees(&e, &p).unwrap() - expected).abs() < 1e-14);
         let bad = DMatrix::from_row_slice(2, 2, &[1.0, 2.0, 2.0, 1.0]);
         assert_eq!(nees(&e, &bad), Err(ConsistencyError::NotPositiveDefinite));
@@ -159,6 +161,7 @@ mod tests {
         b.attitude.z = -3.1;
         a.position.x = 1.0;
         let e = vehicle_error(&a, &b);
+        // Exact wrap arithmetic on O(1) angles: round-off only.
         assert!((e[ATT + 2] - (6.2 - std::f64::consts::TAU)).abs() < 1e-12);
         assert_eq!(e[0], 1.0);
     }
