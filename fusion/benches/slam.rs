@@ -3,7 +3,8 @@
 //! 1. IMU prediction per sample at N = 50, 100, 200, 400 features: the filter's lazy prediction
 //!    (flushed once per 20 samples, i.e. a 5 Hz terrain frame at 100 Hz IMU), the eager variant
 //!    (flushed every sample), and the naive dense ∇F P ∇Fᵀ + ∇G Q ∇Gᵀ measured side by side.
-//! 2. EKF update cost per observation vs N (descriptor association, 10 observations per frame).
+//! 2. EKF update cost per observation vs N (descriptor association, 10 observations per frame),
+//!    and association + update per 20-observation frame for descriptor, NN and JCBB.
 //! 3. Fuse-back of received map information vs a raw faer Cholesky inverse of the 3N×3N map
 //!    covariance, for a delta on 10 features and on the whole map, and one fusion round
 //!    (map information from the filter → delta → fuse back), for both delta sizes.
@@ -62,11 +63,15 @@ fn setup() -> VehicleSetup {
 /// A filter with `n` features below the vehicle, with a dense correlated map covariance (the
 /// features are fused in as one dense information delta).
 fn filter(n: usize) -> SlamFilter {
+    filter_with(n, AssociationMode::Descriptor)
+}
+
+fn filter_with(n: usize, mode: AssociationMode) -> SlamFilter {
     let cfg = SlamConfig {
         frame: NavFrame::Local,
         origin: Vector3::zeros(),
         association: AssociationConfig {
-            mode: AssociationMode::Descriptor,
+            mode,
             gate_probability: 0.95,
         },
         fresh_id_namespace: 0,
@@ -197,6 +202,55 @@ fn main() {
             f.dim(),
             t * 1e3,
             t * 1e3 / 10.0
+        );
+    }
+
+    println!("\n## Association + update per frame of 20 observations (descriptor vs NN vs JCBB)");
+    println!("| N | descriptor [ms] | nearest neighbour [ms] | JCBB [ms] | JCBB nodes |");
+    println!("|---|---|---|---|---|");
+    for &n_feat in &[100usize, 400] {
+        let mut row = Vec::new();
+        let mut nodes = 0;
+        for mode in [
+            AssociationMode::Descriptor,
+            AssociationMode::NearestNeighbour,
+            AssociationMode::Jcbb { max_nodes: 100_000 },
+        ] {
+            let mut f = filter_with(n_feat, mode);
+            let model = *f.observation_model(0).unwrap();
+            let ids: Vec<FeatureId> = (0..20).map(|i| (i * 5 % n_feat) as FeatureId).collect();
+            let s = f.vehicle_state(0).unwrap();
+            let pose = model.sensor_pose(&s.position, &s.attitude);
+            let observations: Vec<Observation> = ids
+                .iter()
+                .map(|id| {
+                    let z = model.predict(&pose, &f.feature(*id).unwrap()).unwrap().z;
+                    Observation {
+                        descriptor: *id,
+                        z: Measurement::RangeBearing(Vector3::new(z[0] + 0.1, z[1], z[2])),
+                    }
+                })
+                .collect();
+            let frame = ObservationFrame {
+                time: 0.0,
+                observations,
+            };
+            let t = median_time(5, || {
+                let mut g = f.clone();
+                let r = g.process_frame(0, &frame).unwrap();
+                nodes = r.jcbb_nodes;
+                black_box(r);
+            });
+            // Subtract the clone so only association + update is timed.
+            let c = median_time(5, || {
+                black_box(f.clone());
+            });
+            row.push((t - c) * 1e3);
+            f.flush();
+        }
+        println!(
+            "| {n_feat} | {:.2} | {:.2} | {:.2} | {nodes} |",
+            row[0], row[1], row[2]
         );
     }
 

@@ -42,6 +42,7 @@ pub(super) struct AssociationPlan {
     pub initializations: Vec<usize>,
     pub jcbb_nodes: usize,
     pub jcbb_truncated: bool,
+    pub jcbb_joint_nis: Option<f64>,
 }
 
 fn nis(nu: &DVector<f64>, s: &DMatrix<f64>) -> f64 {
@@ -210,6 +211,7 @@ impl SlamFilter {
                         search.run();
                         plan.jcbb_nodes = search.nodes;
                         plan.jcbb_truncated = search.truncated;
+                        plan.jcbb_joint_nis = (search.best_pairs > 0).then_some(search.best_nis);
                         search.best
                     }
                     _ => greedy_nearest_neighbour(&cands),
@@ -256,6 +258,11 @@ fn greedy_nearest_neighbour(cands: &[Vec<UpdateItem>]) -> Vec<Option<usize>> {
 }
 
 /// Joint compatibility branch and bound over the individually compatible candidates.
+///
+/// The joint innovation covariance of the hypothesis on the current search path is kept as a
+/// growing lower Cholesky factor L with w = L⁻¹ν, so adding a pairing c costs one block row:
+/// X = L⁻¹ S_{·c}, L_cc = chol(S_cc − XᵀX), w_c = L_cc⁻¹(ν_c − Xᵀw), NIS += |w_c|² (O(k²) per
+/// node instead of re-factorizing the whole joint S).
 struct Jcbb<'a> {
     filter: &'a SlamFilter,
     ctx: &'a FrameContext<'a>,
@@ -268,6 +275,13 @@ struct Jcbb<'a> {
     best: Vec<Option<usize>>,
     best_pairs: usize,
     best_nis: f64,
+    /// Lower Cholesky factor of the path's joint S (leading d·depth block valid).
+    l: DMatrix<f64>,
+    /// L⁻¹ ν along the path.
+    w: DVector<f64>,
+    /// Joint NIS at each depth (index 0 = empty hypothesis).
+    nis_path: Vec<f64>,
+    p_vv: DMatrix<f64>,
 }
 
 impl<'a> Jcbb<'a> {
@@ -277,6 +291,7 @@ impl<'a> Jcbb<'a> {
         cands: &'a [Vec<UpdateItem>],
         max_nodes: usize,
     ) -> Self {
+        let dim = ctx.r.nrows() * cands.len();
         Self {
             filter,
             ctx,
@@ -289,6 +304,10 @@ impl<'a> Jcbb<'a> {
             best: vec![None; cands.len()],
             best_pairs: 0,
             best_nis: f64::INFINITY,
+            l: DMatrix::zeros(dim, dim),
+            w: DVector::zeros(dim),
+            nis_path: vec![0.0],
+            p_vv: DMatrix::from_fn(6, 6, |i, j| ctx.p_vv[(i, j)]),
         }
     }
 
@@ -296,43 +315,51 @@ impl<'a> Jcbb<'a> {
         self.search(0);
     }
 
-    /// Joint NIS of the current hypothesis: stacked ν and S with the cross-covariances between
-    /// pairings (H_a P H_bᵀ through the shared vehicle pose and the features' correlation).
-    fn joint_nis(&self) -> f64 {
-        let items: Vec<&UpdateItem> = self
-            .current
-            .iter()
-            .map(|&(i, k)| &self.cands[i][k])
-            .collect();
+    /// Cross-covariance H_c P H_aᵀ of two pairings (through the shared vehicle pose and the
+    /// features' correlation).
+    fn cross(&self, c: &UpdateItem, a: &UpdateItem) -> DMatrix<f64> {
+        let p_vc = DMatrix::from_fn(6, 3, |i, j| c.p_vm[(i, j)]);
+        let p_va = DMatrix::from_fn(6, 3, |i, j| a.p_vm[(i, j)]);
+        let p_ca = DMatrix::from_fn(3, 3, |i, j| self.filter.p[(c.offset + i, a.offset + j)]);
+        &c.h_vehicle * &self.p_vv * a.h_vehicle.transpose()
+            + &c.h_vehicle * p_va * a.h_feature.transpose()
+            + &c.h_feature * p_vc.transpose() * a.h_vehicle.transpose()
+            + &c.h_feature * p_ca * a.h_feature.transpose()
+    }
+
+    /// Extends the path's factor by pairing (i, k); returns the new joint NIS, or `None` if the
+    /// joint S would not be positive definite. Writes only rows beyond the current depth.
+    fn extend(&mut self, i: usize, k: usize) -> Option<f64> {
         let d = self.ctx.r.nrows();
-        let dim = d * items.len();
-        let mut s = DMatrix::zeros(dim, dim);
-        let mut nu = DVector::zeros(dim);
-        let p_vv = DMatrix::from_fn(6, 6, |i, j| self.ctx.p_vv[(i, j)]);
-        for (a, ia) in items.iter().enumerate() {
-            nu.rows_mut(a * d, d).copy_from(&ia.innovation);
-            for (b, ib) in items.iter().enumerate().skip(a) {
-                let block = if a == b {
-                    ia.s.clone()
-                } else {
-                    let p_va = DMatrix::from_fn(6, 3, |i, j| ia.p_vm[(i, j)]);
-                    let p_vb = DMatrix::from_fn(6, 3, |i, j| ib.p_vm[(i, j)]);
-                    let p_ab = DMatrix::from_fn(3, 3, |i, j| {
-                        self.filter.p[(ia.offset + i, ib.offset + j)]
-                    });
-                    &ia.h_vehicle * &p_vv * ib.h_vehicle.transpose()
-                        + &ia.h_vehicle * p_vb * ib.h_feature.transpose()
-                        + &ia.h_feature * p_va.transpose() * ib.h_vehicle.transpose()
-                        + &ia.h_feature * p_ab * ib.h_feature.transpose()
-                };
-                s.view_mut((a * d, b * d), (d, d)).copy_from(&block);
-                if a != b {
-                    s.view_mut((b * d, a * d), (d, d))
-                        .copy_from(&block.transpose());
-                }
-            }
+        let depth = self.current.len();
+        let dim = d * depth;
+        let c = &self.cands[i][k];
+        let mut x = DMatrix::zeros(dim, d);
+        for (a, &(ia, ka)) in self.current.iter().enumerate() {
+            let blk = self.cross(c, &self.cands[ia][ka]);
+            x.view_mut((a * d, 0), (d, d)).copy_from(&blk.transpose());
         }
-        nis(&nu, &s)
+        if dim > 0
+            && !self
+                .l
+                .view((0, 0), (dim, dim))
+                .solve_lower_triangular_mut(&mut x)
+        {
+            return None;
+        }
+        let schur = &c.s - x.transpose() * &x;
+        let l_cc = schur.cholesky()?.l();
+        let mut w_c = &c.innovation - x.transpose() * self.w.rows(0, dim);
+        if !l_cc.solve_lower_triangular_mut(&mut w_c) {
+            return None;
+        }
+        let nis = self.nis_path[depth] + w_c.norm_squared();
+        self.l
+            .view_mut((dim, 0), (d, dim))
+            .copy_from(&x.transpose());
+        self.l.view_mut((dim, dim), (d, d)).copy_from(&l_cc);
+        self.w.rows_mut(dim, d).copy_from(&w_c);
+        Some(nis)
     }
 
     fn search(&mut self, i: usize) {
@@ -343,7 +370,7 @@ impl<'a> Jcbb<'a> {
         self.nodes += 1;
         if i == self.cands.len() {
             let pairs = self.current.len();
-            let joint = if pairs == 0 { 0.0 } else { self.joint_nis() };
+            let joint = self.nis_path[pairs];
             if pairs > self.best_pairs || (pairs == self.best_pairs && joint < self.best_nis) {
                 self.best_pairs = pairs;
                 self.best_nis = joint;
@@ -359,14 +386,19 @@ impl<'a> Jcbb<'a> {
             if self.used.contains(&f) {
                 continue;
             }
-            self.current.push((i, k));
-            let dof = self.ctx.r.nrows() * self.current.len();
-            if self.joint_nis() <= self.filter.gates[dof] {
-                self.used.insert(f);
-                self.search(i + 1);
-                self.used.remove(&f);
+            let dof = self.ctx.r.nrows() * (self.current.len() + 1);
+            match self.extend(i, k) {
+                Some(nis) if nis <= self.filter.gates[dof] => {
+                    self.current.push((i, k));
+                    self.nis_path.push(nis);
+                    self.used.insert(f);
+                    self.search(i + 1);
+                    self.used.remove(&f);
+                    self.nis_path.pop();
+                    self.current.pop();
+                }
+                _ => {}
             }
-            self.current.pop();
         }
         // The "observation i is spurious/new" branch, if it can still beat the best hypothesis.
         let remaining = self.cands.len() - i - 1;

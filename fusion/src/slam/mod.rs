@@ -195,6 +195,8 @@ pub struct FrameReport {
     pub jcbb_nodes: usize,
     /// True when JCBB stopped at its node budget.
     pub jcbb_truncated: bool,
+    /// Joint NIS of the hypothesis JCBB accepted (None for the other modes or no pairing).
+    pub jcbb_joint_nis: Option<f64>,
 }
 
 impl FrameReport {
@@ -607,6 +609,7 @@ impl SlamFilter {
             outcomes: plan.outcomes.clone(),
             jcbb_nodes: plan.jcbb_nodes,
             jcbb_truncated: plan.jcbb_truncated,
+            jcbb_joint_nis: plan.jcbb_joint_nis,
         };
         self.apply_updates(vehicle, &model, &plan.updates, &mut report);
         for &i in &plan.initializations {
