@@ -5,7 +5,7 @@ use super::{AssociationMode, ObservationOutcome, RejectReason, SlamFilter};
 use crate::observation::{ObservationError, ObservationModel, SensorPose};
 use crate::sensor::{FeatureId, SensorModel};
 use crate::state::{ATT, POS};
-use nalgebra::{DMatrix, DVector, SMatrix};
+use nalgebra::{DMatrix, DVector, SMatrix, Vector3};
 use std::collections::HashSet;
 
 type Mat6 = SMatrix<f64, 6, 6>;
@@ -116,6 +116,30 @@ impl SlamFilter {
         })
     }
 
+    /// A cheap conservative pre-filter for the gating modes (range-bearing only): the observation
+    /// back-projected to m_obs = J_1(x̂, z) and tr Cov(m_obs) = tr(∇J_x P ∇J_xᵀ + ∇J_z R ∇J_zᵀ).
+    /// To first order ν ≈ H_m (m_obs − m_j) and S = H_m Σ H_mᵀ with Σ = Cov(m_obs − m_j)
+    /// ⪯ 2 (Cov(m_obs) + P_jj), so NIS ≥ |m_obs − m_j|² / (2 (tr Cov(m_obs) + tr P_jj)): a
+    /// feature farther than that cannot pass the gate and its prediction is skipped.
+    fn prefilter_bound(
+        &self,
+        ctx: &FrameContext<'_>,
+        z: &DVector<f64>,
+    ) -> Option<(Vector3<f64>, f64)> {
+        let init = ctx.model.initialize(&ctx.pose, z).ok()?;
+        let jx = SMatrix::<f64, 3, 6>::from_fn(|i, j| {
+            if j < 3 {
+                init.d_position[(i, j)]
+            } else {
+                init.d_attitude[(i, j - 3)]
+            }
+        });
+        let jz = DMatrix::from_fn(3, 3, |i, j| init.d_measurement[(i, j)]);
+        let tr_x = (jx * ctx.p_vv * jx.transpose()).trace();
+        let tr_z = (&jz * &ctx.r * jz.transpose()).trace();
+        Some((init.feature, tr_x + tr_z))
+    }
+
     /// Associates every observation of a frame against the prior (see [`AssociationMode`]).
     pub(super) fn associate(
         &mut self,
@@ -187,14 +211,30 @@ impl SlamFilter {
                 }
             }
             AssociationMode::NearestNeighbour | AssociationMode::Jcbb { .. } => {
-                let features: Vec<(FeatureId, usize)> = self.layout.features().collect();
+                let features: Vec<(FeatureId, usize, Vector3<f64>, f64)> = self
+                    .layout
+                    .features()
+                    .map(|(id, off)| {
+                        let trace = (0..3).map(|c| self.p[(off + c, off + c)]).sum();
+                        (id, off, self.vec3_at(off), trace)
+                    })
+                    .collect();
                 let mut cands: Vec<Vec<UpdateItem>> = zs
                     .iter()
                     .enumerate()
                     .map(|(i, z)| {
+                        let bound = self.prefilter_bound(&ctx, z);
                         let mut v: Vec<UpdateItem> = features
                             .iter()
-                            .filter_map(|&(id, off)| self.candidate(&ctx, i, z, id, off).ok())
+                            .filter(|(_, _, m, trace)| match &bound {
+                                // 4× the linearized bound: margin for nonlinearity.
+                                Some((m_obs, tr_obs)) => {
+                                    (m_obs - m).norm_squared()
+                                        <= 4.0 * gate * 2.0 * (tr_obs + trace)
+                                }
+                                None => true,
+                            })
+                            .filter_map(|&(id, off, _, _)| self.candidate(&ctx, i, z, id, off).ok())
                             .filter(|c| c.nis <= gate)
                             .collect();
                         v.sort_by(|a, b| a.nis.total_cmp(&b.nis));
