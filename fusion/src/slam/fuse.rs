@@ -14,14 +14,17 @@
 //!    H = Lᵀ E_k, D = I, ν = L⁻¹ g (Joseph form); otherwise Ȳ = V Λ Vᵀ (rank r, eigenvalues below
 //!    1e-12·max|λ| dropped), H = |Λ|^½ Vᵀ E_k, D = sign(Λ), ν = D |Λ|^{-½} Vᵀ g, Joseph form when
 //!    every sign is positive (PSD, low rank) and P − K Mᵀ otherwise (indefinite deltas from a CI
-//!    fusion upstream).
+//!    fusion upstream). Cost O(n²·r + n·k²), r ≤ 3·(features in the delta): only the changed
+//!    feature blocks enter.
+//!    When the delta covers at least half of the state (whole-map deltas) the same information is
+//!    applied through the map block instead (`prepare_map_route`): P_aa⁺ = (P_aa⁻¹ + Ȳ)⁻¹ and the
+//!    other states through their unchanged conditional, ≈ two k×k Cholesky inverses, one of which
+//!    is the cached [`SlamFilter::map_information`] when it is current.
 //! 3. Positive definiteness of the fused joint is checked *before* anything changes: with
 //!    Y = P⁻¹ the fused information is PD iff ΔY_uu ≻ 0 and P_kk⁻¹ + Ȳ ≻ 0 (Schur complements;
 //!    P_kk⁻¹ is the marginal information of the known features), i.e. iff I + Lᵀ Ȳ L ≻ 0 with
-//!    P_kk = L Lᵀ (Cholesky).
-//!
-//! Cost O(n²·r + n·k²) with r ≤ 3·(features in the delta): only the changed feature blocks
-//! enter.
+//!    P_kk = L Lᵀ (Cholesky). The check is implied when Ȳ ⪰ 0, and in the map route it is the
+//!    Cholesky of P_aa⁻¹ + Ȳ itself.
 
 use super::update::{UpdateForm, all_finite};
 use super::{SlamError, SlamFilter, SlotKind};
