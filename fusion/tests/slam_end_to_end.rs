@@ -428,7 +428,7 @@ fn two_vehicle_centralized_monte_carlo_is_consistent() {
         let p_joint = slam.joint_covariance();
         let idx: Vec<usize> = (0..truth.len())
             .flat_map(|v| {
-                let off = slam.layout().vehicle_offset(v);
+                let off = slam.layout().vehicle_offset(v).unwrap();
                 [0, 1, 2, 6, 7, 8].map(|i| off + i)
             })
             .collect();

@@ -148,7 +148,7 @@ impl SlamFilter {
         zs: &[DVector<f64>],
         descriptors: &[FeatureId],
     ) -> AssociationPlan {
-        let voff = self.layout.vehicle_offset(vehicle);
+        let voff = self.layout.vehicle_block(vehicle);
         let state = self
             .vehicle_state(vehicle)
             .expect("vehicle validated by the caller");

@@ -83,8 +83,13 @@ impl Layout {
         self.index.get(&kind).map(|&i| self.slots[i].offset)
     }
 
-    /// Offset of vehicle block `v` (panics on an unknown vehicle; callers validate first).
-    pub fn vehicle_offset(&self, v: usize) -> usize {
+    /// Offset of vehicle block `v`, if the filter has that vehicle.
+    pub fn vehicle_offset(&self, v: usize) -> Option<usize> {
+        self.offset(SlotKind::Vehicle(v))
+    }
+
+    /// Offset of a vehicle index the filter has already validated.
+    pub(crate) fn vehicle_block(&self, v: usize) -> usize {
         self.offset(SlotKind::Vehicle(v))
             .expect("vehicle index validated by the caller")
     }
@@ -153,7 +158,8 @@ mod tests {
     #[test]
     fn offsets_follow_insertion_and_removal() {
         let mut l = Layout::new(2);
-        assert_eq!(l.vehicle_offset(1), VEHICLE_DIM);
+        assert_eq!(l.vehicle_offset(1), Some(VEHICLE_DIM));
+        assert_eq!(l.vehicle_offset(2), None);
         let a = l.push(SlotKind::Feature(7));
         let p = l.push(SlotKind::Pose(1));
         let b = l.push(SlotKind::Feature(3));

@@ -290,7 +290,7 @@ impl SlamFilter {
                     "vehicle {v}: initial covariance is not symmetric positive definite"
                 )));
             }
-            let off = layout.vehicle_offset(v);
+            let off = layout.vehicle_block(v);
             let xv = setup.state.to_vector();
             for i in 0..VEHICLE_DIM {
                 x[off + i] = xv[i];
@@ -376,7 +376,7 @@ impl SlamFilter {
 
     fn check_vehicle(&self, vehicle: usize) -> Result<usize, SlamError> {
         if vehicle < self.vehicles.len() {
-            Ok(self.layout.vehicle_offset(vehicle))
+            Ok(self.layout.vehicle_block(vehicle))
         } else {
             Err(SlamError::UnknownVehicle(vehicle))
         }
@@ -502,7 +502,7 @@ impl SlamFilter {
             return;
         }
         let phi = self.vehicles[v].pending;
-        let off = self.layout.vehicle_offset(v);
+        let off = self.layout.vehicle_block(v);
         let n = self.dim();
         let phi_f = Mat::from_fn(VEHICLE_DIM, VEHICLE_DIM, |i, j| phi[(i, j)]);
         let rows = self.p.as_ref().submatrix(off, 0, VEHICLE_DIM, n).to_owned();

@@ -135,7 +135,7 @@ fn lazy_prediction_matches_dense_propagation() {
         randomize(&mut f, 5, &mut rng);
         // Global positions must stay ECEF-sized after randomize(): restore the vehicle means.
         for v in 0..2 {
-            let off = f.layout.vehicle_offset(v);
+            let off = f.layout.vehicle_block(v);
             let s = vehicle(p0 + Vector3::new(50.0 * v as f64, 0.0, 0.0))
                 .state
                 .to_vector();
@@ -152,7 +152,7 @@ fn lazy_prediction_matches_dense_propagation() {
             let prop = ins::propagate_with_jacobians(frame, &xv, &sample).unwrap();
             let q = ins::process_noise(&ImuGrade::Tactical.noise(), sample.dt);
             // Dense reference: ∇F is identity except the vehicle block; ∇G has only vehicle rows.
-            let off = f.layout.vehicle_offset(v);
+            let off = f.layout.vehicle_block(v);
             let mut ff = DMatrix::identity(n, n);
             let mut gg = DMatrix::zeros(n, 12);
             for i in 0..VEHICLE_DIM {
@@ -317,7 +317,7 @@ fn stacked_joseph_update_matches_the_dense_reference() {
     let pose = model.sensor_pose(&est.position, &est.attitude);
     // Two observations with small innovations (inside the gate even for this random P).
     let ids = [101u64, 104];
-    let voff = f.layout.vehicle_offset(0);
+    let voff = f.layout.vehicle_block(0);
     let mut h = DMatrix::zeros(6, n);
     let mut nu = DVector::zeros(6);
     let mut obs = Vec::new();
@@ -384,7 +384,7 @@ fn feature_initialization_matches_eq_21_52() {
         let mut f =
             SlamFilter::new(config(frame, AssociationMode::Descriptor), &[vehicle(p0)]).unwrap();
         randomize(&mut f, 4, &mut rng);
-        let voff = f.layout.vehicle_offset(0);
+        let voff = f.layout.vehicle_block(0);
         let s = vehicle(p0).state.to_vector();
         for i in 0..VEHICLE_DIM {
             f.x[voff + i] = s[i];
@@ -795,7 +795,7 @@ fn jcbb_resolves_a_coherent_offset_that_fools_nearest_neighbour() {
     let est = prior.vehicle_state(0).unwrap();
     let pose = model.sensor_pose(&est.position, &est.attitude);
     let n = prior.dim();
-    let voff = prior.layout.vehicle_offset(0);
+    let voff = prior.layout.vehicle_block(0);
     let mut h = DMatrix::zeros(18, n);
     let mut nu = DVector::zeros(18);
     let mut r = DMatrix::zeros(18, 18);

@@ -154,7 +154,7 @@ impl SlamFilter {
         model: &ObservationModel,
         items: &[&UpdateItem],
     ) -> Result<(), SlamError> {
-        let voff = self.layout.vehicle_offset(vehicle);
+        let voff = self.layout.vehicle_block(vehicle);
         let d = model.measurement_dim();
         let m = d * items.len();
         let r_one = to_faer(&model.noise_covariance());
@@ -258,7 +258,7 @@ impl SlamFilter {
         z: &DVector<f64>,
         descriptor: FeatureId,
     ) -> Result<FeatureId, SlamError> {
-        let voff = self.layout.vehicle_offset(vehicle);
+        let voff = self.layout.vehicle_block(vehicle);
         let state = self.vehicle_state(vehicle)?;
         let pose = model.sensor_pose(&state.position, &state.attitude);
         let init = model
