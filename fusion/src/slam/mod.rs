@@ -90,7 +90,8 @@ pub struct SlamConfig {
     pub origin: Vector3<f64>,
     /// Data association.
     pub association: AssociationConfig,
-    /// Namespace of fresh feature ids (make it unique per filter in a team, e.g. the vehicle id).
+    /// Namespace of fresh feature ids (make it unique per filter in a team, e.g. the vehicle id;
+    /// only the low 31 bits are used).
     pub fresh_id_namespace: u32,
 }
 
@@ -566,7 +567,7 @@ impl SlamFilter {
         }
         loop {
             let id = FRESH_ID_BASE
-                | (u64::from(self.config.fresh_id_namespace) << 32)
+                | (u64::from(self.config.fresh_id_namespace & 0x7FFF_FFFF) << 32)
                 | (self.next_fresh & 0xFFFF_FFFF);
             self.next_fresh += 1;
             if !self.layout.has_feature(id) {
