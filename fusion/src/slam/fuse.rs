@@ -67,7 +67,27 @@ pub struct FuseReport {
 
 /// Gathers the rows/cols `ri`×`ci` of a matrix.
 fn gather(m: MatRef<'_, f64>, ri: &[usize], ci: &[usize]) -> Mat<f64> {
-    Mat::from_fn(ri.len(), ci.len(), |i, j| m[(ri[i], ci[j])])
+    match (contiguous(ri), contiguous(ci)) {
+        // Contiguous index ranges (the common case: a delta in state order) copy whole columns.
+        (Some(r0), Some(c0)) => m.submatrix(r0, c0, ri.len(), ci.len()).to_owned(),
+        _ => Mat::from_fn(ri.len(), ci.len(), |i, j| m[(ri[i], ci[j])]),
+    }
+}
+
+/// The first index if `idx` is `first, first+1, …`.
+fn contiguous(idx: &[usize]) -> Option<usize> {
+    let first = *idx.first()?;
+    idx.iter()
+        .enumerate()
+        .all(|(k, &i)| i == first + k)
+        .then_some(first)
+}
+
+/// ½ (m[ri, ci] + m[ci, ri]ᵀ): the symmetric part of a (validated, nearly symmetric) block.
+fn gather_sym(m: MatRef<'_, f64>, ri: &[usize], ci: &[usize]) -> Mat<f64> {
+    let a = gather(m, ri, ci);
+    let b = gather(m, ci, ri);
+    Mat::from_fn(ri.len(), ci.len(), |i, j| 0.5 * (a[(i, j)] + b[(j, i)]))
 }
 
 impl SlamFilter {
@@ -119,9 +139,6 @@ impl SlamFilter {
         delta: &MapInformation,
     ) -> Result<FuseReport, SlamError> {
         self.validate_information(delta)?;
-        let sym = Mat::from_fn(delta.matrix.nrows(), delta.matrix.ncols(), |i, j| {
-            0.5 * (delta.matrix[(i, j)] + delta.matrix[(j, i)])
-        });
         let o = self.config.origin;
         // Partition the delta's 3-blocks into known (in the filter) and new features.
         let mut known_pos = Vec::new(); // delta indices
@@ -149,13 +166,13 @@ impl SlamFilter {
             return Ok(report);
         }
         let xk_minus_o = Col::from_fn(nk, |i| self.x[known_state[i]] - o[i % 3]);
-        let y_kk = gather(sym.as_ref(), &known_pos, &known_pos);
+        let y_kk = gather_sym(delta.matrix.as_ref(), &known_pos, &known_pos);
         let dy_k = Col::from_fn(nk, |i| delta.vector[known_pos[i]]);
 
         // Step 1 quantities (no mutation yet).
         let (schur, schur_vec, new_block) = if nu > 0 {
-            let y_uu = gather(sym.as_ref(), &new_pos, &new_pos);
-            let y_uk = gather(sym.as_ref(), &new_pos, &known_pos);
+            let y_uu = gather_sym(delta.matrix.as_ref(), &new_pos, &new_pos);
+            let y_uk = gather_sym(delta.matrix.as_ref(), &new_pos, &known_pos);
             let dy_u = Col::from_fn(nu, |i| delta.vector[new_pos[i]]);
             let llt = y_uu
                 .llt(Side::Lower)
@@ -444,10 +461,18 @@ impl SlamFilter {
                 self.p[(a, j)] = p_ba_post[(jj, aa)];
             }
         }
-        for (bb, &b) in known_state.iter().enumerate() {
-            for (aa, &a) in known_state.iter().enumerate() {
-                // P_aa⁺ from a Cholesky inverse is symmetric (faer mirrors it).
-                self.p[(a, b)] = p_aa_post[(aa, bb)];
+        // P_aa⁺ from a Cholesky inverse is symmetric (faer mirrors it).
+        if let Some(a0) = contiguous(known_state) {
+            let k = known_state.len();
+            self.p
+                .as_mut()
+                .submatrix_mut(a0, a0, k, k)
+                .copy_from(p_aa_post);
+        } else {
+            for (bb, &b) in known_state.iter().enumerate() {
+                for (aa, &a) in known_state.iter().enumerate() {
+                    self.p[(a, b)] = p_aa_post[(aa, bb)];
+                }
             }
         }
         for (aa, &a) in known_state.iter().enumerate() {

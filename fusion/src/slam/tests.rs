@@ -523,8 +523,9 @@ fn fusion_matches_dense_information_form_and_adds_exactly_to_the_map_marginal() 
     let mut rng = ChaCha8Rng::seed_from_u64(6);
     // (case, ids of the delta): known only, known + new, only new, low rank, indefinite.
     // Cases: 0 known only, 1 known + new, 2 only new, 3 low rank, 4 indefinite (pseudo-
-    // measurement route); 5 whole map PD, 6 whole map indefinite, 7 whole map + new (map route).
-    for case in 0..8 {
+    // measurement route); 5 whole map PD, 6 whole map indefinite, 7 whole map + new, 8 whole map
+    // in state order (contiguous copies) (map route).
+    for case in 0..9 {
         let mut f = SlamFilter::new(
             config(NavFrame::Local, AssociationMode::Descriptor),
             &[vehicle(Vector3::new(0.0, 0.0, -100.0))],
@@ -540,6 +541,7 @@ fn fusion_matches_dense_information_form_and_adds_exactly_to_the_map_marginal() 
             2 => vec![900, 901],
             3 | 4 => vec![100, 101, 102],
             5 | 6 => vec![104, 100, 101, 102, 103],
+            8 => vec![100, 101, 102, 103, 104],
             _ => vec![100, 101, 102, 903, 103, 104, 105, 106, 107],
         };
         let k = 3 * ids.len();
@@ -566,7 +568,7 @@ fn fusion_matches_dense_information_form_and_adds_exactly_to_the_map_marginal() 
         let d = delta(ids.clone(), y.clone(), &target, f.origin());
         let (x_ref, p_ref) = dense_fusion_reference(&f, &d);
         let (ids0, y0, v0) = marginal_information(&f);
-        if case == 5 || case == 7 {
+        if case == 5 || case == 7 || case == 8 {
             // map_information() matches the independent inverse, and primes the cache that the
             // whole-map route then reuses (cases 5, 7; case 6 computes its own inverse).
             let mi = f.map_information().unwrap();
@@ -580,7 +582,7 @@ fn fusion_matches_dense_information_form_and_adds_exactly_to_the_map_marginal() 
         match case {
             3 => assert_eq!(rep.rank, Some(2)),
             4 => assert!(rep.negative_directions.unwrap() > 0),
-            5..=7 => assert_eq!(rep.method, FuseMethod::MapInformation),
+            5..=8 => assert_eq!(rep.method, FuseMethod::MapInformation),
             _ => {}
         }
         if case < 2 || case == 3 || case == 4 {
