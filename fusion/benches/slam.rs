@@ -269,10 +269,6 @@ fn main() {
         let mut f = filter(n_feat);
         let mm = f.map_marginal();
         let k = mm.covariance.nrows();
-        let inv = median_time(5, || {
-            let y = mm.covariance.llt(Side::Lower).unwrap().inverse();
-            black_box(y);
-        });
         let make_delta = |f: &SlamFilter, ids: Vec<FeatureId>| {
             let r = 3 * ids.len();
             let y = Mat::from_fn(r, r, |i, j| {
@@ -292,26 +288,49 @@ fn main() {
             }
         };
         let small_ids: Vec<FeatureId> = (0..10).map(|i| (i * 13 % n_feat) as FeatureId).collect();
-        let small = median_time(7, || {
+        let all_ids: Vec<FeatureId> = (0..n_feat as FeatureId).collect();
+        // The machine is shared: the five measurements are interleaved rep by rep so that load
+        // changes affect them alike, and medians are taken per column.
+        let reps = 7;
+        let mut t = vec![Vec::new(); 5];
+        let time = |f: &mut dyn FnMut()| {
+            let s = Instant::now();
+            f();
+            s.elapsed().as_secs_f64()
+        };
+        for _ in 0..reps {
+            t[0].push(time(&mut || {
+                black_box(mm.covariance.llt(Side::Lower).unwrap().inverse());
+            }));
             let d = make_delta(&f, small_ids.clone());
-            f.fuse_map_information(&d).unwrap();
-        });
-        let full = median_time(3, || {
-            let d = make_delta(&f, (0..n_feat as FeatureId).collect());
-            f.fuse_map_information(&d).unwrap();
-        });
-        // A round: the DDF takes the map information from the filter (marginal → Cholesky
-        // inverse, cached), forms a delta, and fuses the neighbour's delta back.
-        let round = median_time(5, || {
-            black_box(f.map_information().unwrap());
-            let d = make_delta(&f, small_ids.clone());
-            f.fuse_map_information(&d).unwrap();
-        });
-        let round_full = median_time(3, || {
-            black_box(f.map_information().unwrap());
-            let d = make_delta(&f, (0..n_feat as FeatureId).collect());
-            f.fuse_map_information(&d).unwrap();
-        });
+            t[1].push(time(&mut || {
+                f.fuse_map_information(&d).unwrap();
+            }));
+            let d = make_delta(&f, all_ids.clone());
+            t[2].push(time(&mut || {
+                f.fuse_map_information(&d).unwrap();
+            }));
+            // A round: the DDF takes the map information from the filter (marginal → Cholesky
+            // inverse, cached), forms a delta, and fuses the neighbour's delta back.
+            t[3].push(time(&mut || {
+                black_box(f.map_information().unwrap());
+                let d = make_delta(&f, small_ids.clone());
+                f.fuse_map_information(&d).unwrap();
+            }));
+            t[4].push(time(&mut || {
+                black_box(f.map_information().unwrap());
+                let d = make_delta(&f, all_ids.clone());
+                f.fuse_map_information(&d).unwrap();
+            }));
+        }
+        let med: Vec<f64> = t
+            .into_iter()
+            .map(|mut v| {
+                v.sort_by(f64::total_cmp);
+                v[v.len() / 2]
+            })
+            .collect();
+        let (inv, small, full, round, round_full) = (med[0], med[1], med[2], med[3], med[4]);
         println!(
             "| {n_feat} (3N = {k}) | {:.2} | {:.2} | {:.2} | {:.2} | {:.2} | {:.2} | {:.2} |",
             inv * 1e3,
