@@ -992,3 +992,101 @@ fn map_information_cache_follows_map_changes() {
     f.fuse_map_information(&d).unwrap();
     check(&mut f);
 }
+
+#[test]
+fn randomized_fusions_match_the_dense_information_form() {
+    // 60 random trials: filter size, delta subset and order, new features, PD / low-rank /
+    // mildly indefinite information, both routes; each checked against the dense reference.
+    let mut rng = ChaCha8Rng::seed_from_u64(9);
+    let mut routes = [0usize; 3];
+    for trial in 0..60 {
+        let mut f = SlamFilter::new(
+            config(NavFrame::Local, AssociationMode::Descriptor),
+            &[vehicle(Vector3::new(0.0, 0.0, -100.0))],
+        )
+        .unwrap();
+        f.config.origin = Vector3::new(rng.random_range(-5.0..5.0), 2.0, -1.0);
+        // Every fourth trial covers a larger whole map (the map-information route needs the
+        // delta to span at least half of the 15 + 3N states).
+        let n_feat = if trial % 4 == 0 {
+            rng.random_range(8..12)
+        } else {
+            rng.random_range(1..8)
+        };
+        randomize(&mut f, n_feat, &mut rng);
+        if trial % 2 == 0 {
+            f.predict(0, &imu(0.0)).unwrap();
+        }
+        let keep = if trial % 4 == 0 { 1.0 } else { 0.5 };
+        let mut ids: Vec<FeatureId> = (0..n_feat as u64)
+            .map(|i| 100 + i)
+            .filter(|_| rng.random_bool(keep))
+            .collect();
+        for j in 0..rng.random_range(0..3) {
+            ids.push(500 + j);
+        }
+        if ids.is_empty() {
+            ids.push(100);
+        }
+        // Shuffle the delta order.
+        for i in (1..ids.len()).rev() {
+            ids.swap(i, rng.random_range(0..=i));
+        }
+        let k = 3 * ids.len();
+        let mut y = match trial % 3 {
+            0 => random_spd(k, 1.0, &mut rng),
+            1 => {
+                let r = rng.random_range(1..=k);
+                let u = DMatrix::from_fn(k, r, |_, _| rng.random::<f64>() - 0.5);
+                &u * u.transpose()
+            }
+            _ => {
+                let u = DVector::from_fn(k, |_, _| rng.random::<f64>() - 0.5).normalize();
+                random_spd(k, 1.0, &mut rng) - &u * u.transpose() * 0.02
+            }
+        };
+        // New features need positive definite information of their own.
+        for (b, id) in ids.iter().enumerate() {
+            if *id >= 500 {
+                for i in 0..3 {
+                    y[(3 * b + i, 3 * b + i)] += 1.0;
+                }
+            }
+        }
+        let target = DVector::from_fn(k, |_, _| rng.random_range(-30.0..30.0));
+        let d = delta(ids.clone(), y, &target, f.origin());
+        let (x_ref, p_ref) = dense_fusion_reference(&f, &d);
+        match f.fuse_map_information(&d) {
+            Ok(rep) => {
+                routes[rep.method as usize] += 1;
+                let p = to_dense(&f.p);
+                let x = col_to_dense(&f.x);
+                // Well-conditioned ≤ 40×40 problems (κ ≲ 1e4 after low-rank/indefinite
+                // deltas): 1e-8 relative on P and x covers the dense inverse's round-off.
+                assert!(
+                    (&p - &p_ref).abs().max() < 1e-8 * p_ref.abs().max(),
+                    "trial {trial}: P"
+                );
+                assert!(
+                    (&x - &x_ref).abs().max() < 1e-8 * x_ref.abs().max(),
+                    "trial {trial}: x"
+                );
+            }
+            // A rejected delta must really make the fused information indefinite.
+            Err(e) => {
+                let eig = p_ref.clone().symmetric_eigenvalues();
+                assert!(
+                    eig.min() <= 0.0,
+                    "trial {trial}: rejected a PD fusion: {e:?}"
+                );
+            }
+        }
+    }
+    // Both routes (and trials with only new features) were exercised.
+    println!("fusion routes (none, pseudo, map): {routes:?}");
+    assert!(
+        routes[FuseMethod::PseudoMeasurement as usize] > 5
+            && routes[FuseMethod::MapInformation as usize] > 5,
+        "{routes:?}"
+    );
+}
