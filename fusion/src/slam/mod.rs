@@ -34,8 +34,9 @@ use crate::imu::ImuNoise;
 use crate::info::{MapInformation, MapMarginal};
 use crate::ins::{self, InsError, VehicleCovariance, VehicleState};
 use crate::observation::{ObservationError, ObservationModel};
+use crate::rotation::wrap_angle;
 use crate::sensor::{FeatureId, ImuSample, ObservationFrame, SensorModel, SensorMount};
-use crate::state::{NavFrame, VEHICLE_DIM};
+use crate::state::{ATT, NavFrame, VEHICLE_DIM};
 use faer::linalg::solvers::DenseSolveCore;
 use faer::{Col, Mat};
 use nalgebra::{Matrix3, SMatrix, Vector3};
@@ -166,6 +167,8 @@ pub enum RejectReason {
     DegenerateGeometry,
     /// The update or augmentation failed numerically and was skipped.
     NumericalFailure,
+    /// A finite but physically invalid measurement (range ≤ 0).
+    InvalidMeasurement,
 }
 
 /// What happened to one observation of a frame.
@@ -535,7 +538,11 @@ impl SlamFilter {
         if !next.iter().chain(phi.iter()).all(|v| v.is_finite()) {
             return Err(SlamError::NumericalFailure("covariance prediction"));
         }
-        let xn = prop.state.to_vector();
+        let mut xn = prop.state.to_vector();
+        // Keep roll and yaw in (−π, π] (C_b^n and E_b^n are 2π-periodic in them, so the
+        // covariance is unaffected); pitch stays in its ±π/2 range by construction.
+        xn[ATT] = wrap_angle(xn[ATT]);
+        xn[ATT + 2] = wrap_angle(xn[ATT + 2]);
         for i in 0..VEHICLE_DIM {
             self.x[off + i] = xn[i];
             for j in 0..VEHICLE_DIM {
@@ -577,8 +584,10 @@ impl SlamFilter {
     }
 
     /// Associates, updates and initializes from one terrain-sensor frame of `vehicle` (module
-    /// docs). Validation errors are returned before anything changes; numerical failures of
-    /// single observations are reported as [`RejectReason::NumericalFailure`].
+    /// docs). Validation errors (non-finite time or measurement, wrong measurement kind, unknown
+    /// vehicle) are returned before anything changes; a non-positive range rejects only its
+    /// observation ([`RejectReason::InvalidMeasurement`]) and numerical failures of single
+    /// observations are reported as [`RejectReason::NumericalFailure`].
     pub fn process_frame(
         &mut self,
         vehicle: usize,
@@ -589,18 +598,25 @@ impl SlamFilter {
             return Err(SlamError::NonFiniteTime);
         }
         let model = self.vehicles[vehicle].model;
-        let zs = frame
-            .observations
-            .iter()
-            .enumerate()
-            .map(|(index, o)| {
-                model
-                    .measurement_vector(&o.z)
-                    .map_err(|source| SlamError::Observation { index, source })
-            })
-            .collect::<Result<Vec<_>, _>>()?;
+        // Corrupt input (NaN/∞, wrong measurement kind) rejects the whole frame; a finite but
+        // physically invalid measurement (a noisy range ≤ 0 near the sensor) only itself.
+        let mut zs = Vec::with_capacity(frame.observations.len());
+        let mut valid = Vec::with_capacity(frame.observations.len());
+        for (index, o) in frame.observations.iter().enumerate() {
+            match model.measurement_vector(&o.z) {
+                Ok(z) => {
+                    zs.push(z);
+                    valid.push(index);
+                }
+                Err(ObservationError::NonPositiveRange(_)) => {}
+                Err(source) => return Err(SlamError::Observation { index, source }),
+            }
+        }
         self.flush();
-        let descriptors: Vec<FeatureId> = frame.observations.iter().map(|o| o.descriptor).collect();
+        let descriptors: Vec<FeatureId> = valid
+            .iter()
+            .map(|&i| frame.observations[i].descriptor)
+            .collect();
         let plan = self.associate(vehicle, &model, &zs, &descriptors);
         if !plan.updates.is_empty() || !plan.initializations.is_empty() {
             // The map (and so the cached map information) may change below.
@@ -622,6 +638,15 @@ impl SlamFilter {
                 }
             }
         }
+        // Back to the frame's indexing.
+        let mut outcomes = vec![
+            ObservationOutcome::Rejected(RejectReason::InvalidMeasurement);
+            frame.observations.len()
+        ];
+        for (k, &i) in valid.iter().enumerate() {
+            outcomes[i] = report.outcomes[k];
+        }
+        report.outcomes = outcomes;
         Ok(report)
     }
 }
