@@ -9,11 +9,20 @@
 //! - [`state`]: state layout and named index constants.
 //! - [`sensor`]: the estimator's inputs (IMU samples, terrain observations, sensor models).
 //! - [`imu`]: IMU error model and grades (21.13–21.17).
+//! - [`consistency`]: NEES, χ² quantiles, ANEES bands, angle-aware errors.
 //! - [`info`]: map information keyed by feature id (21.86, 21.87).
+//! - [`ins`]: INS mechanization in both frames with ∇F, ∇G and Q (21.19–21.38).
+//! - [`observation`]: terrain observation models, J_1 initialization and their Jacobians (21.41–21.50).
+//! - [`slam`]: the EKF-SLAM filter with M ≥ 1 vehicles: lazy INS prediction, association
+//!   (descriptor, NN, JCBB), Joseph updates, feature initialization, fuse-back of map information.
 
+pub mod consistency;
 pub mod geodesy;
 pub mod imu;
 pub mod info;
+pub mod ins;
+pub mod observation;
 pub mod rotation;
 pub mod sensor;
+pub mod slam;
 pub mod state;

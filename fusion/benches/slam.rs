@@ -1,0 +1,345 @@
+//! SLAM cost table (a `harness = false` bench printing one table per measurement):
+//!
+//! 1. IMU prediction per sample at N = 50, 100, 200, 400 features: the filter's lazy prediction
+//!    (flushed once per 20 samples, i.e. a 5 Hz terrain frame at 100 Hz IMU), the eager variant
+//!    (flushed every sample), and the naive dense ∇F P ∇Fᵀ + ∇G Q ∇Gᵀ measured side by side.
+//! 2. EKF update cost per observation vs N (descriptor association, 10 observations per frame),
+//!    and association + update per 20-observation frame for descriptor, NN and JCBB.
+//! 3. Fuse-back of received map information vs a raw faer Cholesky inverse of the 3N×3N map
+//!    covariance, for a delta on 10 features and on the whole map, and one fusion round
+//!    (map information from the filter → delta → fuse back), for both delta sizes.
+//!
+//! Run: `cargo bench -p canopy-fusion --bench slam`. Times are medians of repeated runs.
+
+use canopy_fusion::imu::ImuGrade;
+use canopy_fusion::info::MapInformation;
+use canopy_fusion::ins::{self, VehicleCovariance, VehicleState};
+use canopy_fusion::sensor::{
+    FeatureId, ImuSample, Measurement, Observation, ObservationFrame, SensorModel, SensorMount,
+};
+use canopy_fusion::slam::{
+    AssociationConfig, AssociationMode, SlamConfig, SlamFilter, VehicleSetup,
+};
+use canopy_fusion::state::{NavFrame, VEHICLE_DIM};
+use faer::linalg::solvers::DenseSolveCore;
+use faer::{Col, Mat, Side};
+use nalgebra::Vector3;
+use std::hint::black_box;
+use std::time::Instant;
+
+fn median_time(reps: usize, mut f: impl FnMut()) -> f64 {
+    let mut t: Vec<f64> = (0..reps)
+        .map(|_| {
+            let s = Instant::now();
+            f();
+            s.elapsed().as_secs_f64()
+        })
+        .collect();
+    t.sort_by(f64::total_cmp);
+    t[t.len() / 2]
+}
+
+fn setup() -> VehicleSetup {
+    // 1 m position, 0.1 m/s velocity, 1 mrad attitude, tactical-grade biases (1-σ).
+    let diag = [
+        1.0, 1.0, 1.0, 0.01, 0.01, 0.01, 1e-6, 1e-6, 1e-6, 1e-4, 1e-4, 1e-4, 1e-10, 1e-10, 1e-10,
+    ];
+    let cov =
+        VehicleCovariance::from_diagonal(&nalgebra::SVector::<f64, 15>::from_column_slice(&diag));
+    VehicleSetup {
+        state: VehicleState {
+            position: Vector3::new(0.0, 0.0, -100.0),
+            velocity: Vector3::new(20.0, 0.0, 0.0),
+            attitude: Vector3::new(0.01, 0.02, 0.3),
+            accel_bias: Vector3::zeros(),
+            gyro_bias: Vector3::zeros(),
+        },
+        covariance: cov,
+        imu_noise: ImuGrade::Tactical.noise(),
+        sensor: SensorModel::RangeBearing {
+            sigma_range: 0.5,
+            sigma_bearing: 0.002,
+        },
+        mount: SensorMount::downward(Vector3::new(0.3, 0.0, 0.2)),
+    }
+}
+
+/// A filter with `n` features below the vehicle, with a dense correlated map covariance (the
+/// features are fused in as one dense information delta).
+fn filter(n: usize) -> SlamFilter {
+    filter_with(n, AssociationMode::Descriptor)
+}
+
+fn filter_with(n: usize, mode: AssociationMode) -> SlamFilter {
+    let cfg = SlamConfig {
+        frame: NavFrame::Local,
+        origin: Vector3::zeros(),
+        association: AssociationConfig {
+            mode,
+            gate_probability: 0.95,
+        },
+        fresh_id_namespace: 0,
+    };
+    let mut f = SlamFilter::new(cfg, &[setup()]).unwrap();
+    let k = 3 * n;
+    // Y = 4 I + 0.5 · (ones-ish coupling): SPD and dense.
+    let y = Mat::from_fn(k, k, |i, j| {
+        if i == j {
+            4.0
+        } else {
+            0.5 / (1.0 + (i as f64 - j as f64).abs())
+        }
+    });
+    let target = Col::from_fn(k, |i| match i % 3 {
+        0 => ((i / 3) % 20) as f64 * 5.0 - 50.0,
+        1 => ((i / 3) / 20) as f64 * 5.0 - 50.0,
+        _ => 0.0,
+    });
+    let vector = &y * &target;
+    let delta = MapInformation {
+        ids: (0..n as FeatureId).collect(),
+        origin: Vector3::zeros(),
+        matrix: y,
+        vector,
+    };
+    f.fuse_map_information(&delta).unwrap();
+    f
+}
+
+fn imu() -> ImuSample {
+    ImuSample {
+        time: 0.0,
+        dt: 0.01,
+        specific_force: Vector3::new(0.1, 0.0, -9.81),
+        angular_rate: Vector3::new(0.0, 0.0, 0.01),
+    }
+}
+
+fn main() {
+    let sizes = [50usize, 100, 200, 400];
+    println!("## IMU prediction per sample (N features, n = 15 + 3N states)");
+    println!(
+        "| N | n | lazy (flush/20) [µs] | eager (flush/1) [µs] | naive dense [ms] | dense / lazy | dense / eager |"
+    );
+    println!("|---|---|---|---|---|---|---|");
+    for &n_feat in &sizes {
+        let mut f = filter(n_feat);
+        let n = f.dim();
+        let sample = imu();
+        // Lazy: 20 predictions then the flush a frame would trigger, per sample.
+        let lazy = median_time(15, || {
+            for _ in 0..20 {
+                f.predict(0, &sample).unwrap();
+            }
+            f.flush();
+        }) / 20.0;
+        let eager = median_time(15, || {
+            for _ in 0..20 {
+                f.predict(0, &sample).unwrap();
+                f.flush();
+            }
+        }) / 20.0;
+        // Naive: full n×n ∇F and n×12 ∇G, dense products.
+        let prop =
+            ins::propagate_with_jacobians(NavFrame::Local, &f.vehicle_state(0).unwrap(), &sample)
+                .unwrap();
+        let q = ins::process_noise(&ImuGrade::Tactical.noise(), sample.dt);
+        let mut ff = Mat::<f64>::identity(n, n);
+        let mut gg = Mat::<f64>::zeros(n, 12);
+        for i in 0..VEHICLE_DIM {
+            for j in 0..VEHICLE_DIM {
+                ff[(i, j)] = prop.transition[(i, j)];
+            }
+            for j in 0..12 {
+                gg[(i, j)] = prop.noise[(i, j)];
+            }
+        }
+        let qf = Mat::from_fn(12, 12, |i, j| q[(i, j)]);
+        let p = f.joint_covariance();
+        let reps = if n_feat >= 200 { 3 } else { 5 };
+        let dense = median_time(reps, || {
+            let out = &ff * &p * ff.transpose() + &gg * &qf * gg.transpose();
+            black_box(out);
+        });
+        println!(
+            "| {n_feat} | {n} | {:.2} | {:.1} | {:.2} | {:.0} | {:.0} |",
+            lazy * 1e6,
+            eager * 1e6,
+            dense * 1e3,
+            dense / lazy,
+            dense / eager
+        );
+    }
+
+    println!("\n## EKF update per observation (10 observations per frame, stacked Joseph update)");
+    println!("| N | n | per frame [ms] | per observation [ms] |");
+    println!("|---|---|---|---|");
+    for &n_feat in &[50usize, 100, 200, 400, 800] {
+        let mut f = filter(n_feat);
+        let model = *f.observation_model(0).unwrap();
+        let ids: Vec<FeatureId> = (0..10).map(|i| (i * 7 % n_feat) as FeatureId).collect();
+        let frame_for = |f: &SlamFilter| {
+            let s = f.vehicle_state(0).unwrap();
+            let pose = model.sensor_pose(&s.position, &s.attitude);
+            let observations = ids
+                .iter()
+                .map(|id| {
+                    let z = model.predict(&pose, &f.feature(*id).unwrap()).unwrap().z;
+                    Observation {
+                        descriptor: *id,
+                        z: Measurement::RangeBearing(Vector3::new(z[0] + 0.1, z[1], z[2])),
+                    }
+                })
+                .collect();
+            ObservationFrame {
+                time: 0.0,
+                observations,
+            }
+        };
+        let t = median_time(9, || {
+            let fr = frame_for(&f);
+            let r = f.process_frame(0, &fr).unwrap();
+            assert_eq!(r.associated(), 10);
+        });
+        println!(
+            "| {n_feat} | {} | {:.3} | {:.3} |",
+            f.dim(),
+            t * 1e3,
+            t * 1e3 / 10.0
+        );
+    }
+
+    println!("\n## Association + update per frame of 20 observations (descriptor vs NN vs JCBB)");
+    println!("| N | descriptor [ms] | nearest neighbour [ms] | JCBB [ms] | JCBB nodes |");
+    println!("|---|---|---|---|---|");
+    for &n_feat in &[100usize, 400] {
+        let mut row = Vec::new();
+        let mut nodes = 0;
+        for mode in [
+            AssociationMode::Descriptor,
+            AssociationMode::NearestNeighbour,
+            AssociationMode::Jcbb { max_nodes: 100_000 },
+        ] {
+            let mut f = filter_with(n_feat, mode);
+            let model = *f.observation_model(0).unwrap();
+            let ids: Vec<FeatureId> = (0..20).map(|i| (i * 5 % n_feat) as FeatureId).collect();
+            let s = f.vehicle_state(0).unwrap();
+            let pose = model.sensor_pose(&s.position, &s.attitude);
+            let observations: Vec<Observation> = ids
+                .iter()
+                .map(|id| {
+                    let z = model.predict(&pose, &f.feature(*id).unwrap()).unwrap().z;
+                    Observation {
+                        descriptor: *id,
+                        z: Measurement::RangeBearing(Vector3::new(z[0] + 0.1, z[1], z[2])),
+                    }
+                })
+                .collect();
+            let frame = ObservationFrame {
+                time: 0.0,
+                observations,
+            };
+            let t = median_time(5, || {
+                let mut g = f.clone();
+                let r = g.process_frame(0, &frame).unwrap();
+                nodes = r.jcbb_nodes;
+                black_box(r);
+            });
+            // Subtract the clone so only association + update is timed.
+            let c = median_time(5, || {
+                black_box(f.clone());
+            });
+            row.push((t - c) * 1e3);
+            f.flush();
+        }
+        println!(
+            "| {n_feat} | {:.2} | {:.2} | {:.2} | {nodes} |",
+            row[0], row[1], row[2]
+        );
+    }
+
+    println!(
+        "\n## Fuse-back of map information vs a faer Cholesky inverse of the 3N×3N map covariance"
+    );
+    println!(
+        "| N | Cholesky inverse [ms] | fuse 10-feature delta [ms] | fuse whole-map delta [ms] | round, 10-feature delta [ms] | round / inverse | round, whole-map delta [ms] | round / inverse |"
+    );
+    println!("|---|---|---|---|---|---|---|---|");
+    for &n_feat in &[100usize, 300] {
+        let mut f = filter(n_feat);
+        let mm = f.map_marginal();
+        let k = mm.covariance.nrows();
+        let make_delta = |f: &SlamFilter, ids: Vec<FeatureId>| {
+            let r = 3 * ids.len();
+            let y = Mat::from_fn(r, r, |i, j| {
+                if i == j {
+                    0.5
+                } else {
+                    0.05 / (1.0 + (i as f64 - j as f64).abs())
+                }
+            });
+            let x = Col::from_fn(r, |i| f.feature(ids[i / 3]).unwrap()[i % 3]);
+            let vector = &y * &x;
+            MapInformation {
+                ids,
+                origin: Vector3::zeros(),
+                matrix: y,
+                vector,
+            }
+        };
+        let small_ids: Vec<FeatureId> = (0..10).map(|i| (i * 13 % n_feat) as FeatureId).collect();
+        let all_ids: Vec<FeatureId> = (0..n_feat as FeatureId).collect();
+        // The machine is shared: the five measurements are interleaved rep by rep so that load
+        // changes affect them alike, and medians are taken per column.
+        let reps = 7;
+        let mut t = vec![Vec::new(); 5];
+        let time = |f: &mut dyn FnMut()| {
+            let s = Instant::now();
+            f();
+            s.elapsed().as_secs_f64()
+        };
+        for _ in 0..reps {
+            t[0].push(time(&mut || {
+                black_box(mm.covariance.llt(Side::Lower).unwrap().inverse());
+            }));
+            let d = make_delta(&f, small_ids.clone());
+            t[1].push(time(&mut || {
+                f.fuse_map_information(&d).unwrap();
+            }));
+            let d = make_delta(&f, all_ids.clone());
+            t[2].push(time(&mut || {
+                f.fuse_map_information(&d).unwrap();
+            }));
+            // A round: the DDF takes the map information from the filter (marginal → Cholesky
+            // inverse, cached), forms a delta, and fuses the neighbour's delta back.
+            t[3].push(time(&mut || {
+                black_box(f.map_information().unwrap());
+                let d = make_delta(&f, small_ids.clone());
+                f.fuse_map_information(&d).unwrap();
+            }));
+            t[4].push(time(&mut || {
+                black_box(f.map_information().unwrap());
+                let d = make_delta(&f, all_ids.clone());
+                f.fuse_map_information(&d).unwrap();
+            }));
+        }
+        let med: Vec<f64> = t
+            .into_iter()
+            .map(|mut v| {
+                v.sort_by(f64::total_cmp);
+                v[v.len() / 2]
+            })
+            .collect();
+        let (inv, small, full, round, round_full) = (med[0], med[1], med[2], med[3], med[4]);
+        println!(
+            "| {n_feat} (3N = {k}) | {:.2} | {:.2} | {:.2} | {:.2} | {:.2} | {:.2} | {:.2} |",
+            inv * 1e3,
+            small * 1e3,
+            full * 1e3,
+            round * 1e3,
+            round / inv,
+            round_full * 1e3,
+            round_full / inv
+        );
+    }
+}

@@ -1,0 +1,503 @@
+//! Fuse-back of received map information (eqs. 21.92, 21.93 and 21.96–21.99, corrected as in
+//! design.md §4: only the received delta is added, never the node's own information again).
+//!
+//! The information-form addition Y_joint += Eᵀ ΔY E, y_joint += Eᵀ Δy (E selects the delta's
+//! features; Δy is w.r.t. x_m − o, `info` module) is done in covariance form without inverting P:
+//!
+//! 1. New features u (never seen) are augmented with their conditional given the known ones k:
+//!    B = ΔY_uu⁻¹ ΔY_uk, x_u = ΔY_uu⁻¹ (Δy_u − ΔY_uk (x_k − o)) + o, P_u· = −B P_k·,
+//!    P_uu = ΔY_uu⁻¹ + B P_kk Bᵀ (ΔY_uu must be positive definite).
+//! 2. The remaining information on the known features is the Schur complement
+//!    Ȳ = ΔY_kk − ΔY_ku ΔY_uu⁻¹ ΔY_uk, ȳ = Δy_k − ΔY_ku ΔY_uu⁻¹ Δy_u, and g = ȳ − Ȳ (x_k − o).
+//!    It is applied as a pseudo-measurement with Hᵀ D⁻¹ H = Ȳ and Hᵀ D⁻¹ ν = g, so the Kalman
+//!    update equals the information update exactly: if Ȳ is positive definite, Ȳ = L Lᵀ,
+//!    H = Lᵀ E_k, D = I, ν = L⁻¹ g (Joseph form); otherwise Ȳ = V Λ Vᵀ (rank r, eigenvalues below
+//!    1e-12·max|λ| dropped), H = |Λ|^½ Vᵀ E_k, D = sign(Λ), ν = D |Λ|^{-½} Vᵀ g, Joseph form when
+//!    every sign is positive (PSD, low rank) and P − K Mᵀ otherwise (indefinite deltas from a CI
+//!    fusion upstream). Cost O(n²·r + n·k²), r ≤ 3·(features in the delta): only the changed
+//!    feature blocks enter.
+//!    When the delta covers at least half of the state (whole-map deltas) the same information is
+//!    applied through the map block instead (`prepare_map_route`): P_aa⁺ = (P_aa⁻¹ + Ȳ)⁻¹ and the
+//!    other states through their unchanged conditional, ≈ two k×k Cholesky inverses, one of which
+//!    is the cached [`SlamFilter::map_information`] when it is current.
+//! 3. Positive definiteness of the fused joint is checked *before* anything changes: with
+//!    Y = P⁻¹ the fused information is PD iff ΔY_uu ≻ 0 and P_kk⁻¹ + Ȳ ≻ 0 (Schur complements;
+//!    P_kk⁻¹ is the marginal information of the known features), i.e. iff I + Lᵀ Ȳ L ≻ 0 with
+//!    P_kk = L Lᵀ (Cholesky). The check is implied when Ȳ ⪰ 0, and in the map route it is the
+//!    Cholesky of P_aa⁻¹ + Ȳ itself.
+
+use super::update::{UpdateForm, all_finite};
+use super::{SlamError, SlamFilter, SlotKind};
+use crate::info::MapInformation;
+use crate::sensor::FeatureId;
+use faer::linalg::matmul::matmul;
+use faer::linalg::matmul::triangular::{self, BlockStructure};
+use faer::linalg::solvers::DenseSolveCore;
+use faer::prelude::*;
+use faer::{Accum, Mat, Side};
+use std::collections::HashSet;
+
+/// How the information on already-known features was applied.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum FuseMethod {
+    /// No known feature in the delta.
+    #[default]
+    None,
+    /// Pseudo-measurement Kalman update, O(n²·r) (deltas on few features).
+    PseudoMeasurement,
+    /// Map-information route, ≈ two k×k Cholesky inverses (deltas covering ≥ half the state).
+    MapInformation,
+}
+
+/// What a fusion did.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct FuseReport {
+    /// Features added to the state (in the order of the delta).
+    pub new_features: Vec<FeatureId>,
+    /// Number of features of the delta that the filter already held.
+    pub known_features: usize,
+    /// How the known-feature information was applied.
+    pub method: FuseMethod,
+    /// Rank of the pseudo-measurement (pseudo-measurement route only).
+    pub rank: Option<usize>,
+    /// Negative eigen-directions of the information (pseudo-measurement route only; the
+    /// Cholesky fast path for positive definite deltas reports 0).
+    pub negative_directions: Option<usize>,
+}
+
+/// Gathers the rows/cols `ri`×`ci` of a matrix.
+fn gather(m: MatRef<'_, f64>, ri: &[usize], ci: &[usize]) -> Mat<f64> {
+    match (contiguous(ri), contiguous(ci)) {
+        // Contiguous index ranges (the common case: a delta in state order) copy whole columns.
+        (Some(r0), Some(c0)) => m.submatrix(r0, c0, ri.len(), ci.len()).to_owned(),
+        _ => Mat::from_fn(ri.len(), ci.len(), |i, j| m[(ri[i], ci[j])]),
+    }
+}
+
+/// The first index if `idx` is `first, first+1, …`.
+fn contiguous(idx: &[usize]) -> Option<usize> {
+    let first = *idx.first()?;
+    idx.iter()
+        .enumerate()
+        .all(|(k, &i)| i == first + k)
+        .then_some(first)
+}
+
+/// ½ (m[ri, ci] + m[ci, ri]ᵀ): the symmetric part of a (validated, nearly symmetric) block.
+fn gather_sym(m: MatRef<'_, f64>, ri: &[usize], ci: &[usize]) -> Mat<f64> {
+    let a = gather(m, ri, ci);
+    let b = gather(m, ci, ri);
+    Mat::from_fn(ri.len(), ci.len(), |i, j| 0.5 * (a[(i, j)] + b[(j, i)]))
+}
+
+impl SlamFilter {
+    fn validate_information(&self, delta: &MapInformation) -> Result<(), SlamError> {
+        let k = 3 * delta.ids.len();
+        if delta.matrix.nrows() != k || delta.matrix.ncols() != k || delta.vector.nrows() != k {
+            return Err(SlamError::InvalidInformation(format!(
+                "{} ids but a {}×{} matrix and a {}-vector",
+                delta.ids.len(),
+                delta.matrix.nrows(),
+                delta.matrix.ncols(),
+                delta.vector.nrows()
+            )));
+        }
+        let mut seen = HashSet::new();
+        if let Some(d) = delta.ids.iter().find(|id| !seen.insert(**id)) {
+            return Err(SlamError::InvalidInformation(format!(
+                "duplicate feature id {d}"
+            )));
+        }
+        if !all_finite(delta.matrix.as_ref())
+            || !(0..k).all(|i| delta.vector[i].is_finite())
+            || !delta.origin.iter().all(|v| v.is_finite())
+        {
+            return Err(SlamError::InvalidInformation("non-finite value".into()));
+        }
+        // Team origins are one configured constant; a mismatch beyond 1 µm is a wiring error.
+        if (delta.origin - self.config.origin).norm() > 1e-6 {
+            return Err(SlamError::OriginMismatch);
+        }
+        let scale = delta.matrix.norm_max();
+        for j in 0..k {
+            for i in j + 1..k {
+                // Symmetric up to round-off of the sender's own arithmetic (1e-9 relative).
+                if (delta.matrix[(i, j)] - delta.matrix[(j, i)]).abs() > 1e-9 * scale {
+                    return Err(SlamError::InvalidInformation(format!(
+                        "matrix is not symmetric at ({i}, {j})"
+                    )));
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// Adds received map information (ΔY, Δy) to the joint filter (module docs). On any error the
+    /// filter's estimate is unchanged.
+    pub fn fuse_map_information(
+        &mut self,
+        delta: &MapInformation,
+    ) -> Result<FuseReport, SlamError> {
+        self.validate_information(delta)?;
+        let o = self.config.origin;
+        // Partition the delta's 3-blocks into known (in the filter) and new features.
+        let mut known_pos = Vec::new(); // delta indices
+        let mut known_state = Vec::new(); // state indices
+        let mut new_pos = Vec::new();
+        let mut new_ids = Vec::new();
+        for (b, &id) in delta.ids.iter().enumerate() {
+            match self.layout.feature_offset(id) {
+                Some(off) => {
+                    known_pos.extend(3 * b..3 * b + 3);
+                    known_state.extend(off..off + 3);
+                }
+                None => {
+                    new_pos.extend(3 * b..3 * b + 3);
+                    new_ids.push(id);
+                }
+            }
+        }
+        let (nk, nu) = (known_pos.len(), new_pos.len());
+        let mut report = FuseReport {
+            known_features: nk / 3,
+            ..Default::default()
+        };
+        if nk + nu == 0 {
+            return Ok(report);
+        }
+        let xk_minus_o = Col::from_fn(nk, |i| self.x[known_state[i]] - o[i % 3]);
+        let y_kk = gather_sym(delta.matrix.as_ref(), &known_pos, &known_pos);
+        let dy_k = Col::from_fn(nk, |i| delta.vector[known_pos[i]]);
+
+        // Step 1 quantities (no mutation yet).
+        let (schur, schur_vec, new_block) = if nu > 0 {
+            let y_uu = gather_sym(delta.matrix.as_ref(), &new_pos, &new_pos);
+            let y_uk = gather_sym(delta.matrix.as_ref(), &new_pos, &known_pos);
+            let dy_u = Col::from_fn(nu, |i| delta.vector[new_pos[i]]);
+            let llt = y_uu
+                .llt(Side::Lower)
+                .map_err(|_| SlamError::NotPositiveDefinite("information on new features ΔY_uu"))?;
+            let y_uu_inv = llt.inverse();
+            let b = llt.solve(&y_uk); // ΔY_uu⁻¹ ΔY_uk
+            let a = llt.solve(dy_u.as_mat()); // ΔY_uu⁻¹ Δy_u
+            let schur = &y_kk - y_uk.transpose() * &b;
+            let schur_vec = &dy_k - y_uk.transpose() * a.col(0);
+            let x_u = Col::from_fn(nu, |i| a[(i, 0)] + o[i % 3]) - &b * &xk_minus_o;
+            (schur, schur_vec, Some((b, y_uu_inv, x_u)))
+        } else {
+            (y_kk, dy_k, None)
+        };
+        if let Some((b, y_uu_inv, x_u)) = &new_block
+            && (!all_finite(b.as_ref())
+                || !all_finite(y_uu_inv.as_ref())
+                || !(0..nu).all(|i| x_u[i].is_finite()))
+        {
+            return Err(SlamError::NumericalFailure("new-feature conditional"));
+        }
+
+        // Everything that can fail for the known-feature part is computed before any mutation
+        // (map blocks are never stale, so no flush is needed for P_kk).
+        let route = if nk == 0 {
+            None
+        } else {
+            let g = &schur_vec - &schur * &xk_minus_o;
+            if 2 * nk >= self.dim() + nu {
+                Some(self.prepare_map_route(&known_state, &schur, g)?)
+            } else {
+                Some(self.prepare_pseudo_route(&known_state, &schur, g)?)
+            }
+        };
+
+        // Mutation starts here. Flushing changes only the representation of P.
+        self.flush();
+        self.map_generation += 1;
+        let n0 = self.dim();
+        if let Some((b, y_uu_inv, x_u)) = &new_block {
+            // P_u· = −B P_k·, P_uu = ΔY_uu⁻¹ + B P_kk Bᵀ.
+            let p_k_all = Mat::from_fn(nk, n0, |i, j| self.p[(known_state[i], j)]);
+            let mut p_u_all = Mat::zeros(nu, n0);
+            if nk > 0 {
+                matmul(
+                    p_u_all.as_mut(),
+                    Accum::Replace,
+                    b.as_ref(),
+                    p_k_all.as_ref(),
+                    -1.0,
+                    Par::Seq,
+                );
+            }
+            let mut p_uu = y_uu_inv.clone();
+            if nk > 0 {
+                let p_kk = gather(self.p.as_ref(), &known_state, &known_state);
+                p_uu += b * &p_kk * b.transpose();
+            }
+            self.grow(nu);
+            for (f, &id) in new_ids.iter().enumerate() {
+                let off = self.layout.push(SlotKind::Feature(id));
+                debug_assert_eq!(off, n0 + 3 * f);
+            }
+            for i in 0..nu {
+                self.x[n0 + i] = x_u[i];
+                for j in 0..n0 {
+                    self.p[(n0 + i, j)] = p_u_all[(i, j)];
+                    self.p[(j, n0 + i)] = p_u_all[(i, j)];
+                }
+                for j in 0..nu {
+                    self.p[(n0 + i, n0 + j)] = 0.5 * (p_uu[(i, j)] + p_uu[(j, i)]);
+                }
+            }
+            report.new_features = new_ids.clone();
+        }
+        let result = match route {
+            None => Ok(()),
+            Some(Route::Pseudo { h_k, signs, nu }) => {
+                report.method = FuseMethod::PseudoMeasurement;
+                report.rank = Some(signs.len());
+                report.negative_directions = Some(signs.iter().filter(|s| **s < 0.0).count());
+                self.apply_pseudo_route(&known_state, &h_k, &signs, &nu)
+            }
+            Some(Route::Map {
+                p_aa,
+                p_aa_post,
+                y_aa,
+                dx_a,
+            }) => {
+                report.method = FuseMethod::MapInformation;
+                self.apply_map_route(&known_state, &p_aa, &p_aa_post, &y_aa, &dx_a)
+            }
+        };
+        if let Err(e) = result {
+            // Roll back the augmentation: the new features are the last slots.
+            for id in &new_ids {
+                self.layout.remove(SlotKind::Feature(*id));
+            }
+            self.truncate_to(n0);
+            return Err(e);
+        }
+        Ok(report)
+    }
+
+    /// Pseudo-measurement route (small deltas): factors of Ȳ with Hᵀ D⁻¹ H = Ȳ, Hᵀ D⁻¹ ν = g.
+    /// The PD check of the fused result is implied when Ȳ ⪰ 0 and explicit otherwise.
+    fn prepare_pseudo_route(
+        &self,
+        known_state: &[usize],
+        schur: &Mat<f64>,
+        g: Col<f64>,
+    ) -> Result<Route, SlamError> {
+        let nk = known_state.len();
+        if let Ok(llt) = schur.llt(Side::Lower) {
+            // Positive definite (the common case): Ȳ = L Lᵀ, H_k = Lᵀ, D = I, ν = L⁻¹ g;
+            // k³/3 instead of an eigendecomposition, and PD + PD needs no check.
+            let l = llt.L().to_owned();
+            let mut nu = g;
+            l.solve_lower_triangular_in_place(nu.as_mat_mut());
+            return Ok(Route::Pseudo {
+                h_k: l.transpose().to_owned(),
+                signs: vec![1.0; nk],
+                nu,
+            });
+        }
+        let evd = schur
+            .self_adjoint_eigen(Side::Lower)
+            .map_err(|_| SlamError::NumericalFailure("eigendecomposition of the delta"))?;
+        let lambda: Vec<f64> = (0..nk).map(|i| evd.S().column_vector()[i]).collect();
+        if lambda.iter().any(|l| *l < 0.0) {
+            // Fused information PD ⇔ P_kk⁻¹ + Ȳ ≻ 0 ⇔ I + Lᵀ Ȳ L ≻ 0 with P_kk = L Lᵀ.
+            let p_kk = gather(self.p.as_ref(), known_state, known_state);
+            let l = p_kk
+                .llt(Side::Lower)
+                .map_err(|_| SlamError::NotPositiveDefinite("filter map covariance"))?
+                .L()
+                .to_owned();
+            let t = Mat::<f64>::identity(nk, nk) + l.transpose() * schur * &l;
+            if t.llt(Side::Lower).is_err() {
+                return Err(SlamError::NotPositiveDefinite("fused information"));
+            }
+        }
+        let vmat = evd.U().to_owned();
+        let max = lambda.iter().fold(0.0_f64, |m, l| m.max(l.abs()));
+        // Directions with |λ| ≤ 1e-12·max carry no information at double precision.
+        let keep: Vec<usize> = (0..nk)
+            .filter(|&i| max > 0.0 && lambda[i].abs() > 1e-12 * max)
+            .collect();
+        let r = keep.len();
+        // H_k = |Λ|^½ Vᵀ (r × nk), D = sign(Λ), ν = D |Λ|^{-½} Vᵀ g.
+        let h_k = Mat::from_fn(r, nk, |a, j| {
+            lambda[keep[a]].abs().sqrt() * vmat[(j, keep[a])]
+        });
+        let signs: Vec<f64> = keep.iter().map(|&i| lambda[i].signum()).collect();
+        let nu = Col::from_fn(r, |a| {
+            let vg: f64 = (0..nk).map(|j| vmat[(j, keep[a])] * g[j]).sum();
+            signs[a] * vg / lambda[keep[a]].abs().sqrt()
+        });
+        Ok(Route::Pseudo { h_k, signs, nu })
+    }
+
+    /// Kalman update with the pseudo-measurement: M = P[:, k] H_kᵀ, S = H_k M[k, :] + D.
+    fn apply_pseudo_route(
+        &mut self,
+        known_state: &[usize],
+        h_k: &Mat<f64>,
+        signs: &[f64],
+        nu: &Col<f64>,
+    ) -> Result<(), SlamError> {
+        let r = signs.len();
+        if r == 0 {
+            return Ok(());
+        }
+        let n = self.dim();
+        let p_nk = Mat::from_fn(n, known_state.len(), |i, j| self.p[(i, known_state[j])]);
+        let m = &p_nk * h_k.transpose();
+        let m_k = gather(m.as_ref(), known_state, &(0..r).collect::<Vec<_>>());
+        let mut s = h_k * &m_k;
+        for (a, sg) in signs.iter().enumerate() {
+            s[(a, a)] += sg;
+        }
+        let form = if signs.iter().all(|s| *s > 0.0) {
+            UpdateForm::Joseph
+        } else {
+            UpdateForm::Indefinite
+        };
+        self.kalman_apply(m, s, nu, form)
+    }
+
+    /// Map-information route (deltas covering at least half the state): with a = the delta's
+    /// known features, Y_aa = P_aa⁻¹ is the marginal information, P_aa⁺ = (Y_aa + Ȳ)⁻¹ (its
+    /// Cholesky is the PD check), and everything else follows from the unchanged conditional of
+    /// the other states b given a: with C = P_ba Y_aa, P_ba⁺ = C P_aa⁺,
+    /// P_bb⁺ = P_bb + C (P_aa⁺ − P_aa) Cᵀ, x_a⁺ = x_a + P_aa⁺ g, x_b⁺ = x_b + C (x_a⁺ − x_a).
+    /// Cost ≈ two k×k Cholesky inverses + O(n_b·k² + n_b²·k).
+    fn prepare_map_route(
+        &self,
+        known_state: &[usize],
+        schur: &Mat<f64>,
+        g: Col<f64>,
+    ) -> Result<Route, SlamError> {
+        let p_aa = gather(self.p.as_ref(), known_state, known_state);
+        let y_aa = match &self.info_cache {
+            // A whole-map delta: Y_aa is the cached map information, permuted to delta order.
+            Some((generation, y))
+                if *generation == self.map_generation && y.nrows() == known_state.len() =>
+            {
+                let mut pos = vec![usize::MAX; self.dim()];
+                for (i, (_, off)) in self.layout.features().enumerate() {
+                    for c in 0..3 {
+                        pos[off + c] = 3 * i + c;
+                    }
+                }
+                let perm: Vec<usize> = known_state.iter().map(|s| pos[*s]).collect();
+                gather(y.as_ref(), &perm, &perm)
+            }
+            _ => p_aa
+                .llt(Side::Lower)
+                .map_err(|_| SlamError::NotPositiveDefinite("filter map covariance"))?
+                .inverse(),
+        };
+        let post = &y_aa + schur;
+        let p_aa_post = post
+            .llt(Side::Lower)
+            .map_err(|_| SlamError::NotPositiveDefinite("fused information"))?
+            .inverse();
+        let dx_a = &p_aa_post * &g;
+        if !all_finite(p_aa_post.as_ref())
+            || !all_finite(y_aa.as_ref())
+            || !all_finite(dx_a.as_mat())
+        {
+            return Err(SlamError::NumericalFailure("map-information fusion"));
+        }
+        Ok(Route::Map {
+            p_aa,
+            p_aa_post,
+            y_aa,
+            dx_a,
+        })
+    }
+
+    fn apply_map_route(
+        &mut self,
+        known_state: &[usize],
+        p_aa: &Mat<f64>,
+        p_aa_post: &Mat<f64>,
+        y_aa: &Mat<f64>,
+        dx_a: &Col<f64>,
+    ) -> Result<(), SlamError> {
+        let n = self.dim();
+        let mut in_a = vec![false; n];
+        for &i in known_state {
+            in_a[i] = true;
+        }
+        let rest: Vec<usize> = (0..n).filter(|i| !in_a[*i]).collect();
+        let p_ba = gather(self.p.as_ref(), &rest, known_state);
+        let c = &p_ba * y_aa;
+        let p_ba_post = &c * p_aa_post;
+        let dx_b = &c * dx_a;
+        let mut p_bb = gather(self.p.as_ref(), &rest, &rest);
+        let c_delta = &c * (p_aa_post - p_aa);
+        triangular::matmul(
+            p_bb.as_mut(),
+            BlockStructure::TriangularLower,
+            Accum::Add,
+            c_delta.as_ref(),
+            BlockStructure::Rectangular,
+            c.transpose(),
+            BlockStructure::Rectangular,
+            1.0,
+            Par::Seq,
+        );
+        if !all_finite(p_bb.as_ref())
+            || !all_finite(p_ba_post.as_ref())
+            || !all_finite(dx_b.as_mat())
+        {
+            return Err(SlamError::NumericalFailure("map-information fusion"));
+        }
+        for (jj, &j) in rest.iter().enumerate() {
+            for (ii, &i) in rest.iter().enumerate().skip(jj) {
+                self.p[(i, j)] = p_bb[(ii, jj)];
+                self.p[(j, i)] = p_bb[(ii, jj)];
+            }
+            for (aa, &a) in known_state.iter().enumerate() {
+                self.p[(j, a)] = p_ba_post[(jj, aa)];
+                self.p[(a, j)] = p_ba_post[(jj, aa)];
+            }
+        }
+        // P_aa⁺ from a Cholesky inverse is symmetric (faer mirrors it).
+        if let Some(a0) = contiguous(known_state) {
+            let k = known_state.len();
+            self.p
+                .as_mut()
+                .submatrix_mut(a0, a0, k, k)
+                .copy_from(p_aa_post);
+        } else {
+            for (bb, &b) in known_state.iter().enumerate() {
+                for (aa, &a) in known_state.iter().enumerate() {
+                    self.p[(a, b)] = p_aa_post[(aa, bb)];
+                }
+            }
+        }
+        for (aa, &a) in known_state.iter().enumerate() {
+            self.x[a] += dx_a[aa];
+        }
+        for (jj, &j) in rest.iter().enumerate() {
+            self.x[j] += dx_b[jj];
+        }
+        Ok(())
+    }
+}
+
+/// The known-feature part of a fusion, prepared before any mutation.
+enum Route {
+    /// Pseudo-measurement factors.
+    Pseudo {
+        h_k: Mat<f64>,
+        signs: Vec<f64>,
+        nu: Col<f64>,
+    },
+    /// Map-information route quantities.
+    Map {
+        p_aa: Mat<f64>,
+        p_aa_post: Mat<f64>,
+        y_aa: Mat<f64>,
+        dx_a: Col<f64>,
+    },
+}

@@ -1,0 +1,655 @@
+//! The inertial EKF-SLAM filter (§21.3) with M ≥ 1 vehicle blocks and one map.
+//!
+//! The same type is the per-vehicle filter (M = 1) and the centralized all-data reference EKF
+//! (M = all vehicles sharing one map). State layout (see [`layout`]): vehicle blocks, then
+//! features (3 each, keyed by [`FeatureId`]) and, later, stored poses, with all index bookkeeping
+//! in the [`Layout`] slot table. x is a faer `Col`, P a faer `Mat`; small blocks use nalgebra.
+//!
+//! # Prediction (eqs. 21.46, 21.47) with a lazy transition
+//! An IMU sample changes only the vehicle's rows and columns of P. [`SlamFilter::predict`] updates
+//! the 15×15 block P_vv ← F P_vv Fᵀ + G Q Gᵀ at once and accumulates Φ ← F Φ; the cross-covariance
+//! P_v· ← Φ P_v· is applied when P is next read in full ([`SlamFilter::flush`]: before updates,
+//! augmentation, fusion or [`SlamFilter::joint_covariance`]). A prediction therefore costs O(1)
+//! in the map size, and a flush O(15²·n). Map blocks are untouched (∇F is identity there, eqs.
+//! 21.25, 21.38), so the map marginal is always current without a flush.
+//!
+//! # Frames of observations
+//! [`SlamFilter::process_frame`] validates the whole frame first (a bad frame is a typed error
+//! and leaves the filter bit-for-bit unchanged), associates every observation against the prior
+//! (Mahalanobis gate of eq. 21.55 at `gate_probability`; descriptor, nearest-neighbour or JCBB),
+//! performs one stacked EKF update (eqs. 21.56–21.65) for the associated observations in Joseph
+//! form, then initializes the unassociated range-bearing observations as new features
+//! (eqs. 21.48–21.54) from the updated vehicle estimate.
+
+mod association;
+mod fuse;
+pub mod layout;
+mod update;
+
+pub use fuse::{FuseMethod, FuseReport};
+pub use layout::{Layout, PoseId, Slot, SlotKind};
+
+use crate::consistency::chi2_quantile;
+use crate::imu::ImuNoise;
+use crate::info::{MapInformation, MapMarginal};
+use crate::ins::{self, InsError, VehicleCovariance, VehicleState};
+use crate::observation::{ObservationError, ObservationModel};
+use crate::rotation::wrap_angle;
+use crate::sensor::{FeatureId, ImuSample, ObservationFrame, SensorModel, SensorMount};
+use crate::state::{ATT, NavFrame, VEHICLE_DIM};
+use faer::linalg::solvers::DenseSolveCore;
+use faer::{Col, Mat};
+use nalgebra::{Matrix3, SMatrix, Vector3};
+
+/// Base of the reserved id range for features whose descriptor is unusable (already taken):
+/// ids ≥ this are `FRESH_ID_BASE | namespace << 32 | counter`. Simulated descriptors must stay
+/// below it.
+pub const FRESH_ID_BASE: FeatureId = 1 << 63;
+
+/// How observations are matched to map features.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum AssociationMode {
+    /// Trust the descriptor for the candidate, verify it with the gate: a failed gate rejects the
+    /// observation (no duplicate feature); an unknown descriptor initializes a feature with it.
+    Descriptor,
+    /// Ignore descriptors: greedy nearest neighbour over all gated (observation, feature) pairs.
+    NearestNeighbour,
+    /// Ignore descriptors: joint compatibility branch and bound (Neira & Tardós 2001), exploring
+    /// at most `max_nodes` hypothesis nodes per frame (then the best hypothesis so far is used).
+    Jcbb {
+        /// Search budget per frame.
+        max_nodes: usize,
+    },
+}
+
+/// Data-association options.
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct AssociationConfig {
+    /// Matching strategy.
+    pub mode: AssociationMode,
+    /// Probability of the χ² validation gate (eq. 21.55; 0.95 gives 7.815 for 3 dof).
+    pub gate_probability: f64,
+}
+
+impl Default for AssociationConfig {
+    fn default() -> Self {
+        Self {
+            mode: AssociationMode::Descriptor,
+            gate_probability: 0.95,
+        }
+    }
+}
+
+/// Filter-wide options.
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct SlamConfig {
+    /// Navigation frame of positions and the map.
+    pub frame: NavFrame,
+    /// Team-wide origin o of map information (ECEF launch site in global SLAM, zero in local
+    /// SLAM; `info` module docs).
+    pub origin: Vector3<f64>,
+    /// Data association.
+    pub association: AssociationConfig,
+    /// Namespace of fresh feature ids (make it unique per filter in a team, e.g. the vehicle id;
+    /// only the low 31 bits are used).
+    pub fresh_id_namespace: u32,
+}
+
+/// One vehicle of the filter: initial estimate and its sensors.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct VehicleSetup {
+    /// Initial state estimate.
+    pub state: VehicleState,
+    /// Initial 15×15 covariance (symmetric positive definite).
+    pub covariance: VehicleCovariance,
+    /// IMU noise model (Q of eq. 21.17).
+    pub imu_noise: ImuNoise,
+    /// Terrain sensor kind and noise.
+    pub sensor: SensorModel,
+    /// Terrain sensor mounting.
+    pub mount: SensorMount,
+}
+
+/// Everything that can go wrong; the filter is unchanged whenever one is returned.
+#[derive(Clone, Debug, PartialEq, thiserror::Error)]
+pub enum SlamError {
+    /// No such vehicle block.
+    #[error("unknown vehicle {0}")]
+    UnknownVehicle(usize),
+    /// Invalid IMU sample or failed propagation.
+    #[error(transparent)]
+    Ins(#[from] InsError),
+    /// An invalid observation in a frame.
+    #[error("observation {index}: {source}")]
+    Observation {
+        /// Index in the frame.
+        index: usize,
+        /// What was wrong.
+        source: ObservationError,
+    },
+    /// The frame time is NaN or infinite.
+    #[error("frame time is not finite")]
+    NonFiniteTime,
+    /// A construction argument is invalid.
+    #[error("invalid configuration: {0}")]
+    InvalidConfig(String),
+    /// A received map-information delta is malformed (sizes, duplicates, non-finite, asymmetric).
+    #[error("invalid map information: {0}")]
+    InvalidInformation(String),
+    /// The map information uses another origin than this filter.
+    #[error("map information origin differs from the filter's origin")]
+    OriginMismatch,
+    /// A matrix that must be positive definite is not (Cholesky failed).
+    #[error("{0} is not positive definite")]
+    NotPositiveDefinite(&'static str),
+    /// A computation produced NaN or ∞ (the result was discarded).
+    #[error("numerical failure in {0}")]
+    NumericalFailure(&'static str),
+}
+
+/// Why an observation was not used.
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+pub enum RejectReason {
+    /// Descriptor mode: the feature with this id failed the gate (NIS above the threshold).
+    GateFailed {
+        /// Candidate feature.
+        feature: FeatureId,
+        /// Its normalized innovation squared.
+        nis: f64,
+    },
+    /// Compatible with a feature that another observation of the frame took (or with one that
+    /// the joint hypothesis excluded): neither updated nor initialized, to avoid a duplicate.
+    Ambiguous,
+    /// No compatible feature, and the sensor cannot initialize one from a single observation.
+    NotInitializable,
+    /// The candidate feature is not observable from this pose (behind the camera, degenerate).
+    DegenerateGeometry,
+    /// The update or augmentation failed numerically and was skipped.
+    NumericalFailure,
+    /// A finite but physically invalid measurement (range ≤ 0).
+    InvalidMeasurement,
+}
+
+/// What happened to one observation of a frame.
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+pub enum ObservationOutcome {
+    /// Associated to a feature and used in the update.
+    Associated {
+        /// Feature id.
+        feature: FeatureId,
+        /// NIS of the individual innovation against the prior.
+        nis: f64,
+    },
+    /// Initialized a new feature.
+    Initialized {
+        /// The new feature's id.
+        feature: FeatureId,
+    },
+    /// Not used.
+    Rejected(RejectReason),
+}
+
+/// Per-observation outcomes of a frame, in the frame's order.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct FrameReport {
+    /// One entry per observation.
+    pub outcomes: Vec<ObservationOutcome>,
+    /// Hypothesis nodes explored by JCBB (0 for the other modes).
+    pub jcbb_nodes: usize,
+    /// True when JCBB stopped at its node budget.
+    pub jcbb_truncated: bool,
+    /// Joint NIS of the hypothesis JCBB accepted (None for the other modes or no pairing).
+    pub jcbb_joint_nis: Option<f64>,
+}
+
+impl FrameReport {
+    /// Number of associated observations.
+    pub fn associated(&self) -> usize {
+        self.outcomes
+            .iter()
+            .filter(|o| matches!(o, ObservationOutcome::Associated { .. }))
+            .count()
+    }
+    /// Number of initialized features.
+    pub fn initialized(&self) -> usize {
+        self.outcomes
+            .iter()
+            .filter(|o| matches!(o, ObservationOutcome::Initialized { .. }))
+            .count()
+    }
+    /// Number of rejected observations.
+    pub fn rejected(&self) -> usize {
+        self.outcomes
+            .iter()
+            .filter(|o| matches!(o, ObservationOutcome::Rejected(_)))
+            .count()
+    }
+}
+
+#[derive(Clone, Debug)]
+struct VehicleSlot {
+    model: ObservationModel,
+    imu_noise: ImuNoise,
+    /// Accumulated transition Φ = F_k⋯F_1 not yet applied to the cross-covariance.
+    pending: SMatrix<f64, VEHICLE_DIM, VEHICLE_DIM>,
+    has_pending: bool,
+}
+
+/// The inertial EKF-SLAM filter. See the module docs.
+#[derive(Clone, Debug)]
+pub struct SlamFilter {
+    config: SlamConfig,
+    vehicles: Vec<VehicleSlot>,
+    layout: Layout,
+    x: Col<f64>,
+    p: Mat<f64>,
+    next_fresh: u64,
+    /// χ² gate thresholds at `gate_probability`, index = degrees of freedom (0 unused).
+    gates: Vec<f64>,
+    /// Bumped whenever x_m or P_mm may change (updates, augmentation, fusion; not prediction).
+    map_generation: u64,
+    /// Y_mm = P_mm⁻¹ from the last [`SlamFilter::map_information`], valid while
+    /// `map_generation` is unchanged (reused by the map-information fusion route).
+    info_cache: Option<(u64, Mat<f64>)>,
+    /// Reserved row/column capacity of P (see `grow`).
+    capacity: usize,
+}
+
+fn is_symmetric_pd(m: &SMatrix<f64, VEHICLE_DIM, VEHICLE_DIM>) -> bool {
+    let sym = (m - m.transpose()).abs().max() <= 1e-12 * m.abs().max().max(f64::MIN_POSITIVE);
+    sym && m.iter().all(|v| v.is_finite()) && m.cholesky().is_some()
+}
+
+impl SlamFilter {
+    /// A filter with the given vehicles and an empty map.
+    pub fn new(config: SlamConfig, vehicles: &[VehicleSetup]) -> Result<Self, SlamError> {
+        if vehicles.is_empty() {
+            return Err(SlamError::InvalidConfig(
+                "at least one vehicle is required".into(),
+            ));
+        }
+        let p_gate = config.association.gate_probability;
+        if !(p_gate > 0.0 && p_gate < 1.0) {
+            return Err(SlamError::InvalidConfig(format!(
+                "gate probability {p_gate} not in (0, 1)"
+            )));
+        }
+        if !config.origin.iter().all(|v| v.is_finite()) {
+            return Err(SlamError::InvalidConfig("origin is not finite".into()));
+        }
+        let layout = Layout::new(vehicles.len());
+        let n = layout.dim();
+        let mut x = Col::zeros(n);
+        let mut p = Mat::zeros(n, n);
+        let mut slots = Vec::with_capacity(vehicles.len());
+        for (v, setup) in vehicles.iter().enumerate() {
+            if !setup.state.is_finite() {
+                return Err(SlamError::InvalidConfig(format!(
+                    "vehicle {v}: non-finite initial state"
+                )));
+            }
+            if !is_symmetric_pd(&setup.covariance) {
+                return Err(SlamError::InvalidConfig(format!(
+                    "vehicle {v}: initial covariance is not symmetric positive definite"
+                )));
+            }
+            let off = layout.vehicle_block(v);
+            let xv = setup.state.to_vector();
+            for i in 0..VEHICLE_DIM {
+                x[off + i] = xv[i];
+                for j in 0..VEHICLE_DIM {
+                    p[(off + i, off + j)] = setup.covariance[(i, j)];
+                }
+            }
+            slots.push(VehicleSlot {
+                model: ObservationModel {
+                    frame: config.frame,
+                    sensor: setup.sensor,
+                    mount: setup.mount,
+                },
+                imu_noise: setup.imu_noise,
+                pending: SMatrix::identity(),
+                has_pending: false,
+            });
+        }
+        // Gate thresholds for the measurement sizes (2, 3); JCBB computes larger ones on demand.
+        let mut gates = vec![f64::NAN];
+        for dof in 1..=3 {
+            gates.push(
+                chi2_quantile(dof as f64, p_gate)
+                    .map_err(|e| SlamError::InvalidConfig(e.to_string()))?,
+            );
+        }
+        Ok(Self {
+            capacity: n,
+            map_generation: 0,
+            info_cache: None,
+            config,
+            vehicles: slots,
+            layout,
+            x,
+            p,
+            next_fresh: 0,
+            gates,
+        })
+    }
+
+    /// Filter options.
+    pub fn config(&self) -> &SlamConfig {
+        &self.config
+    }
+
+    /// Navigation frame.
+    pub fn frame(&self) -> NavFrame {
+        self.config.frame
+    }
+
+    /// Map-information origin o.
+    pub fn origin(&self) -> Vector3<f64> {
+        self.config.origin
+    }
+
+    /// The slot table.
+    pub fn layout(&self) -> &Layout {
+        &self.layout
+    }
+
+    /// State dimension n.
+    pub fn dim(&self) -> usize {
+        self.layout.dim()
+    }
+
+    /// Number of vehicle blocks.
+    pub fn num_vehicles(&self) -> usize {
+        self.vehicles.len()
+    }
+
+    /// Number of map features.
+    pub fn num_features(&self) -> usize {
+        self.layout.num_features()
+    }
+
+    /// The observation model of a vehicle.
+    pub fn observation_model(&self, vehicle: usize) -> Result<&ObservationModel, SlamError> {
+        self.vehicles
+            .get(vehicle)
+            .map(|v| &v.model)
+            .ok_or(SlamError::UnknownVehicle(vehicle))
+    }
+
+    fn check_vehicle(&self, vehicle: usize) -> Result<usize, SlamError> {
+        if vehicle < self.vehicles.len() {
+            Ok(self.layout.vehicle_block(vehicle))
+        } else {
+            Err(SlamError::UnknownVehicle(vehicle))
+        }
+    }
+
+    /// The vehicle's state estimate.
+    pub fn vehicle_state(&self, vehicle: usize) -> Result<VehicleState, SlamError> {
+        let off = self.check_vehicle(vehicle)?;
+        Ok(VehicleState::from_vector(&ins::VehicleVector::from_fn(
+            |i, _| self.x[off + i],
+        )))
+    }
+
+    /// The vehicle's 15×15 covariance P_vv (always current).
+    pub fn vehicle_covariance(&self, vehicle: usize) -> Result<VehicleCovariance, SlamError> {
+        let off = self.check_vehicle(vehicle)?;
+        Ok(VehicleCovariance::from_fn(|i, j| {
+            self.p[(off + i, off + j)]
+        }))
+    }
+
+    /// The vehicle's pose (position, Euler attitude).
+    pub fn pose(&self, vehicle: usize) -> Result<(Vector3<f64>, Vector3<f64>), SlamError> {
+        let s = self.vehicle_state(vehicle)?;
+        Ok((s.position, s.attitude))
+    }
+
+    fn vec3_at(&self, off: usize) -> Vector3<f64> {
+        Vector3::new(self.x[off], self.x[off + 1], self.x[off + 2])
+    }
+
+    fn mat3_at(&self, r: usize, c: usize) -> Matrix3<f64> {
+        Matrix3::from_fn(|i, j| self.p[(r + i, c + j)])
+    }
+
+    /// Features (id, position) in state order.
+    pub fn features(&self) -> Vec<(FeatureId, Vector3<f64>)> {
+        self.layout
+            .features()
+            .map(|(id, off)| (id, self.vec3_at(off)))
+            .collect()
+    }
+
+    /// One feature's position estimate.
+    pub fn feature(&self, id: FeatureId) -> Option<Vector3<f64>> {
+        self.layout.feature_offset(id).map(|off| self.vec3_at(off))
+    }
+
+    /// One feature's 3×3 covariance.
+    pub fn feature_covariance(&self, id: FeatureId) -> Option<Matrix3<f64>> {
+        self.layout
+            .feature_offset(id)
+            .map(|off| self.mat3_at(off, off))
+    }
+
+    /// The map marginal (x_m, P_mm) of eqs. 21.84/21.85 keyed by feature id, in state order.
+    /// Map blocks are never stale, so this needs no flush.
+    pub fn map_marginal(&self) -> MapMarginal {
+        let feats: Vec<(FeatureId, usize)> = self.layout.features().collect();
+        let k = feats.len() * 3;
+        let idx: Vec<usize> = feats.iter().flat_map(|&(_, off)| off..off + 3).collect();
+        MapMarginal {
+            ids: feats.iter().map(|&(id, _)| id).collect(),
+            mean: Col::from_fn(k, |i| self.x[idx[i]]),
+            covariance: Mat::from_fn(k, k, |i, j| self.p[(idx[i], idx[j])]),
+        }
+    }
+
+    /// The map information (Y, y) = (P_mm⁻¹, P_mm⁻¹ (x_m − o)) of eqs. 21.86/21.87 with the
+    /// origin convention of `info`, keyed by feature id in state order. The inverse is cached
+    /// until the map changes, and a later fusion of a whole-map delta reuses it.
+    pub fn map_information(&mut self) -> Result<MapInformation, SlamError> {
+        let mm = self.map_marginal();
+        let k = mm.mean.nrows();
+        let y = match &self.info_cache {
+            Some((generation, y)) if *generation == self.map_generation && y.nrows() == k => {
+                y.clone()
+            }
+            _ => {
+                let y = mm
+                    .covariance
+                    .llt(faer::Side::Lower)
+                    .map_err(|_| SlamError::NotPositiveDefinite("map covariance"))?
+                    .inverse();
+                self.info_cache = Some((self.map_generation, y.clone()));
+                y
+            }
+        };
+        let o = self.config.origin;
+        let centred = Col::from_fn(k, |i| mm.mean[i] - o[i % 3]);
+        let vector = &y * &centred;
+        Ok(MapInformation {
+            ids: mm.ids,
+            origin: o,
+            matrix: y,
+            vector,
+        })
+    }
+
+    /// The full state vector x.
+    pub fn state_vector(&self) -> Col<f64> {
+        self.x.clone()
+    }
+
+    /// The full covariance P with any pending transitions applied (a copy; the filter keeps its
+    /// lazy representation).
+    pub fn joint_covariance(&self) -> Mat<f64> {
+        let mut c = self.clone();
+        c.flush();
+        c.p
+    }
+
+    /// Applies every pending vehicle transition Φ to the cross-covariances (P_v· ← Φ P_v·).
+    /// Changes only the representation, not the estimate.
+    pub fn flush(&mut self) {
+        for v in 0..self.vehicles.len() {
+            self.flush_vehicle(v);
+        }
+    }
+
+    fn flush_vehicle(&mut self, v: usize) {
+        if !self.vehicles[v].has_pending {
+            return;
+        }
+        let phi = self.vehicles[v].pending;
+        let off = self.layout.vehicle_block(v);
+        let n = self.dim();
+        let phi_f = Mat::from_fn(VEHICLE_DIM, VEHICLE_DIM, |i, j| phi[(i, j)]);
+        let rows = self.p.as_ref().submatrix(off, 0, VEHICLE_DIM, n).to_owned();
+        let new_rows = &phi_f * &rows;
+        for c in (0..n).filter(|c| !(off..off + VEHICLE_DIM).contains(c)) {
+            for r in 0..VEHICLE_DIM {
+                let val = new_rows[(r, c)];
+                self.p[(off + r, c)] = val;
+                self.p[(c, off + r)] = val;
+            }
+        }
+        self.vehicles[v].pending = SMatrix::identity();
+        self.vehicles[v].has_pending = false;
+    }
+
+    /// INS prediction of one vehicle over one IMU sample (eqs. 21.19–21.25 / 21.33–21.38 for the
+    /// mean, 21.46/21.47 for the covariance, applied lazily to the cross terms; module docs).
+    /// An invalid sample or a non-finite result is a typed error and changes nothing.
+    pub fn predict(&mut self, vehicle: usize, imu: &ImuSample) -> Result<(), SlamError> {
+        let off = self.check_vehicle(vehicle)?;
+        let xv = self.vehicle_state(vehicle)?;
+        let prop = ins::propagate_with_jacobians(self.config.frame, &xv, imu)?;
+        let q = ins::process_noise(&self.vehicles[vehicle].imu_noise, imu.dt);
+        let pvv = self.vehicle_covariance(vehicle)?;
+        let (f, g) = (prop.transition, prop.noise);
+        let mut next = f * pvv * f.transpose() + g * q * g.transpose();
+        next = (next + next.transpose()) * 0.5;
+        let phi = f * self.vehicles[vehicle].pending;
+        if !next.iter().chain(phi.iter()).all(|v| v.is_finite()) {
+            return Err(SlamError::NumericalFailure("covariance prediction"));
+        }
+        let mut xn = prop.state.to_vector();
+        // Keep roll and yaw in (−π, π] (C_b^n and E_b^n are 2π-periodic in them, so the
+        // covariance is unaffected); pitch stays in its ±π/2 range by construction.
+        xn[ATT] = wrap_angle(xn[ATT]);
+        xn[ATT + 2] = wrap_angle(xn[ATT + 2]);
+        for i in 0..VEHICLE_DIM {
+            self.x[off + i] = xn[i];
+            for j in 0..VEHICLE_DIM {
+                self.p[(off + i, off + j)] = next[(i, j)];
+            }
+        }
+        let slot = &mut self.vehicles[vehicle];
+        slot.pending = phi;
+        slot.has_pending = true;
+        Ok(())
+    }
+
+    /// χ² gate at `gate_probability` for `dof` degrees of freedom (cached).
+    fn gate(&mut self, dof: usize) -> f64 {
+        while self.gates.len() <= dof {
+            let d = self.gates.len() as f64;
+            let g =
+                chi2_quantile(d, self.config.association.gate_probability).unwrap_or(f64::INFINITY);
+            self.gates.push(g);
+        }
+        self.gates[dof]
+    }
+
+    /// A fresh feature id: the descriptor if unused, else the next id of this filter's reserved
+    /// range.
+    fn new_feature_id(&mut self, descriptor: FeatureId) -> FeatureId {
+        if !self.layout.has_feature(descriptor) {
+            return descriptor;
+        }
+        loop {
+            let id = FRESH_ID_BASE
+                | (u64::from(self.config.fresh_id_namespace & 0x7FFF_FFFF) << 32)
+                | (self.next_fresh & 0xFFFF_FFFF);
+            self.next_fresh += 1;
+            if !self.layout.has_feature(id) {
+                return id;
+            }
+        }
+    }
+
+    /// Associates, updates and initializes from one terrain-sensor frame of `vehicle` (module
+    /// docs). Validation errors (non-finite time or measurement, wrong measurement kind, unknown
+    /// vehicle) are returned before anything changes; a non-positive range rejects only its
+    /// observation ([`RejectReason::InvalidMeasurement`]) and numerical failures of single
+    /// observations are reported as [`RejectReason::NumericalFailure`].
+    pub fn process_frame(
+        &mut self,
+        vehicle: usize,
+        frame: &ObservationFrame,
+    ) -> Result<FrameReport, SlamError> {
+        self.check_vehicle(vehicle)?;
+        if !frame.time.is_finite() {
+            return Err(SlamError::NonFiniteTime);
+        }
+        let model = self.vehicles[vehicle].model;
+        // Corrupt input (NaN/∞, wrong measurement kind) rejects the whole frame; a finite but
+        // physically invalid measurement (a noisy range ≤ 0 near the sensor) only itself.
+        let mut zs = Vec::with_capacity(frame.observations.len());
+        let mut valid = Vec::with_capacity(frame.observations.len());
+        for (index, o) in frame.observations.iter().enumerate() {
+            match model.measurement_vector(&o.z) {
+                Ok(z) => {
+                    zs.push(z);
+                    valid.push(index);
+                }
+                Err(ObservationError::NonPositiveRange(_)) => {}
+                Err(source) => return Err(SlamError::Observation { index, source }),
+            }
+        }
+        self.flush();
+        let descriptors: Vec<FeatureId> = valid
+            .iter()
+            .map(|&i| frame.observations[i].descriptor)
+            .collect();
+        let plan = self.associate(vehicle, &model, &zs, &descriptors);
+        if !plan.updates.is_empty() || !plan.initializations.is_empty() {
+            // The map (and so the cached map information) may change below.
+            self.map_generation += 1;
+        }
+        let mut report = FrameReport {
+            outcomes: plan.outcomes.clone(),
+            jcbb_nodes: plan.jcbb_nodes,
+            jcbb_truncated: plan.jcbb_truncated,
+            jcbb_joint_nis: plan.jcbb_joint_nis,
+        };
+        self.apply_updates(vehicle, &model, &plan.updates, &mut report);
+        for &i in &plan.initializations {
+            match self.initialize_feature(vehicle, &model, &zs[i], descriptors[i]) {
+                Ok(id) => report.outcomes[i] = ObservationOutcome::Initialized { feature: id },
+                Err(_) => {
+                    report.outcomes[i] =
+                        ObservationOutcome::Rejected(RejectReason::NumericalFailure)
+                }
+            }
+        }
+        // Back to the frame's indexing.
+        let mut outcomes = vec![
+            ObservationOutcome::Rejected(RejectReason::InvalidMeasurement);
+            frame.observations.len()
+        ];
+        for (k, &i) in valid.iter().enumerate() {
+            outcomes[i] = report.outcomes[k];
+        }
+        report.outcomes = outcomes;
+        Ok(report)
+    }
+}
+
+#[cfg(test)]
+mod tests;

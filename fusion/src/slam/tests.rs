@@ -1,0 +1,1149 @@
+//! Unit tests of the filter against independent dense computations (nalgebra `DMatrix`, full
+//! n×n products and inverses), never against the structured code under test.
+
+use super::*;
+use crate::imu::ImuGrade;
+use crate::info::MapInformation;
+use crate::sensor::{Measurement, Observation};
+use nalgebra::{DMatrix, DVector};
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+
+fn mount() -> SensorMount {
+    SensorMount::downward(Vector3::new(0.3, 0.0, 0.2))
+}
+
+fn range_bearing() -> SensorModel {
+    SensorModel::RangeBearing {
+        sigma_range: 0.5,
+        sigma_bearing: 0.005,
+    }
+}
+
+fn config(frame: NavFrame, mode: AssociationMode) -> SlamConfig {
+    SlamConfig {
+        frame,
+        origin: Vector3::zeros(),
+        association: AssociationConfig {
+            mode,
+            gate_probability: 0.95,
+        },
+        fresh_id_namespace: 1,
+    }
+}
+
+fn vehicle(position: Vector3<f64>) -> VehicleSetup {
+    let mut cov = VehicleCovariance::zeros();
+    for i in 0..3 {
+        cov[(i, i)] = 1.0;
+        cov[(3 + i, 3 + i)] = 0.01;
+        cov[(6 + i, 6 + i)] = 1e-6;
+        cov[(9 + i, 9 + i)] = 1e-4;
+        cov[(12 + i, 12 + i)] = 1e-8;
+    }
+    VehicleSetup {
+        state: VehicleState {
+            position,
+            velocity: Vector3::new(20.0, 1.0, 0.0),
+            attitude: Vector3::new(0.02, -0.01, 0.3),
+            accel_bias: Vector3::zeros(),
+            gyro_bias: Vector3::zeros(),
+        },
+        covariance: cov,
+        imu_noise: ImuGrade::Tactical.noise(),
+        sensor: range_bearing(),
+        mount: mount(),
+    }
+}
+
+fn to_dense(m: &Mat<f64>) -> DMatrix<f64> {
+    DMatrix::from_fn(m.nrows(), m.ncols(), |i, j| m[(i, j)])
+}
+
+fn col_to_dense(c: &Col<f64>) -> DVector<f64> {
+    DVector::from_fn(c.nrows(), |i, _| c[i])
+}
+
+/// Exact bit pattern of everything the filter holds.
+fn snapshot(f: &SlamFilter) -> Vec<u64> {
+    let mut v: Vec<u64> = (0..f.x.nrows()).map(|i| f.x[i].to_bits()).collect();
+    for j in 0..f.p.ncols() {
+        for i in 0..f.p.nrows() {
+            v.push(f.p[(i, j)].to_bits());
+        }
+    }
+    for s in &f.vehicles {
+        v.extend(s.pending.iter().map(|x| x.to_bits()));
+        v.push(u64::from(s.has_pending));
+    }
+    v.push(f.layout.dim() as u64);
+    v.push(f.next_fresh);
+    v
+}
+
+/// Adds `k` features with ids 100.. and replaces (x, P) by a random well-conditioned joint
+/// estimate: P = A Aᵀ + I·0.5 with A of unit-scale normal entries / √n.
+fn randomize(f: &mut SlamFilter, k: usize, rng: &mut ChaCha8Rng) {
+    for i in 0..k {
+        f.grow(3);
+        f.layout.push(SlotKind::Feature(100 + i as u64));
+    }
+    let n = f.dim();
+    let a = DMatrix::from_fn(n, n, |_, _| rng.random::<f64>() - 0.5) / (n as f64).sqrt();
+    let p = &a * a.transpose() + DMatrix::identity(n, n) * 0.5;
+    for (j, i) in (0..n).flat_map(|j| (0..n).map(move |i| (j, i))) {
+        f.p[(i, j)] = p[(i, j)];
+    }
+    for (id, off) in f.layout.features().collect::<Vec<_>>() {
+        let _ = id;
+        // Features on the ground around the vehicle, 60–120 m away in local NED.
+        let m = Vector3::new(
+            rng.random_range(-60.0..60.0),
+            rng.random_range(-60.0..60.0),
+            0.0,
+        );
+        for i in 0..3 {
+            f.x[off + i] = m[i];
+        }
+    }
+}
+
+fn imu(t: f64) -> ImuSample {
+    ImuSample {
+        time: t,
+        dt: 0.01,
+        specific_force: Vector3::new(0.3 * t.sin(), -0.2, -9.7),
+        angular_rate: Vector3::new(0.01, -0.02 * t.cos(), 0.03),
+    }
+}
+
+#[test]
+fn lazy_prediction_matches_dense_propagation() {
+    let mut rng = ChaCha8Rng::seed_from_u64(1);
+    for frame in [NavFrame::Local, NavFrame::Global] {
+        let p0 = match frame {
+            NavFrame::Local => Vector3::new(0.0, 0.0, -100.0),
+            NavFrame::Global => crate::geodesy::geodetic_to_ecef(
+                &crate::geodesy::Geodetic::from_degrees(-34.0, 151.0, 300.0),
+            ),
+        };
+        let mut f = SlamFilter::new(
+            config(frame, AssociationMode::Descriptor),
+            &[vehicle(p0), vehicle(p0 + Vector3::new(50.0, 0.0, 0.0))],
+        )
+        .unwrap();
+        randomize(&mut f, 5, &mut rng);
+        // Global positions must stay ECEF-sized after randomize(): restore the vehicle means.
+        for v in 0..2 {
+            let off = f.layout.vehicle_block(v);
+            let s = vehicle(p0 + Vector3::new(50.0 * v as f64, 0.0, 0.0))
+                .state
+                .to_vector();
+            for i in 0..VEHICLE_DIM {
+                f.x[off + i] = s[i];
+            }
+        }
+        let mut p_ref = to_dense(&f.p);
+        let n = f.dim();
+        for k in 0..30 {
+            let v = if k % 3 == 0 { 1 } else { 0 };
+            let sample = imu(k as f64 * 0.01);
+            let xv = f.vehicle_state(v).unwrap();
+            let prop = ins::propagate_with_jacobians(frame, &xv, &sample).unwrap();
+            let q = ins::process_noise(&ImuGrade::Tactical.noise(), sample.dt);
+            // Dense reference: ∇F is identity except the vehicle block; ∇G has only vehicle rows.
+            let off = f.layout.vehicle_block(v);
+            let mut ff = DMatrix::identity(n, n);
+            let mut gg = DMatrix::zeros(n, 12);
+            for i in 0..VEHICLE_DIM {
+                for j in 0..VEHICLE_DIM {
+                    ff[(off + i, off + j)] = prop.transition[(i, j)];
+                }
+                for j in 0..12 {
+                    gg[(off + i, j)] = prop.noise[(i, j)];
+                }
+            }
+            let qd = DMatrix::from_fn(12, 12, |i, j| q[(i, j)]);
+            p_ref = &ff * &p_ref * ff.transpose() + &gg * qd * gg.transpose();
+            f.predict(v, &sample).unwrap();
+            let got = f.vehicle_state(v).unwrap();
+            // Small angles: the roll/yaw wrap of the filter is the identity here.
+            assert_eq!(got, prop.state);
+        }
+        let p = to_dense(&f.joint_covariance());
+        // Same products in another order: agreement to ≈ 1e-13 relative; 1e-10 leaves margin.
+        let err = (&p - &p_ref).abs().max() / p_ref.abs().max();
+        assert!(err < 1e-10, "{frame}: {err}");
+        // The map block is untouched by prediction.
+        let before = f.map_marginal();
+        f.flush();
+        let after = f.map_marginal();
+        assert_eq!(to_dense(&before.covariance), to_dense(&after.covariance));
+    }
+}
+
+#[test]
+fn invalid_imu_sample_leaves_the_filter_bit_for_bit_unchanged() {
+    let mut f = SlamFilter::new(
+        config(NavFrame::Local, AssociationMode::Descriptor),
+        &[vehicle(Vector3::new(0.0, 0.0, -100.0))],
+    )
+    .unwrap();
+    randomize(&mut f, 3, &mut ChaCha8Rng::seed_from_u64(2));
+    f.predict(0, &imu(0.0)).unwrap(); // leaves a pending Φ
+    let before = snapshot(&f);
+    let mut bad = Vec::new();
+    for field in 0..6 {
+        for value in [f64::NAN, f64::INFINITY, f64::NEG_INFINITY] {
+            let mut s = imu(0.01);
+            match field {
+                0 => s.dt = value,
+                1 => s.time = value,
+                2 => s.specific_force.x = value,
+                3 => s.specific_force.z = value,
+                4 => s.angular_rate.y = value,
+                _ => s.angular_rate.z = value,
+            }
+            bad.push(s);
+        }
+    }
+    let mut zero_dt = imu(0.01);
+    zero_dt.dt = 0.0;
+    bad.push(zero_dt);
+    let mut negative_dt = imu(0.01);
+    negative_dt.dt = -0.01;
+    bad.push(negative_dt);
+    for s in &bad {
+        assert!(matches!(f.predict(0, s), Err(SlamError::Ins(_))), "{s:?}");
+        assert_eq!(snapshot(&f), before, "{s:?}");
+    }
+    assert_eq!(f.predict(3, &imu(0.01)), Err(SlamError::UnknownVehicle(3)));
+    assert_eq!(snapshot(&f), before);
+}
+
+fn observe(f: &SlamFilter, v: usize, truth: &VehicleState, feature: &Vector3<f64>) -> DVector<f64> {
+    let model = f.observation_model(v).unwrap();
+    model
+        .predict(
+            &model.sensor_pose(&truth.position, &truth.attitude),
+            feature,
+        )
+        .unwrap()
+        .z
+}
+
+fn rb(z: &DVector<f64>) -> Measurement {
+    Measurement::RangeBearing(Vector3::new(z[0], z[1], z[2]))
+}
+
+#[test]
+fn invalid_observation_frames_leave_the_filter_bit_for_bit_unchanged() {
+    let mut f = SlamFilter::new(
+        config(NavFrame::Local, AssociationMode::Descriptor),
+        &[vehicle(Vector3::new(0.0, 0.0, -100.0))],
+    )
+    .unwrap();
+    randomize(&mut f, 3, &mut ChaCha8Rng::seed_from_u64(3));
+    f.predict(0, &imu(0.0)).unwrap();
+    let truth = f.vehicle_state(0).unwrap();
+    let good = Observation {
+        descriptor: 100,
+        z: rb(&observe(&f, 0, &truth, &f.feature(100).unwrap())),
+    };
+    let before = snapshot(&f);
+    let mut frames = Vec::new();
+    for (k, value) in [
+        (0, f64::NAN),
+        (1, f64::INFINITY),
+        (2, f64::NAN),
+        (1, f64::NEG_INFINITY),
+    ] {
+        let mut z = Vector3::new(100.0, 0.1, 0.2);
+        z[k] = value;
+        let bad = Observation {
+            descriptor: 7,
+            z: Measurement::RangeBearing(z),
+        };
+        frames.push(ObservationFrame {
+            time: 1.0,
+            observations: vec![good, bad],
+        });
+    }
+    frames.push(ObservationFrame {
+        time: 1.0,
+        observations: vec![
+            good,
+            Observation {
+                descriptor: 7,
+                z: Measurement::Pixel(nalgebra::Vector2::new(1.0, 2.0)),
+            },
+        ],
+    });
+    for fr in &frames {
+        let e = f.process_frame(0, fr).unwrap_err();
+        assert!(
+            matches!(e, SlamError::Observation { index: 1, .. }),
+            "{e:?}"
+        );
+        assert_eq!(snapshot(&f), before);
+    }
+    let nan_time = ObservationFrame {
+        time: f64::NAN,
+        observations: vec![good],
+    };
+    assert_eq!(f.process_frame(0, &nan_time), Err(SlamError::NonFiniteTime));
+    assert_eq!(
+        f.process_frame(1, &frames[0]),
+        Err(SlamError::UnknownVehicle(1))
+    );
+    assert_eq!(snapshot(&f), before);
+
+    // A finite but non-positive range rejects only its own observation: the good one is used.
+    for range in [0.0, -1.0] {
+        let mut g = f.clone();
+        let bad = Observation {
+            descriptor: 7,
+            z: Measurement::RangeBearing(Vector3::new(range, 0.1, 0.2)),
+        };
+        let r = g
+            .process_frame(
+                0,
+                &ObservationFrame {
+                    time: 1.0,
+                    observations: vec![bad, good],
+                },
+            )
+            .unwrap();
+        assert_eq!(
+            r.outcomes[0],
+            ObservationOutcome::Rejected(RejectReason::InvalidMeasurement)
+        );
+        assert!(matches!(
+            r.outcomes[1],
+            ObservationOutcome::Associated { feature: 100, .. }
+        ));
+        assert_eq!(g.num_features(), f.num_features());
+    }
+}
+
+#[test]
+fn stacked_joseph_update_matches_the_dense_reference() {
+    let mut rng = ChaCha8Rng::seed_from_u64(4);
+    let mut f = SlamFilter::new(
+        config(NavFrame::Local, AssociationMode::Descriptor),
+        &[vehicle(Vector3::new(0.0, 0.0, -100.0))],
+    )
+    .unwrap();
+    randomize(&mut f, 6, &mut rng);
+    let n = f.dim();
+    let x0 = col_to_dense(&f.x);
+    let p0 = to_dense(&f.p);
+    let est = f.vehicle_state(0).unwrap();
+    let model = *f.observation_model(0).unwrap();
+    let pose = model.sensor_pose(&est.position, &est.attitude);
+    // Two observations with small innovations (inside the gate even for this random P).
+    let ids = [101u64, 104];
+    let voff = f.layout.vehicle_block(0);
+    let mut h = DMatrix::zeros(6, n);
+    let mut nu = DVector::zeros(6);
+    let mut obs = Vec::new();
+    for (k, id) in ids.iter().enumerate() {
+        let off = f.layout.feature_offset(*id).unwrap();
+        let pred = model.predict(&pose, &f.feature(*id).unwrap()).unwrap();
+        let z = &pred.z + DVector::from_vec(vec![0.3, 0.002, -0.001]);
+        nu.rows_mut(3 * k, 3)
+            .copy_from(&model.innovation(&z, &pred.z));
+        for i in 0..3 {
+            for j in 0..3 {
+                h[(3 * k + i, voff + POS_ + j)] = pred.d_position[(i, j)];
+                h[(3 * k + i, voff + ATT_ + j)] = pred.d_attitude[(i, j)];
+                h[(3 * k + i, off + j)] = pred.d_feature[(i, j)];
+            }
+        }
+        obs.push(Observation {
+            descriptor: *id,
+            z: rb(&z),
+        });
+    }
+    let r1 = model.noise_covariance();
+    let mut r = DMatrix::zeros(6, 6);
+    r.view_mut((0, 0), (3, 3)).copy_from(&r1);
+    r.view_mut((3, 3), (3, 3)).copy_from(&r1);
+    // Dense reference, eqs. 21.56–21.60 with the textbook Joseph form.
+    let s = &h * &p0 * h.transpose() + &r;
+    let k = &p0 * h.transpose() * s.clone().try_inverse().unwrap();
+    let ikh = DMatrix::identity(n, n) - &k * &h;
+    let p_ref = &ikh * &p0 * ikh.transpose() + &k * &r * k.transpose();
+    let x_ref = &x0 + &k * &nu;
+
+    let report = f
+        .process_frame(
+            0,
+            &ObservationFrame {
+                time: 0.0,
+                observations: obs,
+            },
+        )
+        .unwrap();
+    assert_eq!(report.associated(), 2, "{report:?}");
+    // Different but equivalent arithmetic on O(1) entries: 1e-11 absolute is ≈ 100 ulp·n.
+    assert!((to_dense(&f.p) - &p_ref).abs().max() < 1e-11);
+    assert!((col_to_dense(&f.x) - &x_ref).abs().max() < 1e-11);
+    // Symmetric to the bit.
+    let p = to_dense(&f.p);
+    assert_eq!(p, p.transpose());
+}
+
+const POS_: usize = crate::state::POS;
+const ATT_: usize = crate::state::ATT;
+
+#[test]
+fn feature_initialization_matches_eq_21_52() {
+    let mut rng = ChaCha8Rng::seed_from_u64(5);
+    for frame in [NavFrame::Local, NavFrame::Global] {
+        let p0 = match frame {
+            NavFrame::Local => Vector3::new(0.0, 0.0, -100.0),
+            NavFrame::Global => crate::geodesy::geodetic_to_ecef(
+                &crate::geodesy::Geodetic::from_degrees(10.0, 20.0, 150.0),
+            ),
+        };
+        let mut f =
+            SlamFilter::new(config(frame, AssociationMode::Descriptor), &[vehicle(p0)]).unwrap();
+        randomize(&mut f, 4, &mut rng);
+        let voff = f.layout.vehicle_block(0);
+        let s = vehicle(p0).state.to_vector();
+        for i in 0..VEHICLE_DIM {
+            f.x[voff + i] = s[i];
+        }
+        let n = f.dim();
+        let p0m = to_dense(&f.p);
+        let model = *f.observation_model(0).unwrap();
+        let z = DVector::from_vec(vec![120.0, 0.2, -0.1]);
+        let est = f.vehicle_state(0).unwrap();
+        let init = model
+            .initialize(&model.sensor_pose(&est.position, &est.attitude), &z)
+            .unwrap();
+        // Dense eq. 21.52: [I 0; ∇J_x ∇J_z] diag(P, R) [I 0; ∇J_x ∇J_z]ᵀ.
+        let mut j = DMatrix::zeros(n + 3, n + 3);
+        j.view_mut((0, 0), (n, n)).fill_with_identity();
+        for a in 0..3 {
+            for b in 0..3 {
+                j[(n + a, voff + POS_ + b)] = init.d_position[(a, b)];
+                j[(n + a, voff + ATT_ + b)] = init.d_attitude[(a, b)];
+                j[(n + a, n + b)] = init.d_measurement[(a, b)];
+            }
+        }
+        let mut blk = DMatrix::zeros(n + 3, n + 3);
+        blk.view_mut((0, 0), (n, n)).copy_from(&p0m);
+        blk.view_mut((n, n), (3, 3))
+            .copy_from(&model.noise_covariance());
+        let p_ref = &j * blk * j.transpose();
+        let report = f
+            .process_frame(
+                0,
+                &ObservationFrame {
+                    time: 0.0,
+                    observations: vec![Observation {
+                        descriptor: 9,
+                        z: rb(&z),
+                    }],
+                },
+            )
+            .unwrap();
+        assert_eq!(
+            report.outcomes,
+            vec![ObservationOutcome::Initialized { feature: 9 }]
+        );
+        let err = (to_dense(&f.p) - &p_ref).abs().max() / p_ref.abs().max();
+        // Same formula, different summation order: ≈ 1e-15 relative; 1e-12 leaves margin.
+        assert!(err < 1e-12, "{frame}: {err}");
+        assert!((f.feature(9).unwrap() - init.feature).norm() == 0.0);
+    }
+}
+
+/// Builds a delta over `ids` whose information is `y` (3k×3k) and whose vector is y·(t − o) for
+/// a target t (so fusing it pulls the features toward t).
+fn delta(
+    ids: Vec<FeatureId>,
+    y: DMatrix<f64>,
+    target: &DVector<f64>,
+    origin: Vector3<f64>,
+) -> MapInformation {
+    let k = ids.len() * 3;
+    let t = DVector::from_fn(k, |i, _| target[i] - origin[i % 3]);
+    let v = &y * t;
+    MapInformation {
+        ids,
+        origin,
+        matrix: Mat::from_fn(k, k, |i, j| y[(i, j)]),
+        vector: Col::from_fn(k, |i| v[i]),
+    }
+}
+
+/// Independent reference: dense joint information, add the delta, invert back. Returns the
+/// expected (x, P) with new features appended in delta order.
+fn dense_fusion_reference(f: &SlamFilter, d: &MapInformation) -> (DVector<f64>, DMatrix<f64>) {
+    let n = f.dim();
+    let new: Vec<FeatureId> = d
+        .ids
+        .iter()
+        .copied()
+        .filter(|id| !f.layout.has_feature(*id))
+        .collect();
+    let m = n + 3 * new.len();
+    let p = to_dense(&f.joint_covariance());
+    let y = p.clone().try_inverse().unwrap();
+    // Linearisation point c: the current estimate for filter states, o for new features.
+    let mut c = DVector::zeros(m);
+    c.rows_mut(0, n).copy_from(&col_to_dense(&f.x));
+    for i in 0..3 * new.len() {
+        c[n + i] = d.origin[i % 3];
+    }
+    let mut yj = DMatrix::zeros(m, m);
+    yj.view_mut((0, 0), (n, n)).copy_from(&y);
+    let mut yv = DVector::zeros(m); // y_joint w.r.t. c: Y (x̂ − c) = 0 for the prior
+    let index = |id: FeatureId| -> usize {
+        f.layout
+            .feature_offset(id)
+            .unwrap_or_else(|| n + 3 * new.iter().position(|x| *x == id).unwrap())
+    };
+    for (a, ida) in d.ids.iter().enumerate() {
+        for (b, idb) in d.ids.iter().enumerate() {
+            for i in 0..3 {
+                for j in 0..3 {
+                    yj[(index(*ida) + i, index(*idb) + j)] += d.matrix[(3 * a + i, 3 * b + j)];
+                }
+            }
+        }
+        for i in 0..3 {
+            // Δy is w.r.t. x − o; re-express w.r.t. c: Δy − ΔY (c − o) on these rows.
+            let mut corr = d.vector[3 * a + i];
+            for (b, idb) in d.ids.iter().enumerate() {
+                for j in 0..3 {
+                    corr -= d.matrix[(3 * a + i, 3 * b + j)] * (c[index(*idb) + j] - d.origin[j]);
+                }
+            }
+            yv[index(*ida) + i] += corr;
+        }
+    }
+    let p_ref = yj.try_inverse().unwrap();
+    let x_ref = &c + &p_ref * yv;
+    (x_ref, p_ref)
+}
+
+fn marginal_information(f: &SlamFilter) -> (Vec<FeatureId>, DMatrix<f64>, DVector<f64>) {
+    let mm = f.map_marginal();
+    let y = to_dense(&mm.covariance).try_inverse().unwrap();
+    let xm = DVector::from_fn(mm.mean.nrows(), |i, _| mm.mean[i] - f.origin()[i % 3]);
+    let v = &y * xm;
+    (mm.ids, y, v)
+}
+
+fn random_spd(k: usize, scale: f64, rng: &mut ChaCha8Rng) -> DMatrix<f64> {
+    let a = DMatrix::from_fn(k, k, |_, _| rng.random::<f64>() - 0.5);
+    (&a * a.transpose() + DMatrix::identity(k, k) * 0.2) * scale
+}
+
+#[test]
+fn fusion_matches_dense_information_form_and_adds_exactly_to_the_map_marginal() {
+    let mut rng = ChaCha8Rng::seed_from_u64(6);
+    // (case, ids of the delta): known only, known + new, only new, low rank, indefinite.
+    // Cases: 0 known only, 1 known + new, 2 only new, 3 low rank, 4 indefinite (pseudo-
+    // measurement route); 5 whole map PD, 6 whole map indefinite, 7 whole map + new, 8 whole map
+    // in state order (contiguous copies) (map route).
+    for case in 0..9 {
+        let mut f = SlamFilter::new(
+            config(NavFrame::Local, AssociationMode::Descriptor),
+            &[vehicle(Vector3::new(0.0, 0.0, -100.0))],
+        )
+        .unwrap();
+        f.config.origin = Vector3::new(5.0, -3.0, 1.0);
+        let n_feat = if case == 7 { 8 } else { 5 };
+        randomize(&mut f, n_feat, &mut rng);
+        f.predict(0, &imu(0.0)).unwrap(); // pending Φ must be flushed by the fusion
+        let ids: Vec<FeatureId> = match case {
+            0 => vec![101, 103],
+            1 => vec![102, 900, 104, 901],
+            2 => vec![900, 901],
+            3 | 4 => vec![100, 101, 102],
+            5 | 6 => vec![104, 100, 101, 102, 103],
+            8 => vec![100, 101, 102, 103, 104],
+            _ => vec![100, 101, 102, 903, 103, 104, 105, 106, 107],
+        };
+        let k = 3 * ids.len();
+        let mut y = random_spd(k, 2.0, &mut rng);
+        if case == 3 {
+            // Rank 2: information only along two directions.
+            let u = DMatrix::from_fn(k, 2, |_, _| rng.random::<f64>() - 0.5);
+            y = &u * u.transpose() * 3.0;
+        }
+        if case == 4 || case == 6 {
+            // Indefinite: subtract a bit of information along one direction (as a CI upstream
+            // may), small enough that the fused result stays positive definite.
+            let u = DVector::from_fn(k, |_, _| rng.random::<f64>() - 0.5).normalize();
+            y = &u * u.transpose() * -0.05 + DMatrix::from_diagonal_element(k, k, 0.01);
+            let mut ext = random_spd(k, 0.5, &mut rng);
+            ext -= &u * u.transpose() * (u.transpose() * &ext * &u)[0];
+            y += ext;
+            assert!(
+                y.symmetric_eigenvalues().min() < 0.0,
+                "case must be indefinite"
+            );
+        }
+        let target = DVector::from_fn(k, |_, _| rng.random_range(-50.0..50.0));
+        let d = delta(ids.clone(), y.clone(), &target, f.origin());
+        let (x_ref, p_ref) = dense_fusion_reference(&f, &d);
+        let (ids0, y0, v0) = marginal_information(&f);
+        if case == 5 || case == 7 || case == 8 {
+            // map_information() matches the independent inverse, and primes the cache that the
+            // whole-map route then reuses (cases 5, 7; case 6 computes its own inverse).
+            let mi = f.map_information().unwrap();
+            assert_eq!(mi.ids, ids0);
+            let ey = (to_dense(&mi.matrix) - &y0).abs().max() / y0.abs().max();
+            let ev = (col_to_dense(&mi.vector) - &v0).abs().max() / v0.abs().max();
+            // Two independent inverses of a κ ≲ 1e3 matrix: 1e-11 relative.
+            assert!(ey < 1e-11 && ev < 1e-11, "{ey} {ev}");
+        }
+        let rep = f.fuse_map_information(&d).unwrap();
+        match case {
+            3 => assert_eq!(rep.rank, Some(2)),
+            4 => assert!(rep.negative_directions.unwrap() > 0),
+            5..=8 => assert_eq!(rep.method, FuseMethod::MapInformation),
+            _ => {}
+        }
+        if case < 2 || case == 3 || case == 4 {
+            assert_eq!(rep.method, FuseMethod::PseudoMeasurement);
+        }
+        let p = to_dense(&f.p);
+        let x = col_to_dense(&f.x);
+        // Both sides are O(1)-conditioned products/inverses of ≈ 30×30 matrices: 1e-9
+        // relative covers the inverse's round-off (κ ≈ 1e2–1e3 · 1e-16 · n).
+        let scale = p_ref.abs().max();
+        assert!(
+            (&p - &p_ref).abs().max() < 1e-9 * scale,
+            "case {case}: P {}",
+            (&p - &p_ref).abs().max()
+        );
+        assert!(
+            (&x - &x_ref).abs().max() < 1e-8 * x_ref.abs().max(),
+            "case {case}: x {}",
+            (&x - &x_ref).abs().max()
+        );
+
+        // Map marginal information after = before + Δ (with zero prior on new features).
+        let (ids1, y1, v1) = marginal_information(&f);
+        let pos = |id: FeatureId| ids1.iter().position(|x| *x == id).unwrap();
+        let mut y_exp = DMatrix::zeros(y1.nrows(), y1.ncols());
+        let mut v_exp = DVector::zeros(v1.len());
+        for (a, ia) in ids0.iter().enumerate() {
+            for (b, ib) in ids0.iter().enumerate() {
+                y_exp
+                    .view_mut((3 * pos(*ia), 3 * pos(*ib)), (3, 3))
+                    .copy_from(&y0.view((3 * a, 3 * b), (3, 3)));
+            }
+            v_exp
+                .rows_mut(3 * pos(*ia), 3)
+                .copy_from(&v0.rows(3 * a, 3));
+        }
+        for (a, ia) in ids.iter().enumerate() {
+            for (b, ib) in ids.iter().enumerate() {
+                let blk = y.view((3 * a, 3 * b), (3, 3)).into_owned();
+                let mut t = y_exp.view_mut((3 * pos(*ia), 3 * pos(*ib)), (3, 3));
+                t += blk;
+            }
+            for i in 0..3 {
+                v_exp[3 * pos(*ia) + i] += d.vector[3 * a + i];
+            }
+        }
+        let ey = (&y1 - &y_exp).abs().max() / y_exp.abs().max();
+        let ev = (&v1 - &v_exp).abs().max() / v_exp.abs().max();
+        // Two inversions of ≈ 20×20 matrices with κ ≲ 1e3: 1e-9 relative.
+        assert!(
+            ey < 1e-9 && ev < 1e-9,
+            "case {case}: ΔY err {ey}, Δy err {ev}"
+        );
+    }
+}
+
+#[test]
+fn bad_information_is_rejected_and_leaves_the_filter_unchanged() {
+    let mut rng = ChaCha8Rng::seed_from_u64(7);
+    let mut f = SlamFilter::new(
+        config(NavFrame::Local, AssociationMode::Descriptor),
+        &[vehicle(Vector3::new(0.0, 0.0, -100.0))],
+    )
+    .unwrap();
+    randomize(&mut f, 3, &mut rng);
+    f.predict(0, &imu(0.0)).unwrap();
+    let before = snapshot(&f);
+    let good = delta(
+        vec![100, 900],
+        random_spd(6, 1.0, &mut rng),
+        &DVector::zeros(6),
+        Vector3::zeros(),
+    );
+    let mut cases: Vec<(MapInformation, &str)> = Vec::new();
+    let mut d = good.clone();
+    d.matrix[(1, 4)] = f64::NAN;
+    cases.push((d, "nan matrix"));
+    let mut d = good.clone();
+    d.vector[5] = f64::INFINITY;
+    cases.push((d, "inf vector"));
+    let mut d = good.clone();
+    d.matrix[(0, 5)] += 0.1;
+    cases.push((d, "asymmetric"));
+    let mut d = good.clone();
+    d.ids = vec![100, 100];
+    cases.push((d, "duplicate ids"));
+    let mut d = good.clone();
+    d.ids.push(5);
+    cases.push((d, "size mismatch"));
+    let mut d = good.clone();
+    d.origin = Vector3::new(1.0, 0.0, 0.0);
+    cases.push((d, "origin"));
+    // Removing far more information than the filter holds: fused result not PD.
+    cases.push((
+        delta(
+            vec![100, 101],
+            -random_spd(6, 50.0, &mut rng),
+            &DVector::zeros(6),
+            Vector3::zeros(),
+        ),
+        "non-PD result",
+    ));
+    // A new feature with indefinite information cannot be initialized.
+    let mut y = random_spd(6, 1.0, &mut rng);
+    y[(4, 4)] = -5.0;
+    cases.push((
+        delta(vec![101, 901], y, &DVector::zeros(6), Vector3::zeros()),
+        "indefinite new",
+    ));
+    for (d, what) in &cases {
+        assert!(f.fuse_map_information(d).is_err(), "{what} accepted");
+        assert_eq!(snapshot(&f), before, "{what} changed the filter");
+    }
+    assert!(f.fuse_map_information(&good).is_ok());
+
+    // The map-information route (delta over the whole map) checks PD the same way.
+    let mut g = SlamFilter::new(
+        config(NavFrame::Local, AssociationMode::Descriptor),
+        &[vehicle(Vector3::new(0.0, 0.0, -100.0))],
+    )
+    .unwrap();
+    randomize(&mut g, 5, &mut rng);
+    g.predict(0, &imu(0.0)).unwrap();
+    let before = snapshot(&g);
+    let ids: Vec<FeatureId> = (100..105).collect();
+    let bad = delta(
+        ids.clone(),
+        -random_spd(15, 50.0, &mut rng),
+        &DVector::zeros(15),
+        Vector3::zeros(),
+    );
+    assert_eq!(
+        g.fuse_map_information(&bad),
+        Err(SlamError::NotPositiveDefinite("fused information"))
+    );
+    assert_eq!(snapshot(&g), before);
+    let ok = delta(
+        ids,
+        random_spd(15, 1.0, &mut rng),
+        &DVector::zeros(15),
+        Vector3::zeros(),
+    );
+    assert_eq!(
+        g.fuse_map_information(&ok).unwrap().method,
+        FuseMethod::MapInformation
+    );
+}
+
+/// A row of ground features spaced `spacing` m east, the vehicle 100 m above them, its estimate
+/// offset `offset` m east of the truth; the map is known tightly (fused in as information).
+fn association_scene(
+    mode: AssociationMode,
+    spacing: f64,
+    offset: f64,
+) -> (SlamFilter, Vec<Observation>, Vec<FeatureId>) {
+    let truth_p = Vector3::new(0.0, 0.0, -100.0);
+    let mut setup = vehicle(truth_p + Vector3::new(0.0, offset, 0.0));
+    setup.state.attitude = Vector3::zeros();
+    let mut f = SlamFilter::new(config(NavFrame::Local, mode), &[setup]).unwrap();
+    let ids: Vec<FeatureId> = (0..6).map(|i| 10 + i).collect();
+    let target = DVector::from_fn(18, |i, _| match i % 3 {
+        0 => 5.0,
+        1 => spacing * ((i / 3) as f64 - 2.5),
+        _ => 0.0,
+    });
+    // 5 cm σ per axis, independent: the map is known much better than the vehicle.
+    let y = DMatrix::from_diagonal_element(18, 18, 400.0);
+    f.fuse_map_information(&delta(ids.clone(), y, &target, Vector3::zeros()))
+        .unwrap();
+    let mut truth = setup.state;
+    truth.position = truth_p;
+    let obs = ids
+        .iter()
+        .enumerate()
+        .map(|(k, id)| {
+            let m = Vector3::new(target[3 * k], target[3 * k + 1], target[3 * k + 2]);
+            Observation {
+                descriptor: *id,
+                z: rb(&observe(&f, 0, &truth, &m)),
+            }
+        })
+        .collect();
+    (f, obs, ids)
+}
+
+fn wrong_associations(report: &FrameReport, ids: &[FeatureId]) -> usize {
+    report
+        .outcomes
+        .iter()
+        .zip(ids)
+        .filter(
+            |(o, id)| matches!(o, ObservationOutcome::Associated { feature, .. } if feature != *id),
+        )
+        .count()
+}
+
+#[test]
+fn jcbb_resolves_a_coherent_offset_that_fools_nearest_neighbour() {
+    // With 3 m spacing and a 1.6 m east error of the estimate, each observation's nearest
+    // predicted feature is its east neighbour (1.4 m < 1.6 m), and both are inside the gate.
+    let (mut nn, obs, ids) = association_scene(AssociationMode::NearestNeighbour, 3.0, 1.6);
+    let frame = ObservationFrame {
+        time: 0.0,
+        observations: obs.clone(),
+    };
+    let r_nn = nn.process_frame(0, &frame).unwrap();
+    let (mut jc, _, _) = association_scene(AssociationMode::Jcbb { max_nodes: 100_000 }, 3.0, 1.6);
+    let prior = jc.clone();
+    let r_jc = jc.process_frame(0, &frame).unwrap();
+    // The incrementally factored joint NIS equals a dense stacked computation at the prior.
+    let model = *prior.observation_model(0).unwrap();
+    let est = prior.vehicle_state(0).unwrap();
+    let pose = model.sensor_pose(&est.position, &est.attitude);
+    let n = prior.dim();
+    let voff = prior.layout.vehicle_block(0);
+    let mut h = DMatrix::zeros(18, n);
+    let mut nu = DVector::zeros(18);
+    let mut r = DMatrix::zeros(18, 18);
+    for (k, o) in r_jc.outcomes.iter().enumerate() {
+        let ObservationOutcome::Associated { feature, .. } = o else {
+            panic!("{o:?}")
+        };
+        let off = prior.layout.feature_offset(*feature).unwrap();
+        let pred = model
+            .predict(&pose, &prior.feature(*feature).unwrap())
+            .unwrap();
+        let z = model.measurement_vector(&obs[k].z).unwrap();
+        nu.rows_mut(3 * k, 3)
+            .copy_from(&model.innovation(&z, &pred.z));
+        for i in 0..3 {
+            for j in 0..3 {
+                h[(3 * k + i, voff + POS_ + j)] = pred.d_position[(i, j)];
+                h[(3 * k + i, voff + ATT_ + j)] = pred.d_attitude[(i, j)];
+                h[(3 * k + i, off + j)] = pred.d_feature[(i, j)];
+            }
+        }
+        r.view_mut((3 * k, 3 * k), (3, 3))
+            .copy_from(&model.noise_covariance());
+    }
+    let p = to_dense(&prior.joint_covariance());
+    let s = &h * p * h.transpose() + r;
+    let dense_nis = (nu.transpose() * s.try_inverse().unwrap() * &nu)[0];
+    let jnis = r_jc.jcbb_joint_nis.unwrap();
+    // Same quadratic form via an 18×18 inverse vs a block Cholesky: 1e-9 relative.
+    assert!(
+        (jnis - dense_nis).abs() < 1e-9 * dense_nis,
+        "{jnis} vs {dense_nis}"
+    );
+    assert!(
+        wrong_associations(&r_nn, &ids) >= 4,
+        "NN was expected to be fooled: {r_nn:?}"
+    );
+    assert_eq!(wrong_associations(&r_jc, &ids), 0, "{r_jc:?}");
+    assert_eq!(r_jc.associated(), 6);
+    assert!(!r_jc.jcbb_truncated);
+    // The correct joint update pulls the vehicle back west toward the truth.
+    // Six 5 cm-σ features vs a 1 m-σ vehicle: the posterior east σ is ≈ 0.1 m (bearing noise
+    // 0.5 m at 100 m over 6 observations); 0.2 m is 2σ, while a wrong joint update leaves ≈ 1.6 m.
+    assert!(jc.vehicle_state(0).unwrap().position.y.abs() < 0.2);
+}
+
+#[test]
+fn nearest_neighbour_without_descriptors_and_descriptor_gating() {
+    // Well separated features: NN pairs every observation correctly with descriptors ignored.
+    let (mut f, mut obs, ids) = association_scene(AssociationMode::NearestNeighbour, 20.0, 0.5);
+    for o in &mut obs {
+        o.descriptor = 0; // garbage descriptors are ignored
+    }
+    let r = f
+        .process_frame(
+            0,
+            &ObservationFrame {
+                time: 0.0,
+                observations: obs.clone(),
+            },
+        )
+        .unwrap();
+    assert_eq!(r.associated(), 6);
+    assert_eq!(wrong_associations(&r, &ids), 0);
+    assert_eq!(f.num_features(), 6);
+
+    // Descriptor mode: a wrong descriptor naming a far feature fails the gate and creates nothing;
+    // an unknown descriptor initializes a feature with that id.
+    let (mut f, mut obs, _) = association_scene(AssociationMode::Descriptor, 20.0, 0.5);
+    obs[0].descriptor = ids[5];
+    obs[5].descriptor = 77;
+    obs.truncate(6);
+    let r = f
+        .process_frame(
+            0,
+            &ObservationFrame {
+                time: 0.0,
+                observations: vec![obs[0], obs[5]],
+            },
+        )
+        .unwrap();
+    assert!(
+        matches!(r.outcomes[0], ObservationOutcome::Rejected(RejectReason::GateFailed { feature, nis }) if feature == ids[5] && nis > 7.815)
+    );
+    assert_eq!(
+        r.outcomes[1],
+        ObservationOutcome::Initialized { feature: 77 }
+    );
+    assert_eq!(f.num_features(), 7);
+    // A second feature seen with the same (now used) descriptor 77 in gating mode gets a fresh id.
+    let (mut g, obs, _) = association_scene(AssociationMode::NearestNeighbour, 20.0, 0.5);
+    let far = Observation {
+        descriptor: 10,
+        z: Measurement::RangeBearing(Vector3::new(150.0, 1.0, 0.2)),
+    };
+    let r = g
+        .process_frame(
+            0,
+            &ObservationFrame {
+                time: 0.0,
+                observations: vec![obs[0], far],
+            },
+        )
+        .unwrap();
+    match r.outcomes[1] {
+        ObservationOutcome::Initialized { feature } => {
+            assert!(feature >= FRESH_ID_BASE && (feature >> 32) & 0x7FFF_FFFF == 1)
+        }
+        o => panic!("{o:?}"),
+    }
+}
+
+#[test]
+fn yaw_stays_wrapped_through_full_turns() {
+    // Level attitude: with φ = θ = 0, E_b^n = I and ψ̇ = ω_z exactly.
+    let mut setup = vehicle(Vector3::new(0.0, 0.0, -100.0));
+    setup.state.attitude = Vector3::new(0.0, 0.0, 0.3);
+    let mut f = SlamFilter::new(
+        config(NavFrame::Local, AssociationMode::Descriptor),
+        &[setup],
+    )
+    .unwrap();
+    // 1 rad/s yaw rate for 20 s: more than three full turns.
+    let spin = ImuSample {
+        time: 0.0,
+        dt: 0.01,
+        specific_force: Vector3::new(0.0, 0.0, -crate::geodesy::LOCAL_GRAVITY),
+        angular_rate: Vector3::new(0.0, 0.0, 1.0),
+    };
+    let before = f.vehicle_covariance(0).unwrap();
+    for _ in 0..2000 {
+        f.predict(0, &spin).unwrap();
+        let yaw = f.vehicle_state(0).unwrap().attitude.z;
+        assert!(yaw > -std::f64::consts::PI && yaw <= std::f64::consts::PI);
+    }
+    let expected = crate::rotation::wrap_angle(0.3 + 20.0);
+    let yaw = f.vehicle_state(0).unwrap().attitude.z;
+    // 2000 additions of 0.01 rad plus 3 wraps: round-off ≈ 2000 ulp(π) ≈ 1e-12.
+    assert!((yaw - expected).abs() < 1e-10, "{yaw} vs {expected}");
+    // Yaw variance only grows in prediction (gyro noise, bias coupling).
+    assert!(f.vehicle_covariance(0).unwrap()[(8, 8)] >= before[(8, 8)]);
+}
+
+#[test]
+fn construction_rejects_invalid_setups() {
+    let mut v = vehicle(Vector3::zeros());
+    v.covariance[(0, 1)] = 0.5; // asymmetric
+    assert!(matches!(
+        SlamFilter::new(config(NavFrame::Local, AssociationMode::Descriptor), &[v]),
+        Err(SlamError::InvalidConfig(_))
+    ));
+    let mut v = vehicle(Vector3::zeros());
+    v.state.velocity.x = f64::NAN;
+    assert!(SlamFilter::new(config(NavFrame::Local, AssociationMode::Descriptor), &[v]).is_err());
+    assert!(SlamFilter::new(config(NavFrame::Local, AssociationMode::Descriptor), &[]).is_err());
+    let mut c = config(NavFrame::Local, AssociationMode::Descriptor);
+    c.association.gate_probability = 1.0;
+    assert!(SlamFilter::new(c, &[vehicle(Vector3::zeros())]).is_err());
+}
+
+#[test]
+fn map_information_cache_follows_map_changes() {
+    let mut rng = ChaCha8Rng::seed_from_u64(8);
+    let mut f = SlamFilter::new(
+        config(NavFrame::Local, AssociationMode::Descriptor),
+        &[vehicle(Vector3::new(0.0, 0.0, -100.0))],
+    )
+    .unwrap();
+    randomize(&mut f, 4, &mut rng);
+    let check = |f: &mut SlamFilter| {
+        let (ids, y, v) = marginal_information(f);
+        let mi = f.map_information().unwrap();
+        assert_eq!(mi.ids, ids);
+        // Independent nalgebra inverse vs faer Cholesky inverse, κ ≲ 1e3: 1e-11 relative.
+        assert!((to_dense(&mi.matrix) - &y).abs().max() < 1e-11 * y.abs().max());
+        assert!((col_to_dense(&mi.vector) - &v).abs().max() < 1e-11 * v.abs().max().max(1.0));
+    };
+    check(&mut f);
+    // Prediction does not change the map: the cache stays valid and correct.
+    f.predict(0, &imu(0.0)).unwrap();
+    check(&mut f);
+    // An update changes it (same feature count, so only the generation can tell) ...
+    let est = f.vehicle_state(0).unwrap();
+    let z = observe(&f, 0, &est, &f.feature(101).unwrap());
+    let update = Observation {
+        descriptor: 101,
+        z: rb(&(z + DVector::from_vec(vec![0.2, 0.001, 0.0]))),
+    };
+    let r = f
+        .process_frame(
+            0,
+            &ObservationFrame {
+                time: 0.0,
+                observations: vec![update],
+            },
+        )
+        .unwrap();
+    assert_eq!(r.associated(), 1);
+    check(&mut f);
+    // ... and so does an initialization.
+    let new = Observation {
+        descriptor: 55,
+        z: rb(&DVector::from_vec(vec![90.0, 0.3, -0.2])),
+    };
+    let r = f
+        .process_frame(
+            0,
+            &ObservationFrame {
+                time: 0.0,
+                observations: vec![new],
+            },
+        )
+        .unwrap();
+    assert_eq!(r.initialized(), 1);
+    check(&mut f);
+    // A fusion changes it too.
+    let d = delta(
+        vec![100],
+        random_spd(3, 1.0, &mut rng),
+        &DVector::zeros(3),
+        Vector3::zeros(),
+    );
+    f.fuse_map_information(&d).unwrap();
+    check(&mut f);
+}
+
+#[test]
+fn randomized_fusions_match_the_dense_information_form() {
+    // 60 random trials: filter size, delta subset and order, new features, PD / low-rank /
+    // mildly indefinite information, both routes; each checked against the dense reference.
+    let mut rng = ChaCha8Rng::seed_from_u64(9);
+    let mut routes = [0usize; 3];
+    for trial in 0..60 {
+        let mut f = SlamFilter::new(
+            config(NavFrame::Local, AssociationMode::Descriptor),
+            &[vehicle(Vector3::new(0.0, 0.0, -100.0))],
+        )
+        .unwrap();
+        f.config.origin = Vector3::new(rng.random_range(-5.0..5.0), 2.0, -1.0);
+        // Every fourth trial covers a larger whole map (the map-information route needs the
+        // delta to span at least half of the 15 + 3N states).
+        let n_feat = if trial % 4 == 0 {
+            rng.random_range(8..12)
+        } else {
+            rng.random_range(1..8)
+        };
+        randomize(&mut f, n_feat, &mut rng);
+        if trial % 2 == 0 {
+            f.predict(0, &imu(0.0)).unwrap();
+        }
+        let keep = if trial % 4 == 0 { 1.0 } else { 0.5 };
+        let mut ids: Vec<FeatureId> = (0..n_feat as u64)
+            .map(|i| 100 + i)
+            .filter(|_| rng.random_bool(keep))
+            .collect();
+        for j in 0..rng.random_range(0..3) {
+            ids.push(500 + j);
+        }
+        if ids.is_empty() {
+            ids.push(100);
+        }
+        // Shuffle the delta order.
+        for i in (1..ids.len()).rev() {
+            ids.swap(i, rng.random_range(0..=i));
+        }
+        let k = 3 * ids.len();
+        let mut y = match trial % 3 {
+            0 => random_spd(k, 1.0, &mut rng),
+            1 => {
+                let r = rng.random_range(1..=k);
+                let u = DMatrix::from_fn(k, r, |_, _| rng.random::<f64>() - 0.5);
+                &u * u.transpose()
+            }
+            _ => {
+                let u = DVector::from_fn(k, |_, _| rng.random::<f64>() - 0.5).normalize();
+                random_spd(k, 1.0, &mut rng) - &u * u.transpose() * 0.02
+            }
+        };
+        // New features need positive definite information of their own.
+        for (b, id) in ids.iter().enumerate() {
+            if *id >= 500 {
+                for i in 0..3 {
+                    y[(3 * b + i, 3 * b + i)] += 1.0;
+                }
+            }
+        }
+        let target = DVector::from_fn(k, |_, _| rng.random_range(-30.0..30.0));
+        let d = delta(ids.clone(), y, &target, f.origin());
+        let (x_ref, p_ref) = dense_fusion_reference(&f, &d);
+        match f.fuse_map_information(&d) {
+            Ok(rep) => {
+                routes[rep.method as usize] += 1;
+                let p = to_dense(&f.p);
+                let x = col_to_dense(&f.x);
+                // Well-conditioned ≤ 40×40 problems (κ ≲ 1e4 after low-rank/indefinite
+                // deltas): 1e-8 relative on P and x covers the dense inverse's round-off.
+                assert!(
+                    (&p - &p_ref).abs().max() < 1e-8 * p_ref.abs().max(),
+                    "trial {trial}: P"
+                );
+                assert!(
+                    (&x - &x_ref).abs().max() < 1e-8 * x_ref.abs().max(),
+                    "trial {trial}: x"
+                );
+            }
+            // A rejected delta must really make the fused information indefinite.
+            Err(e) => {
+                let eig = p_ref.clone().symmetric_eigenvalues();
+                assert!(
+                    eig.min() <= 0.0,
+                    "trial {trial}: rejected a PD fusion: {e:?}"
+                );
+            }
+        }
+    }
+    // Both routes (and trials with only new features) were exercised.
+    println!("fusion routes (none, pseudo, map): {routes:?}");
+    assert!(
+        routes[FuseMethod::PseudoMeasurement as usize] > 5
+            && routes[FuseMethod::MapInformation as usize] > 5,
+        "{routes:?}"
+    );
+}

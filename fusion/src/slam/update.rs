@@ -1,0 +1,335 @@
+//! EKF update (eqs. 21.56–21.65) in Joseph form exploiting the sparsity of H, and feature
+//! augmentation (eqs. 21.51–21.54).
+
+use super::association::UpdateItem;
+use super::{FrameReport, ObservationOutcome, RejectReason, SlamError, SlamFilter, SlotKind};
+use crate::observation::ObservationModel;
+use crate::sensor::FeatureId;
+use crate::state::{ATT, POS};
+use faer::linalg::matmul::matmul;
+use faer::linalg::matmul::triangular::{self, BlockStructure};
+use faer::prelude::*;
+use faer::{Accum, Mat, Side};
+use nalgebra::{DMatrix, DVector};
+
+/// A dense block of a sparse observation matrix H: rows `row..row+mat.nrows()`, columns
+/// `col..col+mat.ncols()` of H.
+#[derive(Clone, Debug)]
+pub(super) struct HBlock {
+    pub row: usize,
+    pub col: usize,
+    pub mat: Mat<f64>,
+}
+
+/// How to form the posterior covariance.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(super) enum UpdateForm {
+    /// Joseph form P − K Mᵀ − M Kᵀ + K S Kᵀ (S positive definite, Cholesky).
+    Joseph,
+    /// P − K Mᵀ with an indefinite "noise" (fusion of indefinite information, LU on S).
+    Indefinite,
+}
+
+/// dst_lower += alpha · lhs · rhsᵀ, touching only the lower triangle (incl. diagonal) of dst.
+fn lower_add(dst: MatMut<'_, f64>, lhs: MatRef<'_, f64>, rhs: MatRef<'_, f64>, alpha: f64) {
+    triangular::matmul(
+        dst,
+        BlockStructure::TriangularLower,
+        Accum::Add,
+        lhs,
+        BlockStructure::Rectangular,
+        rhs.transpose(),
+        BlockStructure::Rectangular,
+        alpha,
+        Par::Seq,
+    );
+}
+
+fn to_faer(m: &DMatrix<f64>) -> Mat<f64> {
+    Mat::from_fn(m.nrows(), m.ncols(), |i, j| m[(i, j)])
+}
+
+pub(super) fn all_finite(m: MatRef<'_, f64>) -> bool {
+    (0..m.ncols()).all(|j| (0..m.nrows()).all(|i| m[(i, j)].is_finite()))
+}
+
+impl SlamFilter {
+    /// M = P Hᵀ (n × m) from the blocks of H: only the columns of P that H touches are read.
+    pub(super) fn p_times_ht(&self, blocks: &[HBlock], m: usize) -> Mat<f64> {
+        let n = self.dim();
+        let mut out = Mat::zeros(n, m);
+        for b in blocks {
+            let (h, w) = (b.mat.nrows(), b.mat.ncols());
+            matmul(
+                out.as_mut().submatrix_mut(0, b.row, n, h),
+                Accum::Add,
+                self.p.as_ref().submatrix(0, b.col, n, w),
+                b.mat.transpose(),
+                1.0,
+                Par::Seq,
+            );
+        }
+        out
+    }
+
+    /// Kalman update with M = P Hᵀ, S = H P Hᵀ + R and innovation ν (eqs. 21.56–21.60):
+    /// K = M S⁻¹, x ← x + K ν, and P ← P − K Mᵀ − M Kᵀ + K S Kᵀ (the Joseph form
+    /// (I−KH)P(I−KH)ᵀ + KRKᵀ expanded, O(n²·m)), computed as P − K Mᵀ + (K S − M) Kᵀ in one
+    /// rank-2m product on the lower triangle only (the sum is symmetric), then mirrored so P is
+    /// exactly symmetric. Everything that can fail is checked before P or x change.
+    pub(super) fn kalman_apply(
+        &mut self,
+        m: Mat<f64>,
+        s: Mat<f64>,
+        nu: &Col<f64>,
+        form: UpdateForm,
+    ) -> Result<(), SlamError> {
+        let r = s.nrows();
+        let n = self.dim();
+        let mut s = s;
+        for j in 0..r {
+            for i in j + 1..r {
+                let a = 0.5 * (s[(i, j)] + s[(j, i)]);
+                s[(i, j)] = a;
+                s[(j, i)] = a;
+            }
+        }
+        if !all_finite(s.as_ref()) || !all_finite(m.as_ref()) || !(0..r).all(|i| nu[i].is_finite())
+        {
+            return Err(SlamError::NumericalFailure("update inputs"));
+        }
+        // Kᵀ = S⁻¹ Mᵀ (S symmetric).
+        let kt: Mat<f64> = match form {
+            UpdateForm::Joseph => {
+                let llt = s
+                    .llt(Side::Lower)
+                    .map_err(|_| SlamError::NotPositiveDefinite("innovation covariance S"))?;
+                llt.solve(m.transpose())
+            }
+            UpdateForm::Indefinite => s.partial_piv_lu().solve(m.transpose()),
+        };
+        let k = kt.transpose().to_owned();
+        let dx = &k * nu;
+        if !all_finite(k.as_ref()) || !(0..n).all(|i| dx[i].is_finite()) {
+            return Err(SlamError::NumericalFailure("Kalman gain"));
+        }
+        match form {
+            UpdateForm::Joseph => {
+                // lhs = [K | K S − M], rhs = [−M | K]: P += lhs · rhsᵀ = −K Mᵀ + (K S − M) Kᵀ.
+                let mut lhs = Mat::zeros(n, 2 * r);
+                let mut rhs = Mat::zeros(n, 2 * r);
+                lhs.as_mut().submatrix_mut(0, 0, n, r).copy_from(&k);
+                let mut ks_m = &k * &s;
+                ks_m -= &m;
+                lhs.as_mut().submatrix_mut(0, r, n, r).copy_from(&ks_m);
+                rhs.as_mut().submatrix_mut(0, 0, n, r).copy_from(-&m);
+                rhs.as_mut().submatrix_mut(0, r, n, r).copy_from(&k);
+                lower_add(self.p.as_mut(), lhs.as_ref(), rhs.as_ref(), 1.0);
+            }
+            UpdateForm::Indefinite => {
+                lower_add(self.p.as_mut(), k.as_ref(), m.as_ref(), -1.0);
+            }
+        }
+        self.mirror_lower();
+        for i in 0..n {
+            self.x[i] += dx[i];
+        }
+        Ok(())
+    }
+
+    /// Copies the lower triangle of P onto the upper one (P exactly symmetric).
+    pub(super) fn mirror_lower(&mut self) {
+        let n = self.dim();
+        for j in 0..n {
+            for i in j + 1..n {
+                self.p[(j, i)] = self.p[(i, j)];
+            }
+        }
+    }
+
+    /// One stacked EKF update of observation items of `vehicle` (linearized at the prior).
+    pub(super) fn observation_update(
+        &mut self,
+        vehicle: usize,
+        model: &ObservationModel,
+        items: &[&UpdateItem],
+    ) -> Result<(), SlamError> {
+        let voff = self.layout.vehicle_block(vehicle);
+        let d = model.measurement_dim();
+        let m = d * items.len();
+        let r_one = to_faer(&model.noise_covariance());
+        let mut blocks = Vec::with_capacity(3 * items.len());
+        let mut nu = Col::zeros(m);
+        let mut r = Mat::zeros(m, m);
+        for (k, it) in items.iter().enumerate() {
+            let row = k * d;
+            let off = self
+                .layout
+                .feature_offset(it.feature)
+                .ok_or(SlamError::NumericalFailure("feature slot"))?;
+            blocks.push(HBlock {
+                row,
+                col: voff + POS,
+                mat: Mat::from_fn(d, 3, |i, j| it.h_vehicle[(i, j)]),
+            });
+            blocks.push(HBlock {
+                row,
+                col: voff + ATT,
+                mat: Mat::from_fn(d, 3, |i, j| it.h_vehicle[(i, j + 3)]),
+            });
+            blocks.push(HBlock {
+                row,
+                col: off,
+                mat: to_faer(&it.h_feature),
+            });
+            for i in 0..d {
+                nu[row + i] = it.innovation[i];
+            }
+            r.as_mut().submatrix_mut(row, row, d, d).copy_from(&r_one);
+        }
+        let mm = self.p_times_ht(&blocks, m);
+        // S = H M + R, reading only the rows of M that H touches.
+        let mut s = r;
+        for b in &blocks {
+            let (h, w) = (b.mat.nrows(), b.mat.ncols());
+            matmul(
+                s.as_mut().submatrix_mut(b.row, 0, h, m),
+                Accum::Add,
+                b.mat.as_ref(),
+                mm.as_ref().submatrix(b.col, 0, w, m),
+                1.0,
+                Par::Seq,
+            );
+        }
+        self.kalman_apply(mm, s, &nu, UpdateForm::Joseph)
+    }
+
+    /// Applies the associated observations: one stacked update; if that fails numerically, one
+    /// update per observation, rejecting the ones that fail.
+    pub(super) fn apply_updates(
+        &mut self,
+        vehicle: usize,
+        model: &ObservationModel,
+        items: &[UpdateItem],
+        report: &mut FrameReport,
+    ) {
+        if items.is_empty() {
+            return;
+        }
+        let all: Vec<&UpdateItem> = items.iter().collect();
+        if self.observation_update(vehicle, model, &all).is_ok() {
+            return;
+        }
+        for it in items {
+            if self.observation_update(vehicle, model, &[it]).is_err() {
+                report.outcomes[it.obs] =
+                    ObservationOutcome::Rejected(RejectReason::NumericalFailure);
+            }
+        }
+    }
+
+    /// Grows x and P by `k` states (zero-filled), keeping capacity to amortize later growth.
+    pub(super) fn grow(&mut self, k: usize) {
+        let n = self.dim();
+        let new_n = n + k;
+        // Geometric (×1.5) capacity growth keeps repeated augmentation amortized O(n²) in total
+        // copying while bounding the unused memory to ≈ 2.25× of P at worst.
+        if new_n > self.capacity {
+            self.capacity = new_n.max(self.capacity + self.capacity / 2);
+            self.p.reserve(self.capacity, self.capacity);
+        }
+        self.p.resize_with(new_n, new_n, |_, _| 0.0);
+        self.x.resize_with(new_n, |_| 0.0);
+    }
+
+    /// Shrinks x and P back to `n` states (rollback of a failed augmentation).
+    pub(super) fn truncate_to(&mut self, n: usize) {
+        self.p.truncate(n, n);
+        self.x.truncate(n);
+    }
+
+    /// Feature initialization (eqs. 21.48–21.54) from a range-bearing measurement of `vehicle`:
+    /// m = J_1(x, z), P_m· = ∇J_x P_x·, P_mm = ∇J_x P_xx ∇J_xᵀ + ∇J_z R ∇J_zᵀ. ∇J_x is non-zero
+    /// only on the vehicle's p and Ψ, so this is O(n).
+    pub(super) fn initialize_feature(
+        &mut self,
+        vehicle: usize,
+        model: &ObservationModel,
+        z: &DVector<f64>,
+        descriptor: FeatureId,
+    ) -> Result<FeatureId, SlamError> {
+        let voff = self.layout.vehicle_block(vehicle);
+        let state = self.vehicle_state(vehicle)?;
+        let pose = model.sensor_pose(&state.position, &state.attitude);
+        let init = model
+            .initialize(&pose, z)
+            .map_err(|source| SlamError::Observation { index: 0, source })?;
+        let n = self.dim();
+        let jp = Mat::from_fn(3, 3, |i, j| init.d_position[(i, j)]);
+        let ja = Mat::from_fn(3, 3, |i, j| init.d_attitude[(i, j)]);
+        let mut cross = Mat::zeros(3, n);
+        matmul(
+            cross.as_mut(),
+            Accum::Add,
+            jp.as_ref(),
+            self.p.as_ref().submatrix(voff + POS, 0, 3, n),
+            1.0,
+            Par::Seq,
+        );
+        matmul(
+            cross.as_mut(),
+            Accum::Add,
+            ja.as_ref(),
+            self.p.as_ref().submatrix(voff + ATT, 0, 3, n),
+            1.0,
+            Par::Seq,
+        );
+        let r = model.noise_covariance();
+        let jz = init.d_measurement;
+        let jr = DMatrix::from_fn(3, 3, |i, j| jz[(i, j)])
+            * &r
+            * DMatrix::from_fn(3, 3, |i, j| jz[(j, i)]);
+        let mut pmm = Mat::from_fn(3, 3, |i, j| jr[(i, j)]);
+        matmul(
+            pmm.as_mut(),
+            Accum::Add,
+            cross.as_ref().submatrix(0, voff + POS, 3, 3),
+            jp.transpose(),
+            1.0,
+            Par::Seq,
+        );
+        matmul(
+            pmm.as_mut(),
+            Accum::Add,
+            cross.as_ref().submatrix(0, voff + ATT, 3, 3),
+            ja.transpose(),
+            1.0,
+            Par::Seq,
+        );
+        let pmm = Mat::from_fn(3, 3, |i, j| 0.5 * (pmm[(i, j)] + pmm[(j, i)]));
+        if !all_finite(cross.as_ref())
+            || !all_finite(pmm.as_ref())
+            || !init.feature.iter().all(|v| v.is_finite())
+        {
+            return Err(SlamError::NumericalFailure("feature initialization"));
+        }
+        if pmm.llt(Side::Lower).is_err() {
+            return Err(SlamError::NotPositiveDefinite("new feature covariance"));
+        }
+        let id = self.new_feature_id(descriptor);
+        self.grow(3);
+        let off = self.layout.push(SlotKind::Feature(id));
+        debug_assert_eq!(off, n);
+        for i in 0..3 {
+            self.x[off + i] = init.feature[i];
+            for c in 0..n {
+                self.p[(off + i, c)] = cross[(i, c)];
+                self.p[(c, off + i)] = cross[(i, c)];
+            }
+            for j in 0..3 {
+                self.p[(off + i, off + j)] = pmm[(i, j)];
+            }
+        }
+        Ok(id)
+    }
+}
