@@ -1,4 +1,21 @@
 //! canopy-transport: links between canopy processes.
 //!
 //! # Layout
-//! (filled in by the transport work)
+//! - [`envelope`]: the fixed 64-byte header (magic, version, kind, sender, epochs, sequence,
+//!   simulation time, body length, CRC-32) and [`MessageKind`].
+//! - [`codec`]: the only module that names bincode: two-pass encode straight into a caller's
+//!   buffer (initialised or not), validated decode; every failure a [`CodecError`].
+//! - [`wire`]: validated numeric containers for bodies ([`WireVector`], [`WireMatrix`],
+//!   [`WireSymMatrix`], [`WireBlockSymMatrix`], [`WireBytes`]) and the [`Validate`] trait.
+#![deny(unsafe_code)]
+
+pub mod codec;
+pub mod envelope;
+pub mod wire;
+
+pub use codec::{CodecError, PreEncoded, WireBody};
+pub use envelope::{Header, MessageKind, NodeId, SendMeta};
+pub use wire::{
+    Validate, ValidationError, WireBlockSymMatrix, WireBytes, WireBytesRef, WireEncoding,
+    WireMatrix, WireSymMatrix, WireVector,
+};
