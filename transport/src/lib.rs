@@ -11,9 +11,16 @@
 
 pub mod codec;
 pub mod envelope;
+pub mod iceoryx;
+pub mod link;
+pub mod memory;
+pub mod net;
 pub mod wire;
 
 pub use codec::{CodecError, PreEncoded, WireBody};
+pub use link::{
+    Link, LinkConfig, LinkError, LinkEvent, LinkExt, LinkStats, PeerState, Received, Rejections,
+};
 pub use envelope::{Header, MessageKind, NodeId, SendMeta};
 pub use wire::{
     Validate, ValidationError, WireBlockSymMatrix, WireBytes, WireBytesRef, WireEncoding,
