@@ -11,6 +11,7 @@
 
 pub mod codec;
 pub mod envelope;
+pub mod fault;
 pub mod iceoryx;
 pub mod link;
 pub mod memory;

@@ -252,7 +252,7 @@ impl StatsCell {
 }
 
 /// Storage of a received message (the backend's own buffer).
-pub trait MessageBytes {
+pub trait MessageBytes: Send {
     /// The whole message: header then body.
     fn bytes(&self) -> &[u8];
 }
@@ -294,6 +294,24 @@ impl Received {
     /// The whole message (header + body), e.g. to forward or store it.
     pub fn message_bytes(&self) -> &[u8] {
         self.storage.bytes()
+    }
+    /// Copies the message out of the backend buffer (releasing e.g. the shared-memory sample)
+    /// so it can be held for long; the decode-rejection counter stays attached to the link.
+    pub fn into_owned(self) -> Received {
+        let bytes = self.storage.bytes().to_vec();
+        Received {
+            header: self.header,
+            storage: Box::new(bytes),
+            stats: self.stats,
+        }
+    }
+    /// An owned copy of this message (used by the fault layer to duplicate).
+    pub fn clone_owned(&self) -> Received {
+        Received {
+            header: self.header,
+            storage: Box::new(self.storage.bytes().to_vec()),
+            stats: self.stats.clone(),
+        }
     }
     /// Decodes the body as `B` and validates it. A failure is counted as a body rejection on the
     /// link that received the message.
