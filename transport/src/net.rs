@@ -186,11 +186,26 @@ fn check_prefix(p: &str) -> Result<(), LinkError> {
     }
 }
 
-/// This process's zenoh session.
+/// Closes the session when the transport handle and every link opened from it are gone.
+struct SessionOwner(Session);
+
+impl Drop for SessionOwner {
+    fn drop(&mut self) {
+        if !self.0.is_closed()
+            && let Err(e) = self.0.close().wait()
+        {
+            tracing::warn!(error = %e, "zenoh: closing the session failed");
+        }
+    }
+}
+
+/// This process's zenoh session. Links opened from it share the session and keep it open; it is
+/// closed when the transport and all its links are dropped, or at once by
+/// [`ZenohTransport::close`].
 pub struct ZenohTransport {
     local: NodeId,
     cfg: ZenohConfig,
-    session: Session,
+    session: Arc<SessionOwner>,
 }
 
 impl std::fmt::Debug for ZenohTransport {
@@ -217,8 +232,14 @@ impl ZenohTransport {
         set(&mut zc, "listen/endpoints", json_list(&cfg.listen))?;
         set(&mut zc, "connect/endpoints", json_list(&cfg.connect))?;
         let period = cfg.reconnect_period.as_millis().max(1);
-        set(&mut zc, "connect/retry/period_init_ms", period.to_string())?;
-        set(&mut zc, "connect/retry/period_max_ms", (period * 8).to_string())?;
+        set(
+            &mut zc,
+            "connect/retry",
+            format!(
+                "{{period_init_ms: {period}, period_max_ms: {}, period_increase_factor: 2}}",
+                period * 8
+            ),
+        )?;
         let lease = cfg.lease.as_millis().max(100);
         set(&mut zc, "transport/link/tx/lease", lease.to_string())?;
         let _dict = match &cfg.auth {
@@ -239,7 +260,7 @@ impl ZenohTransport {
         Ok(Self {
             local,
             cfg,
-            session,
+            session: Arc::new(SessionOwner(session)),
         })
     }
 
@@ -261,6 +282,7 @@ impl ZenohTransport {
         let stats = StatsCell::new();
         let publisher = self
             .session
+            .0
             .declare_publisher(self.data_key(self.local, peer))
             .congestion_control(CongestionControl::Block)
             .wait()
@@ -269,6 +291,7 @@ impl ZenohTransport {
         let overflow_stats = stats.clone();
         let subscriber = self
             .session
+            .0
             .declare_subscriber(self.data_key(peer, self.local))
             .callback(move |sample| {
                 match data_tx.try_send(sample.payload().clone()) {
@@ -282,6 +305,7 @@ impl ZenohTransport {
         let (live_tx, live_rx) = mpsc::channel::<bool>();
         let liveliness = self
             .session
+            .0
             .liveliness()
             .declare_subscriber(self.alive_key(peer, self.local))
             .history(true)
@@ -293,11 +317,13 @@ impl ZenohTransport {
         // Declared last: when the peer sees this token, our subscriber is already declared.
         let token = self
             .session
+            .0
             .liveliness()
             .declare_token(self.alive_key(self.local, peer))
             .wait()
             .map_err(err)?;
         Ok(ZenohLink {
+            _session: self.session.clone(),
             cfg,
             publisher,
             _subscriber: subscriber,
@@ -315,25 +341,39 @@ impl ZenohTransport {
     /// truncated or forged messages).
     pub fn raw_put(&self, from: NodeId, to: NodeId, bytes: Vec<u8>) -> Result<(), LinkError> {
         self.session
+            .0
             .put(self.data_key(from, to), ZBytes::from(bytes))
             .congestion_control(CongestionControl::Block)
             .wait()
             .map_err(err)
     }
 
-    /// Closes the session (links opened from it stop working).
-    pub fn close(self) -> Result<(), LinkError> {
-        self.session.close().wait().map_err(err)
-    }
-}
-
-impl Drop for ZenohTransport {
-    fn drop(&mut self) {
-        if !self.session.is_closed()
-            && let Err(e) = self.session.close().wait()
-        {
-            tracing::warn!(error = %e, "zenoh: closing the session failed");
+    /// Waits up to `timeout` until a link of node `node` is visible through its liveliness
+    /// token (i.e. this session is connected to it and has its declarations). For tests and
+    /// tools that publish with [`ZenohTransport::raw_put`].
+    pub fn wait_for_node(&self, node: NodeId, timeout: Duration) -> bool {
+        let deadline = std::time::Instant::now() + timeout;
+        let key = format!("{}/alive/{node}/*", self.cfg.key_prefix);
+        while std::time::Instant::now() < deadline {
+            if let Ok(replies) = self
+                .session
+                .0
+                .liveliness()
+                .get(&key)
+                .timeout(Duration::from_millis(200))
+                .wait()
+                && replies.recv().is_ok()
+            {
+                return true;
+            }
+            std::thread::sleep(Duration::from_millis(20));
         }
+        false
+    }
+
+    /// Closes the session now (links opened from it stop working).
+    pub fn close(self) -> Result<(), LinkError> {
+        self.session.0.close().wait().map_err(err)
     }
 }
 
@@ -373,6 +413,8 @@ pub struct ZenohLink {
     stats: Arc<StatsCell>,
     tracker: PeerTracker,
     incarnation: u64,
+    /// Last: dropped after the ports above are undeclared.
+    _session: Arc<SessionOwner>,
 }
 
 impl std::fmt::Debug for ZenohLink {
