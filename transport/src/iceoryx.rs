@@ -462,3 +462,17 @@ impl IceoryxRawSender {
         Ok(n)
     }
 }
+
+/// Removes what iceoryx2 keeps per prefix after the last node of a run is gone (a 16-byte
+/// global management segment in `/dev/shm`). Call it once a run is over and none of its
+/// processes is alive (the launcher, or a test); returns the number of files removed.
+pub fn remove_run_leftovers(run_prefix: &str) -> usize {
+    let Ok(dir) = std::fs::read_dir("/dev/shm") else {
+        return 0;
+    };
+    let want = format!("{run_prefix}_");
+    dir.filter_map(Result::ok)
+        .filter(|e| e.file_name().to_string_lossy().starts_with(&want))
+        .filter(|e| std::fs::remove_file(e.path()).is_ok())
+        .count()
+}

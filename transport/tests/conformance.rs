@@ -89,6 +89,13 @@ impl Backend for Iceoryx {
     }
 }
 
+impl Drop for Iceoryx {
+    fn drop(&mut self) {
+        self.raw.clear();
+        canopy_transport::iceoryx::remove_run_leftovers(&self.ix.run_prefix);
+    }
+}
+
 fn short(test: &str) -> String {
     test.chars().filter(|c| c.is_ascii_alphanumeric()).take(12).collect()
 }
