@@ -139,6 +139,8 @@ enum Sink<'a> {
     Count,
     Init(&'a mut [u8]),
     Uninit(&'a mut [MaybeUninit<u8>]),
+    /// Appends (no zero-fill pass over a fresh buffer).
+    Append(&'a mut Vec<u8>),
 }
 
 /// Destination of a body encoding: counts, or writes into initialised or uninitialised memory,
@@ -155,9 +157,14 @@ impl std::fmt::Debug for BodyWriter<'_> {
     }
 }
 
-impl Writer for BodyWriter<'_> {
+/// Large writes are copied and checksummed in chunks of this size (well inside a core's L2), so
+/// the source is read from memory once and checksummed while still in cache: 16 MB encode went
+/// from 4.3 ms to 1.8 ms on the development machine (`examples/codec_cost.rs`).
+const FUSED_CHUNK: usize = 128 * 1024;
+
+impl BodyWriter<'_> {
     #[inline]
-    fn write(&mut self, bytes: &[u8]) -> Result<(), EncodeError> {
+    fn write_chunk(&mut self, bytes: &[u8]) -> Result<(), EncodeError> {
         let end = self.pos + bytes.len();
         match &mut self.sink {
             Sink::Count => {}
@@ -173,11 +180,26 @@ impl Writer for BodyWriter<'_> {
                 };
                 d.write_copy_of_slice(bytes);
             }
+            Sink::Append(v) => v.extend_from_slice(bytes),
         }
         if let Some(h) = &mut self.crc {
             h.update(bytes);
         }
         self.pos = end;
+        Ok(())
+    }
+}
+
+impl Writer for BodyWriter<'_> {
+    #[inline]
+    fn write(&mut self, bytes: &[u8]) -> Result<(), EncodeError> {
+        if matches!(self.sink, Sink::Count) {
+            self.pos += bytes.len();
+            return Ok(());
+        }
+        for chunk in bytes.chunks(FUSED_CHUNK) {
+            self.write_chunk(chunk)?;
+        }
         Ok(())
     }
 }
@@ -338,7 +360,8 @@ fn encode_into_uninit_inner(
     Ok(total)
 }
 
-/// Encodes a whole message into a new `Vec`.
+/// Encodes a whole message into a new `Vec` (allocated once at the exact size, filled by
+/// appending, so there is no zero-fill pass).
 pub fn encode_to_vec(
     meta: &SendMeta,
     sender: NodeId,
@@ -346,9 +369,21 @@ pub fn encode_to_vec(
     max_body_len: u64,
 ) -> Result<Vec<u8>, CodecError> {
     let len = body_len(body)?;
-    header_for(meta, sender, len, max_body_len)?;
-    let mut out = vec![0u8; HEADER_LEN + len as usize];
-    encode_into(meta, sender, body, len, max_body_len, &mut out)?;
+    let header = header_for(meta, sender, len, max_body_len)?;
+    let mut head = [0u8; HEADER_LEN];
+    header.write_to(&mut head);
+    let mut crc = crc32fast::Hasher::new();
+    crc.update(&head[..OFF_CHECKSUM]);
+    let mut out = Vec::with_capacity(HEADER_LEN + len as usize);
+    out.extend_from_slice(&head);
+    let mut w = BodyWriter {
+        sink: Sink::Append(&mut out),
+        pos: 0,
+        crc: Some(crc),
+    };
+    body.encode_body(&mut w)?;
+    let (_, sum) = finish(header, w, len)?;
+    out[OFF_CHECKSUM..OFF_CHECKSUM + 4].copy_from_slice(&sum);
     Ok(out)
 }
 
@@ -372,9 +407,45 @@ pub fn encode_body_to_vec(body: &dyn WireBody) -> Result<Vec<u8>, CodecError> {
     Ok(out)
 }
 
+/// Incremental envelope CRC over a message arriving in pieces: covers bytes `0..60` and
+/// `64..`, i.e. everything but the checksum field itself.
+#[derive(Debug, Clone, Default)]
+pub struct EnvelopeCrc(crc32fast::Hasher);
+
+impl EnvelopeCrc {
+    /// Empty.
+    pub fn new() -> Self {
+        Self::default()
+    }
+    /// Adds `piece`, which sits at byte offset `at` of the message (pieces in order).
+    pub fn update(&mut self, at: usize, piece: &[u8]) {
+        let end = at + piece.len();
+        if at < OFF_CHECKSUM {
+            self.0.update(&piece[..end.min(OFF_CHECKSUM) - at]);
+        }
+        if end > HEADER_LEN {
+            self.0.update(&piece[HEADER_LEN.max(at) - at..]);
+        }
+    }
+    /// The CRC.
+    pub fn finalize(self) -> u32 {
+        self.0.finalize()
+    }
+}
+
 /// Validates the envelope of a received message: header, size limit, exact length and
 /// checksum. Returns the header and the body bytes (borrowed from `bytes`).
 pub fn open_envelope(bytes: &[u8], max_body_len: u64) -> Result<(Header, &[u8]), CodecError> {
+    open_envelope_with_crc(bytes, max_body_len, None)
+}
+
+/// [`open_envelope`] with the CRC of `bytes` (as [`EnvelopeCrc`] computes it) already known, e.g.
+/// computed while the message was copied; `None` computes it here.
+pub fn open_envelope_with_crc(
+    bytes: &[u8],
+    max_body_len: u64,
+    crc: Option<u32>,
+) -> Result<(Header, &[u8]), CodecError> {
     let header = parse_header(bytes)?;
     let max = max_body_len.min(HARD_MAX_BODY_LEN);
     if header.body_len > max {
@@ -396,10 +467,12 @@ pub fn open_envelope(bytes: &[u8], max_body_len: u64) -> Result<(Header, &[u8]),
         });
     }
     let body = &bytes[HEADER_LEN..];
-    let mut crc = crc32fast::Hasher::new();
-    crc.update(&bytes[..OFF_CHECKSUM]);
-    crc.update(body);
-    let computed = crc.finalize();
+    let computed = crc.unwrap_or_else(|| {
+        let mut h = crc32fast::Hasher::new();
+        h.update(&bytes[..OFF_CHECKSUM]);
+        h.update(body);
+        h.finalize()
+    });
     if computed != header.checksum {
         return Err(CodecError::Checksum {
             expected: header.checksum,
@@ -540,6 +613,33 @@ mod tests {
             encode_into(&meta(), 1, &body, len, DEFAULT_MAX_BODY_LEN, &mut small),
             Err(CodecError::BufferTooSmall { .. })
         ));
+    }
+
+    #[test]
+    fn piecewise_envelope_crc_matches_the_whole_message_crc() {
+        let body = WireBytes((0..5000u32).map(|i| (i * 7) as u8).collect());
+        let v = encode_to_vec(&meta(), 2, &body, DEFAULT_MAX_BODY_LEN).unwrap();
+        let expected = parse_header_checksum(&v);
+        // Every split pattern, including pieces that straddle the checksum field.
+        for piece in [1usize, 3, 7, 59, 60, 61, 63, 64, 65, 100, 4096, v.len()] {
+            let mut c = EnvelopeCrc::new();
+            let mut at = 0;
+            for p in v.chunks(piece) {
+                c.update(at, p);
+                at += p.len();
+            }
+            let got = c.finalize();
+            assert_eq!(got, expected, "piece {piece}");
+            assert!(open_envelope_with_crc(&v, DEFAULT_MAX_BODY_LEN, Some(got)).is_ok());
+        }
+        assert!(matches!(
+            open_envelope_with_crc(&v, DEFAULT_MAX_BODY_LEN, Some(expected ^ 1)),
+            Err(CodecError::Checksum { .. })
+        ));
+    }
+
+    fn parse_header_checksum(v: &[u8]) -> u32 {
+        crate::envelope::parse_header(v).unwrap().checksum
     }
 
     #[test]

@@ -329,8 +329,19 @@ pub fn admit<S: MessageBytes + 'static>(
     cfg: &LinkConfig,
     stats: &Arc<StatsCell>,
 ) -> Option<Received> {
+    admit_with_crc(storage, None, cfg, stats)
+}
+
+/// [`admit`] with the envelope CRC already computed while the bytes were copied (see
+/// [`codec::EnvelopeCrc`]); `None` computes it here.
+pub fn admit_with_crc<S: MessageBytes + 'static>(
+    storage: S,
+    crc: Option<u32>,
+    cfg: &LinkConfig,
+    stats: &Arc<StatsCell>,
+) -> Option<Received> {
     let bytes = storage.bytes();
-    let header = match codec::open_envelope(bytes, cfg.max_body_len) {
+    let header = match codec::open_envelope_with_crc(bytes, cfg.max_body_len, crc) {
         Ok((h, _)) => h,
         Err(e) => {
             tracing::debug!(local = cfg.local, peer = cfg.peer, error = %e, "rejected message");

@@ -42,7 +42,7 @@ use crate::codec::{self, WireBody};
 use crate::envelope::{NodeId, SendMeta};
 use crate::link::{
     Link, LinkConfig, LinkError, LinkEvent, LinkStats, MessageBytes, PeerState, PeerTracker,
-    Received, StatsCell, admit,
+    Received, StatsCell, admit_with_crc,
 };
 
 const BACKEND: &str = "zenoh";
@@ -393,12 +393,22 @@ impl MessageBytes for ZPayload {
     }
 }
 
-fn payload(z: ZBytes) -> ZPayload {
+/// Takes a received payload: kept as is when contiguous (the envelope check then reads it once);
+/// a fragmented one (zenoh delivers large messages as many slices) is flattened with the CRC
+/// computed during the copy, slice by slice while each slice is in cache, so the envelope check
+/// does not read the 16 MB again.
+fn payload(z: ZBytes) -> (ZPayload, Option<u32>) {
     if z.slices().count() == 1 {
-        ZPayload::Contiguous(z)
-    } else {
-        ZPayload::Flat(z.to_bytes().into_owned())
+        return (ZPayload::Contiguous(z), None);
     }
+    let mut v = Vec::with_capacity(z.len());
+    let mut crc = codec::EnvelopeCrc::new();
+    for s in z.slices() {
+        let start = v.len();
+        v.extend_from_slice(s);
+        crc.update(start, &v[start..]);
+    }
+    (ZPayload::Flat(v), Some(crc.finalize()))
 }
 
 /// One endpoint of a zenoh link.
@@ -438,7 +448,8 @@ impl ZenohLink {
     }
 
     fn admit(&self, z: ZBytes) -> Option<Received> {
-        admit(payload(z), &self.cfg, &self.stats)
+        let (p, crc) = payload(z);
+        admit_with_crc(p, crc, &self.cfg, &self.stats)
     }
 }
 
