@@ -1,26 +1,34 @@
-//! Link benchmark: canopy's links against the raw middleware, side by side in one run.
+//! Link benchmark: canopy's links against the raw middleware, side by side in one run; prints
+//! one table.
 //!
-//! - iceoryx2 latency: ping-pong between two threads, each with its own iceoryx2 node; one-way
-//!   latency = round trip / 2, median over many round trips. Raw = `ipc::Service` publish-
-//!   subscribe of the same bytes (`loan_slice_uninit` + copy, event notification, listener
-//!   wait, echo by copying the received sample into a new one). canopy = `IceoryxLink` with a
-//!   `WireBytesRef` body (encoded straight into the sample, CRC on both sides, decoded in place,
-//!   echoed by encoding the borrowed bytes into a new sample).
+//! - iceoryx2 latency: ping-pong between threads, each end with its own iceoryx2 node; one-way
+//!   latency = round trip / 2, median. Raw = `ipc::Service` publish-subscribe of the same bytes
+//!   (`loan_slice_uninit` + copy, event notification, listener wait, echo by copying the
+//!   received sample into a new one). canopy = `IceoryxLink` with a `WireBytesRef` body
+//!   (encoded straight into the sample with the CRC, CRC-checked on receipt, decoded in place,
+//!   echoed by encoding the borrowed bytes into a new sample). Raw and canopy round trips
+//!   alternate one by one so load on the shared machine hits both alike; both use the same
+//!   sample-pool shape.
 //! - zenoh throughput: one thread puts K messages, another receives them, two sessions over
-//!   TCP loopback; throughput = bytes / (first put → last receive). Raw = `publisher.put` of a
-//!   pre-built `ZBytes` (reference-counted, no copy) with `CongestionControl::Block`, the
-//!   subscriber callback counting bytes. canopy = `ZenohLink::send` (encode + CRC into a fresh
-//!   buffer) and `recv_timeout` (CRC check + in-place decode).
+//!   TCP loopback; throughput = bytes / (first put → last receive), median of the rounds.
+//!   Raw = `publisher.put` of a pre-built `ZBytes` (reference-counted: no copy per put) with
+//!   `CongestionControl::Block`, the subscriber callback only reading the length (the
+//!   acceptance baseline). canopy = `ZenohLink::send` (encode + CRC into a fresh buffer) and
+//!   `recv_timeout` (queue hand-off to the application thread, defragment + CRC, in-place
+//!   decode). The last column is raw with a subscriber that makes the payload contiguous
+//!   (`to_bytes`), for context.
 //!
-//! Variants alternate in rounds so machine noise hits them alike. Run:
-//! `cargo bench -p canopy-transport --bench links` (add `-- --quick` for fewer iterations).
+//! Run: `cargo bench -p canopy-transport --bench links` (`-- --quick` for fewer iterations,
+//! `-- --only=N` for one payload).
 
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::mpsc;
 use std::sync::{Arc, Barrier};
 use std::time::{Duration, Instant};
 
-use canopy_transport::iceoryx::{IceoryxConfig, IceoryxLink, remove_run_leftovers, unique_run_prefix};
+use canopy_transport::iceoryx::{
+    IceoryxConfig, IceoryxLink, remove_run_leftovers, unique_run_prefix,
+};
 use canopy_transport::net::{ZenohConfig, ZenohTransport};
 use canopy_transport::{Link, LinkConfig, MessageKind, SendMeta, WireBytesRef};
 use iceoryx2::prelude::*;
@@ -128,7 +136,8 @@ fn iox_both(size: usize, iters: usize) -> (Vec<f64>, Vec<f64>) {
     });
     let (ix2, r3) = (ix.clone(), ready.clone());
     let canopy_echo = std::thread::spawn(move || {
-        let mut l = IceoryxLink::connect(LinkConfig::new(2, 1).with_max_body_len(max), ix2).unwrap();
+        let mut l =
+            IceoryxLink::connect(LinkConfig::new(2, 1).with_max_body_len(max), ix2).unwrap();
         r3.wait();
         for _ in 0..iters + 1 {
             let m = l
@@ -197,16 +206,18 @@ fn zenoh_pair(prefix: &str) -> (ZenohTransport, ZenohTransport) {
         ZenohConfig::new(prefix, vec![format!("tcp/127.0.0.1:{p}")], vec![]),
     )
     .unwrap();
-    let b = ZenohTransport::open(
-        2,
-        ZenohConfig::new(prefix, vec![], vec![format!("tcp/127.0.0.1:{p}")]),
-    )
-    .unwrap();
+    let mut cb = ZenohConfig::new(prefix, vec![], vec![format!("tcp/127.0.0.1:{p}")]);
+    // The throughput run sends bursts of up to 20,000 messages; a queue that holds a burst keeps
+    // the receiving link from dropping (the default 1024 drops and counts the excess).
+    cb.receive_queue = 1 << 16;
+    let b = ZenohTransport::open(2, cb).unwrap();
     (a, b)
 }
 
-/// Raw zenoh put/subscribe throughput (MB/s) on its own pair of sessions.
-fn zenoh_raw(size: usize, count: usize) -> f64 {
+/// Raw zenoh put/subscribe throughput (MB/s) on its own pair of sessions. With `touch`, the
+/// subscriber makes the payload contiguous (`to_bytes`, as a consumer that decodes must) instead
+/// of only reading its length.
+fn zenoh_raw(size: usize, count: usize, touch: bool) -> f64 {
     let cfg = |listen: Vec<String>, connect: Vec<String>| {
         let mut c = zenoh::Config::default();
         let json = |v: &[String]| {
@@ -219,10 +230,12 @@ fn zenoh_raw(size: usize, count: usize) -> f64 {
             )
         };
         c.insert_json5("mode", "\"peer\"").unwrap();
-        c.insert_json5("scouting/multicast/enabled", "false").unwrap();
+        c.insert_json5("scouting/multicast/enabled", "false")
+            .unwrap();
         c.insert_json5("scouting/gossip/enabled", "false").unwrap();
         c.insert_json5("listen/endpoints", &json(&listen)).unwrap();
-        c.insert_json5("connect/endpoints", &json(&connect)).unwrap();
+        c.insert_json5("connect/endpoints", &json(&connect))
+            .unwrap();
         c
     };
     let p = free_port();
@@ -237,7 +250,12 @@ fn zenoh_raw(size: usize, count: usize) -> f64 {
     let _sub = sb
         .declare_subscriber(&key)
         .callback(move |s| {
-            let b = bytes.fetch_add(s.payload().len(), Ordering::Relaxed) + s.payload().len();
+            let len = if touch {
+                std::hint::black_box(s.payload().to_bytes()).len()
+            } else {
+                s.payload().len()
+            };
+            let b = bytes.fetch_add(len, Ordering::Relaxed) + len;
             if seen.fetch_add(1, Ordering::Relaxed) + 1 == count {
                 assert_eq!(b, size * count);
                 let _ = tx.lock().unwrap().send(Instant::now());
@@ -324,34 +342,35 @@ fn main() {
     };
     println!("canopy-transport link benchmark ({rounds} alternating rounds per cell)");
     println!(
-        "| payload | iox raw p50 µs | iox canopy p50 µs | ratio (≤ 1.5) | zenoh raw MB/s | zenoh canopy MB/s | ratio (≥ 0.7) |"
+        "| payload | iox raw p50 µs | iox canopy p50 µs | ratio (≤ 1.5) | zenoh raw MB/s | zenoh canopy MB/s | ratio (≥ 0.7) | zenoh raw+to_bytes MB/s |"
     );
-    println!("|---|---|---|---|---|---|---|");
+    println!("|---|---|---|---|---|---|---|---|");
     // `--only=N` restricts the run to the N-th payload (0 = 1 KB, 1 = 1 MB, 2 = 16 MB).
-    let only: Option<usize> = std::env::args()
-        .find_map(|a| a.strip_prefix("--only=").and_then(|v| v.parse().ok()));
+    let only: Option<usize> =
+        std::env::args().find_map(|a| a.strip_prefix("--only=").and_then(|v| v.parse().ok()));
     for (i, (size, iters, count)) in cases.into_iter().enumerate() {
         if only.is_some_and(|o| o != i) {
             continue;
         }
         let (mut raw, mut can) = (Vec::new(), Vec::new());
-        let (mut zraw, mut zcan) = (Vec::new(), Vec::new());
+        let (mut zraw, mut zcan, mut ztouch) = (Vec::new(), Vec::new(), Vec::new());
         for _ in 0..rounds {
             let (r, c) = iox_both(size, iters);
             raw.extend(r);
             can.extend(c);
-            zraw.push(zenoh_raw(size, count));
+            zraw.push(zenoh_raw(size, count, false));
             zcan.push(zenoh_canopy(size, count));
+            ztouch.push(zenoh_raw(size, count, true));
         }
         let (r, c) = (median(&mut raw), median(&mut can));
-        let (zr, zc) = (median(&mut zraw), median(&mut zcan));
+        let (zr, zc, zt) = (median(&mut zraw), median(&mut zcan), median(&mut ztouch));
         let label = if size >= MB {
             format!("{} MB", size / MB)
         } else {
             format!("{} KB", size / KB)
         };
         println!(
-            "| {label} | {r:.1} | {c:.1} | {:.2} | {zr:.0} | {zc:.0} | {:.2} |",
+            "| {label} | {r:.1} | {c:.1} | {:.2} | {zr:.0} | {zc:.0} | {:.2} | {zt:.0} |",
             c / r,
             zc / zr
         );

@@ -32,6 +32,24 @@ fn main() {
             std::hint::black_box(r);
         }
         let dec = t.elapsed().as_secs_f64() / 10.0;
+        let t = Instant::now();
+        for _ in 0..10 {
+            let v = codec::encode_to_vec(&meta, 1, &body, u64::MAX).unwrap();
+            std::hint::black_box(&v);
+        }
+        let to_vec = t.elapsed().as_secs_f64() / 10.0;
+        let t = Instant::now();
+        for _ in 0..10 {
+            let mut v: Vec<u8> = Vec::with_capacity(n + 64);
+            v.extend_from_slice(&src);
+            std::hint::black_box(&v);
+        }
+        let copy_vec = t.elapsed().as_secs_f64() / 10.0;
+        println!(
+            "16 MB: encode_to_vec (fresh Vec) {:.2} ms, plain copy into fresh Vec {:.2} ms",
+            to_vec * 1e3,
+            copy_vec * 1e3
+        );
         println!(
             "16 MB: encode→uninit {:.2} ms, encode→init {:.2} ms, open+decode {:.2} ms",
             enc_un * 1e3,

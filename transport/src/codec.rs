@@ -153,7 +153,9 @@ pub struct BodyWriter<'a> {
 
 impl std::fmt::Debug for BodyWriter<'_> {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("BodyWriter").field("pos", &self.pos).finish()
+        f.debug_struct("BodyWriter")
+            .field("pos", &self.pos)
+            .finish()
     }
 }
 
@@ -540,7 +542,7 @@ mod tests {
 
         let mut un = vec![MaybeUninit::<u8>::uninit(); v.len() + 10];
         let n = encode_into_uninit(&meta(), 7, &body, len, DEFAULT_MAX_BODY_LEN, &mut un).unwrap();
-        let bytes: Vec<u8> = un.iter().map(|b| init_byte(b)).collect();
+        let bytes: Vec<u8> = un.iter().map(init_byte).collect();
         assert_eq!(&bytes[..n], &v[..]);
         assert!(bytes[n..].iter().all(|&b| b == 0));
 
@@ -596,8 +598,8 @@ mod tests {
             Err(CodecError::TooLarge { max: 4, .. })
         ));
         // Wrong body type: a byte blob is not a vector of floats.
-        let raw = encode_to_vec(&meta(), 1, &WireBytes(vec![1, 2, 3]), DEFAULT_MAX_BODY_LEN)
-            .unwrap();
+        let raw =
+            encode_to_vec(&meta(), 1, &WireBytes(vec![1, 2, 3]), DEFAULT_MAX_BODY_LEN).unwrap();
         assert!(decode::<WireVector>(&raw, DEFAULT_MAX_BODY_LEN).is_err());
         // Non-finite time is refused at encode time.
         let mut m = meta();

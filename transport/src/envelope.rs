@@ -179,7 +179,8 @@ impl Header {
         out[OFF_KIND..OFF_KIND + 2].copy_from_slice(&self.kind.0.to_le_bytes());
         out[OFF_SENDER..OFF_SENDER + 4].copy_from_slice(&self.sender.to_le_bytes());
         out[OFF_FLAGS..OFF_FLAGS + 4].copy_from_slice(&0u32.to_le_bytes());
-        out[OFF_SENDER_EPOCH..OFF_SENDER_EPOCH + 8].copy_from_slice(&self.sender_epoch.to_le_bytes());
+        out[OFF_SENDER_EPOCH..OFF_SENDER_EPOCH + 8]
+            .copy_from_slice(&self.sender_epoch.to_le_bytes());
         out[OFF_RECEIVER_EPOCH..OFF_RECEIVER_EPOCH + 8]
             .copy_from_slice(&self.receiver_epoch.to_le_bytes());
         out[OFF_SEQ..OFF_SEQ + 8].copy_from_slice(&self.seq.to_le_bytes());
@@ -306,7 +307,10 @@ mod tests {
         );
         let mut b = buf;
         b[0] = b'X';
-        assert!(matches!(parse_header(&b), Err(HeaderError::BadMagic { .. })));
+        assert!(matches!(
+            parse_header(&b),
+            Err(HeaderError::BadMagic { .. })
+        ));
         let mut b = buf;
         b[OFF_VERSION] = 2;
         assert_eq!(
@@ -315,7 +319,10 @@ mod tests {
         );
         let mut b = buf;
         b[OFF_FLAGS] = 1;
-        assert!(matches!(parse_header(&b), Err(HeaderError::ReservedBits { .. })));
+        assert!(matches!(
+            parse_header(&b),
+            Err(HeaderError::ReservedBits { .. })
+        ));
         let mut b = buf;
         b[OFF_SIM_TIME..OFF_SIM_TIME + 8].copy_from_slice(&f64::NAN.to_le_bytes());
         assert_eq!(parse_header(&b), Err(HeaderError::NonFiniteTime));
@@ -325,6 +332,9 @@ mod tests {
     fn unknown_kinds_have_no_name_but_are_representable() {
         assert_eq!(MessageKind::DDF_DELTA.name(), Some("ddf-delta"));
         assert_eq!(MessageKind(999).name(), None);
-        assert_eq!(format!("{:?}", MessageKind(999)), "MessageKind(unknown 999)");
+        assert_eq!(
+            format!("{:?}", MessageKind(999)),
+            "MessageKind(unknown 999)"
+        );
     }
 }

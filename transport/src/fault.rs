@@ -262,7 +262,10 @@ pub struct FaultStats {
 impl FaultStats {
     /// All drops.
     pub fn dropped(&self) -> u64 {
-        self.dropped_loss + self.dropped_outage + self.dropped_outage_overflow + self.dropped_bandwidth
+        self.dropped_loss
+            + self.dropped_outage
+            + self.dropped_outage_overflow
+            + self.dropped_bandwidth
     }
     /// `offered + duplicated == delivered + dropped() + in_flight`.
     pub fn balanced(&self) -> bool {

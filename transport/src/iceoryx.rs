@@ -298,7 +298,10 @@ impl IceoryxLink {
                     present = Some(view.id().value() as u64 ^ (view.id().value() >> 64) as u64);
                 }
                 Ok(Some(NodeState::Dead(view))) => {
-                    tracing::info!(peer = self.cfg.peer, "iceoryx2: peer node is dead, cleaning");
+                    tracing::info!(
+                        peer = self.cfg.peer,
+                        "iceoryx2: peer node is dead, cleaning"
+                    );
                     if let Err(e) = view.try_remove_stale_resources() {
                         tracing::warn!(error = ?e, "iceoryx2: stale resource cleanup failed");
                     }

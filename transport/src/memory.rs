@@ -15,8 +15,8 @@ use std::time::{Duration, Instant};
 use crate::codec::{self, WireBody};
 use crate::envelope::{NodeId, SendMeta};
 use crate::link::{
-    Link, LinkConfig, LinkError, LinkEvent, LinkStats, PeerState, PeerTracker, Received,
-    StatsCell, admit,
+    Link, LinkConfig, LinkError, LinkEvent, LinkStats, PeerState, PeerTracker, Received, StatsCell,
+    admit,
 };
 
 /// Default bound of a mailbox, in messages.

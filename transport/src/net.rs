@@ -174,8 +174,7 @@ fn check_prefix(p: &str) -> Result<(), LinkError> {
     let ok = !p.is_empty()
         && !p.starts_with('/')
         && !p.ends_with('/')
-        && p
-            .bytes()
+        && p.bytes()
             .all(|b| b.is_ascii_alphanumeric() || b == b'_' || b == b'-' || b == b'/');
     if ok {
         Ok(())
@@ -247,7 +246,11 @@ impl ZenohTransport {
             Some(a) => {
                 let d = DictionaryFile::write(&a.accept)?;
                 set(&mut zc, "transport/auth/usrpwd/user", json_str(&a.user))?;
-                set(&mut zc, "transport/auth/usrpwd/password", json_str(&a.password))?;
+                set(
+                    &mut zc,
+                    "transport/auth/usrpwd/password",
+                    json_str(&a.password),
+                )?;
                 set(
                     &mut zc,
                     "transport/auth/usrpwd/dictionary_file",
@@ -293,13 +296,13 @@ impl ZenohTransport {
             .session
             .0
             .declare_subscriber(self.data_key(peer, self.local))
-            .callback(move |sample| {
-                match data_tx.try_send(sample.payload().clone()) {
+            .callback(
+                move |sample| match data_tx.try_send(sample.payload().clone()) {
                     Ok(()) => {}
                     Err(TrySendError::Full(_)) => overflow_stats.on_dropped_overflow(),
                     Err(TrySendError::Disconnected(_)) => {}
-                }
-            })
+                },
+            )
             .wait()
             .map_err(err)?;
         let (live_tx, live_rx) = mpsc::channel::<bool>();

@@ -170,7 +170,11 @@ fn check_finite(what: &'static str, data: &[f64]) -> Result<(), ValidationError>
     }
 }
 
-fn check_len(what: &'static str, expected: Option<u64>, found: usize) -> Result<(), ValidationError> {
+fn check_len(
+    what: &'static str,
+    expected: Option<u64>,
+    found: usize,
+) -> Result<(), ValidationError> {
     match expected {
         Some(e) if e == found as u64 => Ok(()),
         _ => Err(ValidationError::Dimension {
@@ -289,7 +293,7 @@ impl<'de> Deserialize<'de> for F64Array {
                     .ok_or_else(|| de::Error::invalid_length(1, &self))?;
                 let values = match encoding {
                     WireEncoding::F64Le => {
-                        if bytes.0.len() % 8 != 0 {
+                        if !bytes.0.len().is_multiple_of(8) {
                             return Err(de::Error::custom(format_args!(
                                 "f64 byte run of {} bytes is not a multiple of 8",
                                 bytes.0.len()
@@ -377,7 +381,11 @@ pub struct WireMatrix {
 
 impl fmt::Debug for WireMatrix {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        write!(f, "WireMatrix({}x{}, {:?})", self.rows, self.cols, self.data)
+        write!(
+            f,
+            "WireMatrix({}x{}, {:?})",
+            self.rows, self.cols, self.data
+        )
     }
 }
 
@@ -655,7 +663,11 @@ impl WireBlockSymMatrix {
                 for i in 0..BLOCK_DIM {
                     for j in 0..BLOCK_DIM {
                         let (gi, gj) = (br * BLOCK_DIM + i, bc * BLOCK_DIM + j);
-                        let (gi, gj) = if br == bc && i > j { (gj, gi) } else { (gi, gj) };
+                        let (gi, gj) = if br == bc && i > j {
+                            (gj, gi)
+                        } else {
+                            (gi, gj)
+                        };
                         b[i * BLOCK_DIM + j] = dense_row_major[gi * n + gj];
                     }
                 }
@@ -945,7 +957,11 @@ mod tests {
         assert!(WireMatrix::from_row_major(2, 3, vec![0.0; 6]).is_ok());
         assert!(matches!(
             WireMatrix::from_row_major(2, 3, vec![0.0; 5]),
-            Err(ValidationError::Dimension { expected: 6, found: 5, .. })
+            Err(ValidationError::Dimension {
+                expected: 6,
+                found: 5,
+                ..
+            })
         ));
         assert!(matches!(
             WireMatrix::from_row_major(1, 2, vec![0.0, f64::INFINITY]),
@@ -975,15 +991,18 @@ mod tests {
         )
         .unwrap();
         let err = decode::<WireVector>(&msg, DEFAULT_MAX_BODY_LEN).unwrap_err();
-        assert!(err.to_string().contains("unknown float encoding tag 7"), "{err}");
+        assert!(
+            err.to_string().contains("unknown float encoding tag 7"),
+            "{err}"
+        );
     }
 
     #[test]
     fn borrowed_bytes_decode_without_copy() {
         let payload = vec![3u8; 1000];
         let meta = SendMeta::new(MessageKind::CONTROL, 1, 0.0);
-        let msg = encode_to_vec(&meta, 1, &WireBytes(payload.clone()), DEFAULT_MAX_BODY_LEN)
-            .unwrap();
+        let msg =
+            encode_to_vec(&meta, 1, &WireBytes(payload.clone()), DEFAULT_MAX_BODY_LEN).unwrap();
         let (_, b): (Header, WireBytesRef<'_>) = decode(&msg, DEFAULT_MAX_BODY_LEN).unwrap();
         assert_eq!(b.0, &payload[..]);
         // The borrowed slice points into the message buffer.

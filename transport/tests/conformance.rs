@@ -85,7 +85,11 @@ impl Backend for Iceoryx {
         let raw = self.raw.entry((from, to)).or_insert_with(|| {
             IceoryxRawSender::open(ix, from, to, INTRUDER, DEFAULT_MAX_BODY_LEN).unwrap()
         });
-        assert_eq!(raw.send_raw(&bytes).unwrap(), 1, "the victim must be subscribed");
+        assert_eq!(
+            raw.send_raw(&bytes).unwrap(),
+            1,
+            "the victim must be subscribed"
+        );
     }
 }
 
@@ -97,7 +101,10 @@ impl Drop for Iceoryx {
 }
 
 fn short(test: &str) -> String {
-    test.chars().filter(|c| c.is_ascii_alphanumeric()).take(12).collect()
+    test.chars()
+        .filter(|c| c.is_ascii_alphanumeric())
+        .take(12)
+        .collect()
 }
 
 // ---------------------------------------------------------------- zenoh
@@ -178,7 +185,10 @@ impl Backend for Zenoh {
         if self.intruders.is_empty() {
             let cfg = self.config(INTRUDER, &[to]);
             let t = ZenohTransport::open(INTRUDER, cfg).unwrap();
-            assert!(t.wait_for_node(to, LIVENESS_TIMEOUT), "intruder never saw the victim");
+            assert!(
+                t.wait_for_node(to, LIVENESS_TIMEOUT),
+                "intruder never saw the victim"
+            );
             self.intruders.push(t);
         }
         self.intruders[0].raw_put(from, to, bytes).unwrap();
@@ -264,7 +274,10 @@ fn large_payload<B: Backend>(test: &str) {
     let len = codec::encoded_len(&m).unwrap();
     assert!(len >= 16 << 20, "payload must be at least 16 MiB, is {len}");
     la.send(&meta(7), &m).unwrap();
-    let got = lb.recv_timeout(RECV_TIMEOUT).unwrap().expect("16 MB message");
+    let got = lb
+        .recv_timeout(RECV_TIMEOUT)
+        .unwrap()
+        .expect("16 MB message");
     assert_eq!(got.message_bytes().len() as u64, len);
     let back: WireSymMatrix = got.decode().unwrap();
     assert_eq!(back, m);
@@ -294,11 +307,15 @@ fn peer_loss_and_reconnection<B: Backend>(test: &str) {
 fn hostile_input_rejected<B: Backend>(test: &str) {
     let mut b = B::new(test);
     let (mut la, mut lb) = connected_pair(&mut b);
-    let valid = codec::encode_to_vec(&meta(5), A, &WireVector::from_slice(&[5.0]), u64::MAX)
-        .unwrap();
+    let valid =
+        codec::encode_to_vec(&meta(5), A, &WireVector::from_slice(&[5.0]), u64::MAX).unwrap();
 
     // Garbage.
-    b.inject(A, B, b"definitely not a canopy message, just bytes".repeat(3));
+    b.inject(
+        A,
+        B,
+        b"definitely not a canopy message, just bytes".repeat(3),
+    );
     // Truncated: header only, and half a header.
     b.inject(A, B, valid[..HEADER_LEN].to_vec());
     b.inject(A, B, valid[..HEADER_LEN / 2].to_vec());
@@ -316,9 +333,13 @@ fn hostile_input_rejected<B: Backend>(test: &str) {
     big[48..56].copy_from_slice(&(DEFAULT_MAX_BODY_LEN + 1).to_le_bytes());
     b.inject(A, B, big);
     // Perfectly valid message, but from a node that is not B's peer.
-    let forged =
-        codec::encode_to_vec(&meta(6), INTRUDER, &WireVector::from_slice(&[6.0]), u64::MAX)
-            .unwrap();
+    let forged = codec::encode_to_vec(
+        &meta(6),
+        INTRUDER,
+        &WireVector::from_slice(&[6.0]),
+        u64::MAX,
+    )
+    .unwrap();
     b.inject(A, B, forged);
     // Valid envelope whose body fails validation (NaN in a vector).
     let nan_body = codec::encode_body_to_vec(&WireVector::from_slice(&[f64::NAN])).unwrap();
@@ -422,11 +443,15 @@ fn zenoh_rejects_unauthenticated_sessions() {
     let intruder = ZenohTransport::open(INTRUDER, cfg).unwrap();
     // The victim's token is never visible: the transport was refused at the handshake.
     assert!(!intruder.wait_for_node(B, Duration::from_secs(2)));
-    let forged = codec::encode_to_vec(&meta(1), A, &WireVector::from_slice(&[1.0]), u64::MAX)
-        .unwrap();
+    let forged =
+        codec::encode_to_vec(&meta(1), A, &WireVector::from_slice(&[1.0]), u64::MAX).unwrap();
     intruder.raw_put(A, B, forged).unwrap();
     la.send(&meta(2), &WireVector::from_slice(&[2.0])).unwrap();
     assert_eq!(recv_vec(&mut lb), (2, vec![2.0]));
-    assert!(lb.recv_timeout(Duration::from_millis(300)).unwrap().is_none());
+    assert!(
+        lb.recv_timeout(Duration::from_millis(300))
+            .unwrap()
+            .is_none()
+    );
     assert_eq!(lb.stats().received_messages, 1);
 }

@@ -9,11 +9,11 @@ use canopy_transport::fault::{
     Bandwidth, Clock, FaultConfig, FaultyLink, ManualClock, OutagePolicy, Partition, WallClock,
     Window,
 };
-use canopy_transport::iceoryx::{IceoryxConfig, IceoryxLink, remove_run_leftovers, unique_run_prefix};
-use canopy_transport::memory::InMemoryHub;
-use canopy_transport::{
-    Link, LinkConfig, LinkEvent, MessageKind, SendMeta, WireBytes, WireVector,
+use canopy_transport::iceoryx::{
+    IceoryxConfig, IceoryxLink, remove_run_leftovers, unique_run_prefix,
 };
+use canopy_transport::memory::InMemoryHub;
+use canopy_transport::{Link, LinkConfig, LinkEvent, MessageKind, SendMeta, WireBytes, WireVector};
 
 fn meta(seq: u64, t: f64) -> SendMeta {
     SendMeta::new(MessageKind::DDF_DELTA, seq, t)
@@ -170,12 +170,18 @@ fn random_faults_match_their_rates_and_replay() {
         ((count as f64) - of * p).abs() <= 5.0 * sd
     };
     assert!(within(fs.dropped_loss, 0.1, n), "{fs:?}");
-    assert!(within(fs.duplicated, 0.05, n - fs.dropped_loss as f64), "{fs:?}");
+    assert!(
+        within(fs.duplicated, 0.05, n - fs.dropped_loss as f64),
+        "{fs:?}"
+    );
     assert!(fs.balanced(), "{fs:?}");
     assert_eq!(fs.in_flight, 0);
     assert_eq!(got.len() as u64, fs.delivered);
     let inversions = got.windows(2).filter(|w| w[1].0 < w[0].0).count();
-    assert!(inversions > 0, "jitter 30 ms over 10 ms spacing must reorder");
+    assert!(
+        inversions > 0,
+        "jitter 30 ms over 10 ms spacing must reorder"
+    );
     // Every delivery is at least the fixed delay after its send time (seq k sent at k * 10 ms).
     assert!(got.iter().all(|&(s, t)| t + 1e-9 >= s as f64 * 0.01 + 0.05));
     let (_, again, _, fs2) = run_sim(cfg, 0.01, 50.0, 16);
@@ -207,7 +213,10 @@ fn bandwidth_cap_spaces_and_drops() {
     assert!(fs.dropped_bandwidth > 0, "{fs:?}");
     // Throughput bound: no more than rate × (duration + queue drain) bytes delivered.
     let delivered_bytes = fs.delivered as f64 * msg_len;
-    assert!(delivered_bytes <= 1024.0 * 10.0 + 1000.0 + msg_len, "{fs:?}");
+    assert!(
+        delivered_bytes <= 1024.0 * 10.0 + 1000.0 + msg_len,
+        "{fs:?}"
+    );
     assert!(fs.balanced());
     println!("bandwidth: {fs:?}");
 }
@@ -226,14 +235,23 @@ fn partition_cuts_only_crossing_links() {
     };
     let mut a = hub.connect(LinkConfig::new(1, 2));
     let mut c = hub.connect(LinkConfig::new(3, 2));
-    let mut b_from_a =
-        FaultyLink::new(hub.connect(LinkConfig::new(2, 1)), cfg.clone(), Arc::new(clock.clone()))
-            .unwrap();
-    let mut b_from_c =
-        FaultyLink::new(hub.connect(LinkConfig::new(2, 3)), cfg, Arc::new(clock.clone())).unwrap();
+    let mut b_from_a = FaultyLink::new(
+        hub.connect(LinkConfig::new(2, 1)),
+        cfg.clone(),
+        Arc::new(clock.clone()),
+    )
+    .unwrap();
+    let mut b_from_c = FaultyLink::new(
+        hub.connect(LinkConfig::new(2, 3)),
+        cfg,
+        Arc::new(clock.clone()),
+    )
+    .unwrap();
     clock.set(1.5);
-    a.send(&meta(1, 1.5), &WireVector::from_slice(&[1.0])).unwrap();
-    c.send(&meta(2, 1.5), &WireVector::from_slice(&[2.0])).unwrap();
+    a.send(&meta(1, 1.5), &WireVector::from_slice(&[1.0]))
+        .unwrap();
+    c.send(&meta(2, 1.5), &WireVector::from_slice(&[2.0]))
+        .unwrap();
     assert!(b_from_a.try_recv().unwrap().is_none());
     assert_eq!(b_from_c.try_recv().unwrap().unwrap().header().seq, 2);
     assert_eq!(b_from_a.fault_stats().dropped_outage, 1);
@@ -306,11 +324,20 @@ fn wall_clock_outage_over_iceoryx2() {
     let fs = b.fault_stats();
     println!("wall-clock outage: sent {n_sent}, {fs:?}");
     assert_eq!(a.stats().sent_messages, n_sent);
-    assert_eq!(fs.offered, n_sent, "every sent message reached the fault layer");
+    assert_eq!(
+        fs.offered, n_sent,
+        "every sent message reached the fault layer"
+    );
     assert_eq!(fs.offered, fs.delivered + fs.dropped());
     assert!(fs.dropped_outage > 0);
-    assert!(got.iter().all(|&t| !(1.2..2.8).contains(&t)), "delivered inside the outage");
-    assert!(fs.dropped_outage as usize <= n_sent as usize - got.iter().filter(|&&t| !(0.8..3.2).contains(&t)).count());
+    assert!(
+        got.iter().all(|&t| !(1.2..2.8).contains(&t)),
+        "delivered inside the outage"
+    );
+    assert!(
+        fs.dropped_outage as usize
+            <= n_sent as usize - got.iter().filter(|&&t| !(0.8..3.2).contains(&t)).count()
+    );
     drop(a);
     drop(b);
     remove_run_leftovers(&ix.run_prefix);

@@ -124,8 +124,9 @@ fn decoder_survives_120k_random_and_mutated_messages() {
         let (t, body) = bodies[rng.random_range(0..bodies.len())].clone();
         let m = meta(&mut rng);
         let valid = codec::encode_to_vec(&m, rng.random(), &PreEncoded(&body), MAX).unwrap();
-        let family = ["valid", "random", "bitflip", "truncate", "extend", "header", "body", "junkbody"]
-            [i % 8];
+        let family = [
+            "valid", "random", "bitflip", "truncate", "extend", "header", "body", "junkbody",
+        ][i % 8];
         let msg: Vec<u8> = match family {
             "valid" => valid,
             "random" => {
@@ -190,7 +191,11 @@ fn decoder_survives_120k_random_and_mutated_messages() {
             Ok(Err(e)) => variant(&e),
         };
         *outcomes.entry(out.clone()).or_default() += 1;
-        *per_family.entry(family).or_default().entry(out).or_default() += 1;
+        *per_family
+            .entry(family)
+            .or_default()
+            .entry(out)
+            .or_default() += 1;
     }
     println!("decoder fuzz: {N} inputs");
     for (k, v) in &outcomes {

@@ -9,7 +9,9 @@ use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
 use canopy_transport::codec::PreEncoded;
-use canopy_transport::iceoryx::{IceoryxConfig, IceoryxLink, remove_run_leftovers, unique_run_prefix};
+use canopy_transport::iceoryx::{
+    IceoryxConfig, IceoryxLink, remove_run_leftovers, unique_run_prefix,
+};
 use canopy_transport::net::{ZenohAuth, ZenohConfig, ZenohTransport};
 use canopy_transport::{
     Link, LinkConfig, LinkEvent, MessageKind, SendMeta, WireSymMatrix, WireVector,
