@@ -16,10 +16,11 @@
 //! left behind (node monitors, ports, connections).
 //!
 //! Peer liveness: the peer is up while the incoming data service has a publisher port named
-//! `n{peer}` whose iceoryx2 node is alive (iceoryx2's process monitor: a crashed process is
-//! reported dead at once). The check runs at most every `liveness_interval`, from
-//! [`Link::poll_event`] and the receive calls; a dead peer's ports are cleaned on detection. A hung
-//! but living peer process is *not* detected (use application heartbeats for that).
+//! `n{peer}` whose iceoryx2 node also subscribes to our outgoing data service and is alive
+//! (iceoryx2's process monitor: a crashed process is reported dead at once). The check runs at
+//! most every `liveness_interval`, from [`Link::poll_event`] and the receive calls; a dead
+//! peer's ports are cleaned on detection. A hung but living peer process is *not* detected (use
+//! application heartbeats for that).
 //!
 //! Memory: the publisher preallocates `max_subscribers × (buffer + max_borrowed) + history +
 //! max_loaned` samples of `HEADER_LEN + max_body_len` bytes; `AllocationStrategy::PowerOfTwo`
@@ -240,18 +241,20 @@ impl IceoryxLink {
         let node = create_node(&ix, &format!("canopy-{}-{}", cfg.local, cfg.peer))?;
         let (out_data, out_wake) = open_direction(&node, &ix, cfg.local, cfg.peer)?;
         let (in_data, in_wake) = open_direction(&node, &ix, cfg.peer, cfg.local)?;
-        let publisher = make_publisher(&out_data, cfg.max_body_len, cfg.local)?;
-        let notifier = out_wake
-            .notifier_builder()
-            .name(&PortName::new(&port_name(cfg.local)).map_err(err)?)
-            .create()
-            .map_err(err)?;
+        // Receiving ports first: the peer takes our publisher as the sign that we are up, so
+        // by then our subscriber must exist or its first messages would find nobody.
         let subscriber = in_data
             .subscriber_builder()
             .buffer_size(ix.subscriber_buffer)
             .create()
             .map_err(err)?;
         let listener = in_wake.listener_builder().create().map_err(err)?;
+        let notifier = out_wake
+            .notifier_builder()
+            .name(&PortName::new(&port_name(cfg.local)).map_err(err)?)
+            .create()
+            .map_err(err)?;
+        let publisher = make_publisher(&out_data, cfg.max_body_len, cfg.local)?;
         let iox_config = iox_config(&ix.run_prefix)?;
         Ok(Self {
             cfg,
@@ -291,6 +294,14 @@ impl IceoryxLink {
             }
             CallbackProgression::Continue
         });
+        // The peer must also be subscribed to our direction (same iceoryx2 node), otherwise
+        // what we send now would find nobody.
+        let mut subscribed = Vec::new();
+        self.out_data.dynamic_config().list_subscribers(|d| {
+            subscribed.push(d.node_id);
+            CallbackProgression::Continue
+        });
+        candidates.retain(|id| subscribed.contains(id));
         let mut present = None;
         for id in candidates {
             match Node::<Svc>::state_of(&self.iox_config, id) {
