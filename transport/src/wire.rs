@@ -726,8 +726,12 @@ impl WireBlockSymMatrix {
             for i in 0..BLOCK_DIM {
                 for j in 0..BLOCK_DIM {
                     let (gi, gj) = (r as usize * BLOCK_DIM + i, c as usize * BLOCK_DIM + j);
-                    out[gi * n + gj] = b[i * BLOCK_DIM + j];
-                    out[gj * n + gi] = b[i * BLOCK_DIM + j];
+                    // Out-of-range blocks only exist in values that skipped `validate` (e.g.
+                    // deserialised with another serde format); ignore them rather than panic.
+                    if gi < n && gj < n {
+                        out[gi * n + gj] = b[i * BLOCK_DIM + j];
+                        out[gj * n + gi] = b[i * BLOCK_DIM + j];
+                    }
                 }
             }
         }
