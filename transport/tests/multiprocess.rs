@@ -121,11 +121,20 @@ fn iceoryx_two_processes_crash_and_restart() {
         return;
     }
     let prefix = format!("{}mp", unique_run_prefix());
+    let _cleanup = Leftovers(prefix.clone());
     let ix = IceoryxConfig::new(prefix.clone());
     let mut link = IceoryxLink::connect(LinkConfig::new(1, 2), ix).unwrap();
     drive(&mut link, || spawn_peer(TEST, "iceoryx", &prefix, ""));
-    drop(link);
-    remove_run_leftovers(&prefix);
+}
+
+/// Removes the run's iceoryx2 leftovers when the test ends, pass or fail (declared before the
+/// link so it drops after it).
+struct Leftovers(String);
+
+impl Drop for Leftovers {
+    fn drop(&mut self) {
+        remove_run_leftovers(&self.0);
+    }
 }
 
 fn zenoh_cfg(prefix: &str, listen: u16, connect: Option<u16>) -> ZenohConfig {
