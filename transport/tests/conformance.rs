@@ -1,0 +1,457 @@
+//! One conformance suite run against every backend (in-memory, iceoryx2, zenoh).
+//!
+//! Each test is generic over [`Backend`], a factory that creates (and re-creates) the endpoints of
+//! a link and can inject raw bytes into one direction. Every test uses its own iceoryx2 prefix /
+//! zenoh key prefix and ports, so tests run in parallel. Liveness waits use generous timeouts
+//! (documented at [`LIVENESS_TIMEOUT`]); nothing asserts a wall-clock bound.
+
+use std::collections::HashMap;
+use std::sync::atomic::{AtomicU32, Ordering};
+use std::time::{Duration, Instant};
+
+use canopy_transport::codec::{self, DEFAULT_MAX_BODY_LEN, PreEncoded};
+use canopy_transport::envelope::HEADER_LEN;
+use canopy_transport::iceoryx::{IceoryxConfig, IceoryxLink, IceoryxRawSender, unique_run_prefix};
+use canopy_transport::memory::{InMemoryHub, InMemoryLink};
+use canopy_transport::net::{ZenohAuth, ZenohConfig, ZenohLink, ZenohTransport};
+use canopy_transport::{
+    Link, LinkConfig, LinkEvent, LinkExt, MessageKind, NodeId, PeerState, SendMeta, WireBytes,
+    WireSymMatrix, WireVector,
+};
+
+/// Upper bound for a peer transition to be noticed. Real figures are milliseconds (iceoryx2
+/// liveness check every 50 ms; zenoh liveliness on TCP close); 20 s leaves room for a loaded
+/// 2-core CI machine and zenoh's reconnection back-off (200 ms doubling to 1.6 s).
+const LIVENESS_TIMEOUT: Duration = Duration::from_secs(20);
+/// Upper bound to receive one message that was sent (same reasoning as above).
+const RECV_TIMEOUT: Duration = Duration::from_secs(20);
+
+const A: NodeId = 1;
+const B: NodeId = 2;
+const INTRUDER: NodeId = 99;
+
+trait Backend {
+    type L: Link + 'static;
+    fn new(test: &str) -> Self;
+    /// Creates (or, if it existed and was dropped, re-creates) the endpoint `local → peer`.
+    fn endpoint(&mut self, local: NodeId, peer: NodeId) -> Self::L;
+    /// Forgets the backend-side resources of a dropped endpoint (e.g. its zenoh session).
+    fn release(&mut self, _local: NodeId) {}
+    /// Delivers `bytes` verbatim over the direction `from → to` (as an intruder would).
+    fn inject(&mut self, from: NodeId, to: NodeId, bytes: Vec<u8>);
+}
+
+// ---------------------------------------------------------------- in-memory
+
+struct Memory {
+    hub: InMemoryHub,
+}
+
+impl Backend for Memory {
+    type L = InMemoryLink;
+    fn new(_: &str) -> Self {
+        Self {
+            hub: InMemoryHub::new(),
+        }
+    }
+    fn endpoint(&mut self, local: NodeId, peer: NodeId) -> InMemoryLink {
+        self.hub.connect(LinkConfig::new(local, peer))
+    }
+    fn inject(&mut self, from: NodeId, to: NodeId, bytes: Vec<u8>) {
+        assert!(self.hub.inject_raw(from, to, bytes));
+    }
+}
+
+// ---------------------------------------------------------------- iceoryx2
+
+struct Iceoryx {
+    ix: IceoryxConfig,
+    raw: HashMap<(NodeId, NodeId), IceoryxRawSender>,
+}
+
+impl Backend for Iceoryx {
+    type L = IceoryxLink;
+    fn new(test: &str) -> Self {
+        Self {
+            ix: IceoryxConfig::new(format!("{}{}", unique_run_prefix(), short(test))),
+            raw: HashMap::new(),
+        }
+    }
+    fn endpoint(&mut self, local: NodeId, peer: NodeId) -> IceoryxLink {
+        IceoryxLink::connect(LinkConfig::new(local, peer), self.ix.clone()).unwrap()
+    }
+    fn inject(&mut self, from: NodeId, to: NodeId, bytes: Vec<u8>) {
+        let ix = &self.ix;
+        let raw = self.raw.entry((from, to)).or_insert_with(|| {
+            IceoryxRawSender::open(ix, from, to, INTRUDER, DEFAULT_MAX_BODY_LEN).unwrap()
+        });
+        assert_eq!(
+            raw.send_raw(&bytes).unwrap(),
+            1,
+            "the victim must be subscribed"
+        );
+    }
+}
+
+impl Drop for Iceoryx {
+    fn drop(&mut self) {
+        self.raw.clear();
+        canopy_transport::iceoryx::remove_run_leftovers(&self.ix.run_prefix);
+    }
+}
+
+fn short(test: &str) -> String {
+    test.chars()
+        .filter(|c| c.is_ascii_alphanumeric())
+        .take(12)
+        .collect()
+}
+
+// ---------------------------------------------------------------- zenoh
+
+static PORT_SALT: AtomicU32 = AtomicU32::new(0);
+
+fn free_port() -> u16 {
+    // Bind-and-release: the OS hands out distinct ephemeral ports, so parallel tests do not
+    // collide (a race with unrelated processes is possible but not observed in practice).
+    let _ = PORT_SALT.fetch_add(1, Ordering::Relaxed);
+    std::net::TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port()
+}
+
+fn endpoint_of(port: u16) -> String {
+    format!("tcp/127.0.0.1:{port}")
+}
+
+fn test_auth() -> ZenohAuth {
+    ZenohAuth {
+        user: "canopy-node".into(),
+        password: "s3cret-for-tests".into(),
+        accept: vec![("canopy-node".into(), "s3cret-for-tests".into())],
+    }
+}
+
+struct Zenoh {
+    prefix: String,
+    ports: HashMap<NodeId, u16>,
+    transports: HashMap<NodeId, ZenohTransport>,
+    intruders: Vec<ZenohTransport>,
+}
+
+impl Zenoh {
+    fn port(&mut self, n: NodeId) -> u16 {
+        *self.ports.entry(n).or_insert_with(free_port)
+    }
+    fn config(&mut self, local: NodeId, connect_to: &[NodeId]) -> ZenohConfig {
+        let listen = vec![endpoint_of(self.port(local))];
+        let connect = connect_to
+            .iter()
+            .map(|&n| endpoint_of(self.port(n)))
+            .collect();
+        let mut c = ZenohConfig::new(self.prefix.clone(), listen, connect);
+        c.auth = Some(test_auth());
+        c
+    }
+}
+
+impl Backend for Zenoh {
+    type L = ZenohLink;
+    fn new(test: &str) -> Self {
+        Self {
+            prefix: format!("canopy/{}/{}", unique_run_prefix(), short(test)),
+            ports: HashMap::new(),
+            transports: HashMap::new(),
+            intruders: Vec::new(),
+        }
+    }
+    fn endpoint(&mut self, local: NodeId, peer: NodeId) -> ZenohLink {
+        // The lower id connects, the higher one listens: restarting B exercises the
+        // connector's automatic reconnection.
+        let connect: Vec<NodeId> = if local < peer { vec![peer] } else { vec![] };
+        let cfg = self.config(local, &connect);
+        self.transports.remove(&local);
+        let t = ZenohTransport::open(local, cfg).unwrap();
+        let l = t.link(peer, DEFAULT_MAX_BODY_LEN).unwrap();
+        self.transports.insert(local, t);
+        l
+    }
+    fn release(&mut self, local: NodeId) {
+        self.transports.remove(&local);
+    }
+    fn inject(&mut self, from: NodeId, to: NodeId, bytes: Vec<u8>) {
+        if self.intruders.is_empty() {
+            let cfg = self.config(INTRUDER, &[to]);
+            let t = ZenohTransport::open(INTRUDER, cfg).unwrap();
+            assert!(
+                t.wait_for_node(to, LIVENESS_TIMEOUT),
+                "intruder never saw the victim"
+            );
+            self.intruders.push(t);
+        }
+        self.intruders[0].raw_put(from, to, bytes).unwrap();
+    }
+}
+
+// ---------------------------------------------------------------- helpers
+
+fn wait_event(l: &mut dyn Link, want: LinkEvent) {
+    let deadline = Instant::now() + LIVENESS_TIMEOUT;
+    while Instant::now() < deadline {
+        if let Some(e) = l.poll_event() {
+            if e == want {
+                return;
+            }
+            continue;
+        }
+        std::thread::sleep(Duration::from_millis(5));
+    }
+    panic!("{want:?} not seen within {LIVENESS_TIMEOUT:?}");
+}
+
+fn connected_pair<B: Backend>(b: &mut B) -> (B::L, B::L) {
+    let mut la = b.endpoint(A, B);
+    let mut lb = b.endpoint(B, A);
+    wait_event(&mut la, LinkEvent::PeerUp);
+    wait_event(&mut lb, LinkEvent::PeerUp);
+    (la, lb)
+}
+
+fn meta(seq: u64) -> SendMeta {
+    SendMeta {
+        kind: MessageKind::DDF_DELTA,
+        sender_epoch: 1,
+        receiver_epoch: 2,
+        seq,
+        sim_time: seq as f64 * 0.01,
+    }
+}
+
+fn recv_vec(l: &mut dyn Link) -> (u64, Vec<f64>) {
+    let m = l
+        .recv_timeout(RECV_TIMEOUT)
+        .unwrap()
+        .expect("message not received in time");
+    let v: WireVector = m.decode().unwrap();
+    (m.header().seq, v.into_vec())
+}
+
+// ---------------------------------------------------------------- the suite
+
+/// 300 messages each way arrive complete, in order, with their header fields intact, and the
+/// counters agree.
+fn in_order_delivery<B: Backend>(test: &str) {
+    let mut b = B::new(test);
+    let (mut la, mut lb) = connected_pair(&mut b);
+    const N: u64 = 300;
+    // Interleave sending and receiving so bounded queues never overflow.
+    for i in 0..N {
+        la.send(&meta(i), &WireVector::from_slice(&[i as f64, -(i as f64)]))
+            .unwrap();
+        lb.send(&meta(i + 1000), &WireVector::from_slice(&[i as f64]))
+            .unwrap();
+        let (seq, v) = recv_vec(&mut lb);
+        assert_eq!((seq, v), (i, vec![i as f64, -(i as f64)]));
+        let m = la.recv_timeout(RECV_TIMEOUT).unwrap().unwrap();
+        assert_eq!(m.header().sender, B);
+        assert_eq!(m.header().meta(), meta(i + 1000));
+    }
+    let (sa, sb) = (la.stats(), lb.stats());
+    assert_eq!((sa.sent_messages, sb.received_messages), (N, N));
+    assert_eq!((sb.sent_messages, sa.received_messages), (N, N));
+    assert_eq!(sa.sent_bytes, sb.received_bytes);
+    assert_eq!(sa.rejected.total() + sb.rejected.total(), 0);
+    assert_eq!(sa.dropped_overflow + sa.dropped_no_peer, 0);
+}
+
+/// A 16.8 MB symmetric matrix (order 2048, packed) crosses intact and decodes to the same values.
+fn large_payload<B: Backend>(test: &str) {
+    let mut b = B::new(test);
+    let (mut la, mut lb) = connected_pair(&mut b);
+    let m = WireSymMatrix::from_fn(2048, |i, j| (i as f64) * 1e-3 - (j as f64) * 0.5 + 0.25);
+    let len = codec::encoded_len(&m).unwrap();
+    assert!(len >= 16 << 20, "payload must be at least 16 MiB, is {len}");
+    la.send(&meta(7), &m).unwrap();
+    let got = lb
+        .recv_timeout(RECV_TIMEOUT)
+        .unwrap()
+        .expect("16 MB message");
+    assert_eq!(got.message_bytes().len() as u64, len);
+    let back: WireSymMatrix = got.decode().unwrap();
+    assert_eq!(back, m);
+}
+
+/// Dropping B is reported as `PeerDown` at A; a new B is reported as `PeerUp` and both
+/// directions work again (reconnection after a restart).
+fn peer_loss_and_reconnection<B: Backend>(test: &str) {
+    let mut b = B::new(test);
+    let (mut la, lb) = connected_pair(&mut b);
+    drop(lb);
+    b.release(B);
+    wait_event(&mut la, LinkEvent::PeerDown);
+    assert_eq!(la.peer_state(), PeerState::Down);
+
+    let mut lb = b.endpoint(B, A);
+    wait_event(&mut la, LinkEvent::PeerUp);
+    wait_event(&mut lb, LinkEvent::PeerUp);
+    la.send(&meta(1), &WireVector::from_slice(&[1.0])).unwrap();
+    assert_eq!(recv_vec(&mut lb), (1, vec![1.0]));
+    lb.send(&meta(2), &WireVector::from_slice(&[2.0])).unwrap();
+    assert_eq!(recv_vec(&mut la), (2, vec![2.0]));
+}
+
+/// Garbage, truncated, corrupted, wrong-version, oversize and non-neighbour messages are
+/// rejected and counted by reason; valid messages around them still arrive, in order.
+fn hostile_input_rejected<B: Backend>(test: &str) {
+    let mut b = B::new(test);
+    let (mut la, mut lb) = connected_pair(&mut b);
+    let valid =
+        codec::encode_to_vec(&meta(5), A, &WireVector::from_slice(&[5.0]), u64::MAX).unwrap();
+
+    // Garbage.
+    b.inject(
+        A,
+        B,
+        b"definitely not a canopy message, just bytes".repeat(3),
+    );
+    // Truncated: header only, and half a header.
+    b.inject(A, B, valid[..HEADER_LEN].to_vec());
+    b.inject(A, B, valid[..HEADER_LEN / 2].to_vec());
+    // Corrupted body byte.
+    let mut c = valid.clone();
+    let last = c.len() - 1;
+    c[last] ^= 0x01;
+    b.inject(A, B, c);
+    // Unknown format version.
+    let mut v = valid.clone();
+    v[4] = 99;
+    b.inject(A, B, v);
+    // Declared body larger than the link's limit.
+    let mut big = valid.clone();
+    big[48..56].copy_from_slice(&(DEFAULT_MAX_BODY_LEN + 1).to_le_bytes());
+    b.inject(A, B, big);
+    // Perfectly valid message, but from a node that is not B's peer.
+    let forged = codec::encode_to_vec(
+        &meta(6),
+        INTRUDER,
+        &WireVector::from_slice(&[6.0]),
+        u64::MAX,
+    )
+    .unwrap();
+    b.inject(A, B, forged);
+    // Valid envelope whose body fails validation (NaN in a vector).
+    let nan_body = codec::encode_body_to_vec(&WireVector::from_slice(&[f64::NAN])).unwrap();
+    let nan = codec::encode_to_vec(&meta(8), A, &PreEncoded(&nan_body), u64::MAX).unwrap();
+    b.inject(A, B, nan);
+    // Then the real peer sends a valid one.
+    la.send(&meta(9), &WireVector::from_slice(&[9.0])).unwrap();
+
+    // Two messages get through: the NaN one (its envelope is fine and it claims to be from A)
+    // and A's. Injected bytes travel on another port (iceoryx2 publisher, zenoh session) than
+    // A's, so their relative order is not defined.
+    let mut got: Vec<_> = (0..2)
+        .map(|_| lb.recv_timeout(RECV_TIMEOUT).unwrap().expect("message"))
+        .collect();
+    got.sort_by_key(|m| m.header().seq);
+    assert_eq!(got[0].header().seq, 8);
+    assert!(got[0].decode::<WireVector>().is_err());
+    assert_eq!(got[1].header().seq, 9);
+    assert_eq!(got[1].decode::<WireVector>().unwrap().as_slice(), &[9.0]);
+    drop(got);
+
+    let r = lb.stats().rejected;
+    assert_eq!(r.bad_magic, 1, "{r:?}");
+    assert_eq!(r.truncated, 2, "{r:?}");
+    assert_eq!(r.checksum, 1, "{r:?}");
+    assert_eq!(r.bad_version, 1, "{r:?}");
+    assert_eq!(r.too_large, 1, "{r:?}");
+    assert_eq!(r.wrong_sender, 1, "{r:?}");
+    assert_eq!(r.body, 1, "{r:?}");
+    assert_eq!(r.total(), 8, "{r:?}");
+    assert_eq!(lb.stats().received_messages, 2);
+    // Nothing leaked into the other direction.
+    assert!(la.try_recv().unwrap().is_none());
+}
+
+/// Opaque kinds this build does not know are passed up, not rejected.
+fn unknown_kind_passed_up<B: Backend>(test: &str) {
+    let mut b = B::new(test);
+    let (mut la, mut lb) = connected_pair(&mut b);
+    let mut m = meta(3);
+    m.kind = MessageKind(0x7777);
+    la.send(&m, &WireBytes(vec![1, 2, 3])).unwrap();
+    let got = lb.recv_timeout(RECV_TIMEOUT).unwrap().unwrap();
+    assert_eq!(got.header().kind, MessageKind(0x7777));
+    assert_eq!(got.decode::<WireBytes>().unwrap().0, vec![1, 2, 3]);
+    // recv_with decodes from the borrowed bytes.
+    la.send(&meta(4), &WireVector::from_slice(&[4.0])).unwrap();
+    let v = lb
+        .recv_with(RECV_TIMEOUT, |h, body| {
+            (h.seq, codec::decode_body::<WireVector>(body).unwrap())
+        })
+        .unwrap()
+        .unwrap();
+    assert_eq!((v.0, v.1.as_slice()), (4, &[4.0][..]));
+}
+
+macro_rules! conformance {
+    ($module:ident, $backend:ty) => {
+        mod $module {
+            use super::*;
+            #[test]
+            fn in_order_delivery() {
+                super::in_order_delivery::<$backend>(concat!(stringify!($module), "order"));
+            }
+            #[test]
+            fn large_payload_16mb() {
+                super::large_payload::<$backend>(concat!(stringify!($module), "large"));
+            }
+            #[test]
+            fn peer_loss_and_reconnection() {
+                super::peer_loss_and_reconnection::<$backend>(concat!(stringify!($module), "loss"));
+            }
+            #[test]
+            fn hostile_input_rejected() {
+                super::hostile_input_rejected::<$backend>(concat!(stringify!($module), "hostile"));
+            }
+            #[test]
+            fn unknown_kind_passed_up() {
+                super::unknown_kind_passed_up::<$backend>(concat!(stringify!($module), "kind"));
+            }
+        }
+    };
+}
+
+conformance!(memory, Memory);
+conformance!(iceoryx, Iceoryx);
+conformance!(zenoh, Zenoh);
+
+/// zenoh access control: a session without the right credentials cannot connect, so nothing it
+/// publishes reaches the victim (who still talks to its real peer).
+#[test]
+fn zenoh_rejects_unauthenticated_sessions() {
+    let mut b = Zenoh::new("zenohauth");
+    let (mut la, mut lb) = connected_pair(&mut b);
+    let mut cfg = b.config(INTRUDER, &[B]);
+    cfg.auth = Some(ZenohAuth {
+        user: "canopy-node".into(),
+        password: "wrong".into(),
+        accept: vec![("x".into(), "y".into())],
+    });
+    let intruder = ZenohTransport::open(INTRUDER, cfg).unwrap();
+    // The victim's token is never visible: the transport was refused at the handshake.
+    assert!(!intruder.wait_for_node(B, Duration::from_secs(2)));
+    let forged =
+        codec::encode_to_vec(&meta(1), A, &WireVector::from_slice(&[1.0]), u64::MAX).unwrap();
+    intruder.raw_put(A, B, forged).unwrap();
+    la.send(&meta(2), &WireVector::from_slice(&[2.0])).unwrap();
+    assert_eq!(recv_vec(&mut lb), (2, vec![2.0]));
+    assert!(
+        lb.recv_timeout(Duration::from_millis(300))
+            .unwrap()
+            .is_none()
+    );
+    assert_eq!(lb.stats().received_messages, 1);
+}
