@@ -46,7 +46,11 @@ pub struct Geodetic {
 impl Geodetic {
     /// Builds a position from degrees and metres.
     pub fn from_degrees(lat_deg: f64, lon_deg: f64, height: f64) -> Self {
-        Self { lat: lat_deg.to_radians(), lon: lon_deg.to_radians(), height }
+        Self {
+            lat: lat_deg.to_radians(),
+            lon: lon_deg.to_radians(),
+            height,
+        }
     }
 }
 
@@ -77,8 +81,16 @@ pub fn ecef_to_geodetic(p: &Vector3<f64>) -> Geodetic {
     let lon = p.y.atan2(p.x);
     let r = (p.x * p.x + p.y * p.y).sqrt();
     if r < 1e-9 {
-        let lat = if p.z >= 0.0 { std::f64::consts::FRAC_PI_2 } else { -std::f64::consts::FRAC_PI_2 };
-        return Geodetic { lat, lon: 0.0, height: p.z.abs() - WGS84_B };
+        let lat = if p.z >= 0.0 {
+            std::f64::consts::FRAC_PI_2
+        } else {
+            -std::f64::consts::FRAC_PI_2
+        };
+        return Geodetic {
+            lat,
+            lon: 0.0,
+            height: p.z.abs() - WGS84_B,
+        };
     }
     // Bowring's initial guess, then fixed-point refinement of tan λ.
     let mut lat = (p.z / (r * (1.0 - WGS84_E2))).atan();
@@ -109,15 +121,45 @@ pub fn ecef_to_geodetic(p: &Vector3<f64>) -> Geodetic {
 pub fn ecef_from_ned(lat: f64, lon: f64) -> Matrix3<f64> {
     let (sl, cl) = lat.sin_cos();
     let (so, co) = lon.sin_cos();
-    Matrix3::new(-sl * co, -so, -cl * co, -sl * so, co, -cl * so, cl, 0.0, -sl)
+    Matrix3::new(
+        -sl * co,
+        -so,
+        -cl * co,
+        -sl * so,
+        co,
+        -cl * so,
+        cl,
+        0.0,
+        -sl,
+    )
 }
 
 /// ∂C_n^e/∂λ and ∂C_n^e/∂l.
 pub fn ecef_from_ned_partials(lat: f64, lon: f64) -> [Matrix3<f64>; 2] {
     let (sl, cl) = lat.sin_cos();
     let (so, co) = lon.sin_cos();
-    let d_lat = Matrix3::new(-cl * co, 0.0, sl * co, -cl * so, 0.0, sl * so, -sl, 0.0, -cl);
-    let d_lon = Matrix3::new(sl * so, -co, cl * so, -sl * co, -so, -cl * co, 0.0, 0.0, 0.0);
+    let d_lat = Matrix3::new(
+        -cl * co,
+        0.0,
+        sl * co,
+        -cl * so,
+        0.0,
+        sl * so,
+        -sl,
+        0.0,
+        -cl,
+    );
+    let d_lon = Matrix3::new(
+        sl * so,
+        -co,
+        cl * so,
+        -sl * co,
+        -so,
+        -cl * co,
+        0.0,
+        0.0,
+        0.0,
+    );
     [d_lat, d_lon]
 }
 
@@ -171,13 +213,17 @@ pub fn normal_gravity_partials(lat: f64, height: f64) -> (f64, f64) {
     let w2 = 1.0 - WGS84_E2 * s2;
     let gamma0 = GAMMA_EQUATOR * (1.0 + SOMIGLIANA_K * s2) / w2.sqrt();
     let dgamma0 = GAMMA_EQUATOR
-        * (SOMIGLIANA_K * ds2 / w2.sqrt() + (1.0 + SOMIGLIANA_K * s2) * 0.5 * WGS84_E2 * ds2 / w2.powf(1.5));
+        * (SOMIGLIANA_K * ds2 / w2.sqrt()
+            + (1.0 + SOMIGLIANA_K * s2) * 0.5 * WGS84_E2 * ds2 / w2.powf(1.5));
     let m = EARTH_RATE * EARTH_RATE * WGS84_A * WGS84_A * WGS84_B / WGS84_GM;
     let c1 = 2.0 / WGS84_A * (1.0 + WGS84_F + m - 2.0 * WGS84_F * s2);
     let dc1 = 2.0 / WGS84_A * (-2.0 * WGS84_F * ds2);
     let c2 = 3.0 / (WGS84_A * WGS84_A);
     let corr = 1.0 - c1 * height + c2 * height * height;
-    (dgamma0 * corr - gamma0 * dc1 * height, gamma0 * (-c1 + 2.0 * c2 * height))
+    (
+        dgamma0 * corr - gamma0 * dc1 * height,
+        gamma0 * (-c1 + 2.0 * c2 * height),
+    )
 }
 
 /// Local (plumb-bob) gravity g_l^e at an ECEF position: γ along the ellipsoid normal, pointing
@@ -250,11 +296,20 @@ mod tests {
     /// Reference values printed by GeographicLib 2.x `CartConvert -p 6` (an independent
     /// implementation, Karney), for geodetic (deg, deg, m) inputs.
     const CARTCONVERT: [([f64; 3], [f64; 3]); 5] = [
-        ([33.3, 44.4, 6000.0], [3_816_209.604_493, 3_737_108.550_254, 3_485_109.572_568]),
-        ([-33.8688, 151.2093, 58.0], [-4_646_093.477_288, 2_553_229.535_817, -3_534_404.710_910]),
+        (
+            [33.3, 44.4, 6000.0],
+            [3_816_209.604_493, 3_737_108.550_254, 3_485_109.572_568],
+        ),
+        (
+            [-33.8688, 151.2093, 58.0],
+            [-4_646_093.477_288, 2_553_229.535_817, -3_534_404.710_910],
+        ),
         ([0.0, 0.0, 0.0], [6_378_137.0, 0.0, 0.0]),
         ([90.0, 0.0, 0.0], [0.0, 0.0, 6_356_752.314_245]),
-        ([45.0, -120.0, 1000.0], [-2_259_148.992_815, -3_912_960.837_424, 4_488_055.515_647]),
+        (
+            [45.0, -120.0, 1000.0],
+            [-2_259_148.992_815, -3_912_960.837_424, 4_488_055.515_647],
+        ),
     ];
 
     #[test]
@@ -288,10 +343,16 @@ mod tests {
             assert!((c.transpose() * c - Matrix3::identity()).norm() < 1e-15);
             assert!((c.determinant() - 1.0).abs() < 1e-15);
             // Closed form: north = ∂p/∂λ normalised, east = ∂p/∂l normalised, down = −normal.
-            let g = Geodetic { lat, lon, height: 100.0 };
+            let g = Geodetic {
+                lat,
+                lon,
+                height: 100.0,
+            };
             let h = 1e-7;
-            let dn = geodetic_to_ecef(&Geodetic { lat: lat + h, ..g }) - geodetic_to_ecef(&Geodetic { lat: lat - h, ..g });
-            let de = geodetic_to_ecef(&Geodetic { lon: lon + h, ..g }) - geodetic_to_ecef(&Geodetic { lon: lon - h, ..g });
+            let dn = geodetic_to_ecef(&Geodetic { lat: lat + h, ..g })
+                - geodetic_to_ecef(&Geodetic { lat: lat - h, ..g });
+            let de = geodetic_to_ecef(&Geodetic { lon: lon + h, ..g })
+                - geodetic_to_ecef(&Geodetic { lon: lon - h, ..g });
             let normal = Vector3::new(lat.cos() * lon.cos(), lat.cos() * lon.sin(), lat.sin());
             assert!((c.column(0) - dn.normalize()).norm() < 1e-7);
             assert!((c.column(1) - de.normalize()).norm() < 1e-7);
@@ -335,13 +396,17 @@ mod tests {
             pm[i] -= h;
             fd.set_column(i, &((gravity_ecef(&pp) - gravity_ecef(&pm)) / (2.0 * h)));
         }
-        assert!((j - fd).norm() < 1e-11 , "{}", (j - fd).norm());
+        assert!((j - fd).norm() < 1e-11, "{}", (j - fd).norm());
         assert!(j.norm() > 1e-6); // the gradient is non-trivial (≈ 2g/R)
     }
 
     #[test]
     fn transport_rate_of_eastward_flight_at_equator() {
-        let g = Geodetic { lat: 0.0, lon: 0.0, height: 0.0 };
+        let g = Geodetic {
+            lat: 0.0,
+            lon: 0.0,
+            height: 0.0,
+        };
         let w = transport_rate_ned(&g, &Vector3::new(0.0, 100.0, 0.0));
         assert!((w.x - 100.0 / WGS84_A).abs() < 1e-15);
         assert_eq!(w.y, 0.0);

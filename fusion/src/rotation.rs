@@ -87,17 +87,7 @@ pub fn euler_from_nav_from_body(c: &Matrix3<f64>) -> Vector3<f64> {
 pub fn euler_rate_from_body_rate(euler: &Vector3<f64>) -> Matrix3<f64> {
     let (sr, cr) = euler.x.sin_cos();
     let (tp, sec) = (euler.y.tan(), 1.0 / euler.y.cos());
-    Matrix3::new(
-        1.0,
-        sr * tp,
-        cr * tp,
-        0.0,
-        cr,
-        -sr,
-        0.0,
-        sr * sec,
-        cr * sec,
-    )
+    Matrix3::new(1.0, sr * tp, cr * tp, 0.0, cr, -sr, 0.0, sr * sec, cr * sec)
 }
 
 /// Partial derivatives of E_b^n (eq. 21.8) with respect to (φ, θ, ψ); ∂/∂ψ is zero.
@@ -153,7 +143,11 @@ pub fn wrap_angle(a: f64) -> f64 {
 mod tests {
     use super::*;
 
-    fn fd_matrix(f: impl Fn(&Vector3<f64>) -> Matrix3<f64>, x: &Vector3<f64>, i: usize) -> Matrix3<f64> {
+    fn fd_matrix(
+        f: impl Fn(&Vector3<f64>) -> Matrix3<f64>,
+        x: &Vector3<f64>,
+        i: usize,
+    ) -> Matrix3<f64> {
         // Central difference, step 1e-6 rad: truncation O(h²)≈1e-12, round-off ≈1e-16/1e-6=1e-10.
         let h = 1e-6;
         let mut xp = *x;
@@ -184,8 +178,14 @@ mod tests {
         let dc = nav_from_body_partials(&e);
         let de = euler_rate_from_body_rate_partials(&e);
         for i in 0..3 {
-            assert!((dc[i] - fd_matrix(nav_from_body, &e, i)).norm() < 1e-8, "dC/dΨ{i}");
-            assert!((de[i] - fd_matrix(euler_rate_from_body_rate, &e, i)).norm() < 1e-8, "dE/dΨ{i}");
+            assert!(
+                (dc[i] - fd_matrix(nav_from_body, &e, i)).norm() < 1e-8,
+                "dC/dΨ{i}"
+            );
+            assert!(
+                (de[i] - fd_matrix(euler_rate_from_body_rate, &e, i)).norm() < 1e-8,
+                "dE/dΨ{i}"
+            );
         }
     }
 

@@ -108,6 +108,9 @@ impl SensorMount {
         // sensor x = body z (down), sensor y = body y (right), sensor z = −body x (so the image
         // "down" axis points to the tail); right-handed: x × y = z ⇒ z_b × y_b = −x_b.
         let sensor_from_body = Matrix3::new(0.0, 0.0, 1.0, 0.0, 1.0, 0.0, -1.0, 0.0, 0.0);
-        Self { sensor_from_body, lever_arm_body }
+        Self {
+            sensor_from_body,
+            lever_arm_body,
+        }
     }
 }
