@@ -9,7 +9,8 @@
 //! - [`state`]: state layout and named index constants.
 //! - [`sensor`]: the estimator's inputs (IMU samples, terrain observations, sensor models).
 //! - [`imu`]: IMU error model and grades (21.13–21.17).
-//! - [`info`]: map information keyed by feature id (21.86, 21.87).
+//! - [`info`]: map information keyed by feature id (21.86, 21.87), its algebra, (21.98, 21.99).
+//! - [`topology`]: fusion-network graphs and tree validation (channel filters need a tree).
 
 pub mod geodesy;
 pub mod imu;
@@ -17,3 +18,4 @@ pub mod info;
 pub mod rotation;
 pub mod sensor;
 pub mod state;
+pub mod topology;
