@@ -10,8 +10,10 @@
 //! - [`sensor`]: the estimator's inputs (IMU samples, terrain observations, sensor models).
 //! - [`imu`]: IMU error model and grades (21.13–21.17).
 //! - [`info`]: map information keyed by feature id (21.86, 21.87), its algebra, (21.98, 21.99).
+//! - [`ci`]: covariance intersection for bandwidth-limited links (full and submap forms).
 //! - [`topology`]: fusion-network graphs and tree validation (channel filters need a tree).
 
+pub mod ci;
 pub mod geodesy;
 pub mod imu;
 pub mod info;
