@@ -697,11 +697,21 @@ impl MapInformation {
     /// Which 3 × 3 blocks of Y (upper block triangle) and 3-blocks of y exceed `threshold` in
     /// max-abs. With `threshold = 0` exactly the blocks holding a non-zero entry are listed.
     pub fn block_sparsity(&self, threshold: f64) -> BlockSparsity {
+        self.block_sparsity_with(threshold, threshold)
+    }
+
+    /// [`block_sparsity`](Self::block_sparsity) with separate thresholds for Y and y (they have
+    /// different units: y = Y (x − o) carries an extra length).
+    pub fn block_sparsity_with(
+        &self,
+        matrix_threshold: f64,
+        vector_threshold: f64,
+    ) -> BlockSparsity {
         let nf = self.ids.len();
         let mut matrix_blocks = Vec::new();
         for bc in 0..nf {
             for br in 0..=bc {
-                if self.block_max(br, bc) > threshold {
+                if self.block_max(br, bc) > matrix_threshold {
                     matrix_blocks.push((br, bc));
                 }
             }
@@ -711,7 +721,7 @@ impl MapInformation {
             .filter(|&b| {
                 y[FEATURE_DIM * b..FEATURE_DIM * (b + 1)]
                     .iter()
-                    .any(|v| v.abs() > threshold)
+                    .any(|v| v.abs() > vector_threshold)
             })
             .collect();
         BlockSparsity {
@@ -738,7 +748,12 @@ impl MapInformation {
     /// features whose row blocks and vector block are then all zero removed. With
     /// `threshold = 0` this only drops features that carry nothing, losslessly.
     pub fn sparsified(&self, threshold: f64) -> MapInformation {
-        let sparsity = self.block_sparsity(threshold);
+        self.sparsified_with(threshold, threshold)
+    }
+
+    /// [`sparsified`](Self::sparsified) with separate thresholds for Y and y.
+    pub fn sparsified_with(&self, matrix_threshold: f64, vector_threshold: f64) -> MapInformation {
+        let sparsity = self.block_sparsity_with(matrix_threshold, vector_threshold);
         let nf = self.ids.len();
         let mut keep = vec![false; nf];
         for &(br, bc) in &sparsity.matrix_blocks {

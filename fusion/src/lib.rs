@@ -11,9 +11,11 @@
 //! - [`imu`]: IMU error model and grades (21.13–21.17).
 //! - [`info`]: map information keyed by feature id (21.86, 21.87), its algebra, (21.98, 21.99).
 //! - [`ci`]: covariance intersection for bandwidth-limited links (full and submap forms).
+//! - [`ddf`]: the channel-filter protocol as a sans-IO state machine (decentralized, central).
 //! - [`topology`]: fusion-network graphs and tree validation (channel filters need a tree).
 
 pub mod ci;
+pub mod ddf;
 pub mod geodesy;
 pub mod imu;
 pub mod info;
