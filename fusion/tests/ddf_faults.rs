@@ -132,6 +132,20 @@ fn run(schedule: &Schedule, seed: u64) -> Outcome {
         }
     }
     let diff = sim.max_relative_difference(&target);
+    if diff > EQ_TOL {
+        for (id, n) in &sim.nodes {
+            for c in n.ddf.channels() {
+                eprintln!(
+                    "node {id} ch {} synced {} up {} {:?}",
+                    c.peer, c.synced, c.link_up, c.stats
+                );
+            }
+            eprintln!(
+                "node {id} diff {:e}",
+                n.estimate.relative_difference(&target).unwrap()
+            );
+        }
+    }
     let recovery_rounds = recovery_rounds.unwrap_or_else(|| {
         panic!("seed {seed}: no convergence after recovery, max relative difference {diff:e}")
     });
@@ -235,6 +249,34 @@ fn restarts_under_faults_resynchronise_without_double_counting() {
         .collect();
     let t = report("faults+restarts", &outcomes);
     assert!(t.peer_restarts > 0 && t.syncs_applied > 0 && t.stale > 0);
+}
+
+/// Restarts every third round (28 per run), faster than the 10-round network delay, so that
+/// delayed messages of dead incarnations keep arriving after their successors took over, and
+/// a fresh node may first hear of a dead incarnation of its neighbour.
+#[test]
+fn frequent_restarts_faster_than_the_network_delay() {
+    let shapes = [Shape::Random, Shape::Chain, Shape::Star, Shape::Balanced];
+    let outcomes: Vec<Outcome> = (0..20)
+        .map(|seed| {
+            let s = Schedule {
+                nodes: 4 + (seed as usize % 7),
+                shape: shapes[seed as usize % 4],
+                fault_rounds: 90,
+                faults: Faults {
+                    loss: 0.3,
+                    duplicate: 0.2,
+                    max_delay: 10,
+                },
+                outages: vec![(10, 30, 2), (40, 55, 1)],
+                restarts: (5..88).step_by(3).collect(),
+                observe: 0.3,
+            };
+            run(&s, 900 + seed)
+        })
+        .collect();
+    let t = report("frequent restarts", &outcomes);
+    assert!(t.peer_restarts > 100 && t.stale > 0);
 }
 
 /// Restarts on perfect links, at every position of a chain (ends and middle), after the

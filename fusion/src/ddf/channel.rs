@@ -86,6 +86,12 @@ pub(crate) struct Channel {
     budget: Option<usize>,
     peer_epoch: Option<u64>,
     retired: VecDeque<u64>,
+    /// Unknown epochs of the peer heard of, with the challenge they must echo to be adopted.
+    candidates: VecDeque<(u64, u64)>,
+    /// Our liveness challenge on this link (raised for every new candidate).
+    challenge: u64,
+    /// The peer epoch heard from last (any non-retired one) and the highest challenge it sent.
+    heard: Option<(u64, u64)>,
     /// Paired (or initiated a pairing) with some incarnation of the peer.
     history: bool,
     /// The peer's history flag, from its latest Hello in the current peer epoch.
@@ -130,6 +136,9 @@ impl Channel {
             budget,
             peer_epoch: None,
             retired: VecDeque::new(),
+            candidates: VecDeque::new(),
+            challenge: 1,
+            heard: None,
             history: false,
             peer_history: None,
             pair: Pair::Unpaired,
@@ -175,6 +184,9 @@ impl Channel {
         Header {
             from_epoch: ctx.epoch,
             to_epoch: self.peer_epoch,
+            challenge: self.challenge,
+            echo_epoch: self.heard.map_or(0, |(e, _)| e),
+            echo: self.heard.map_or(0, |(_, c)| c),
         }
     }
 
@@ -222,6 +234,7 @@ impl Channel {
             }
         }
         self.peer_epoch = Some(epoch);
+        self.candidates.clear();
         self.reset_pair(ctx.origin);
         // The restarted peer lost what it had from us.
         self.tracker.clear();
@@ -361,13 +374,69 @@ impl Channel {
         self.stats.messages_received += 1;
         let mut out = Vec::new();
         let h = msg.header;
-        if h.to_epoch.is_some_and(|e| e != ctx.epoch) || self.retired.contains(&h.from_epoch) {
-            // For a previous incarnation of this node, or from a previous one of the peer.
+        if self.retired.contains(&h.from_epoch) {
+            // From an incarnation of the peer this channel has moved on from.
             self.stats.stale += 1;
             return Ok(out);
         }
-        if self.peer_epoch != Some(h.from_epoch) {
-            self.new_peer_epoch(h.from_epoch, ctx);
+        // Remember the sender's challenge (echoed in our headers); answer a raised one at once
+        // so that a node checking our liveness need not wait for our next round.
+        let previous = match self.heard {
+            Some((e, c)) if e == h.from_epoch => c,
+            _ => 0,
+        };
+        if h.challenge > previous {
+            self.heard = Some((h.from_epoch, h.challenge));
+            // Challenges start at 1; a higher one was raised for a candidate epoch.
+            if h.challenge > 1 && self.link_up {
+                out.push(self.hello(ctx, now));
+            }
+        } else {
+            self.heard = Some((h.from_epoch, previous));
+        }
+        let for_me = h.to_epoch.is_none_or(|e| e == ctx.epoch);
+        match self.peer_epoch {
+            Some(current) if current == h.from_epoch => {}
+            None => {
+                // First contact: adopt it (if it is a dead incarnation, the live one will prove
+                // itself as a candidate and replace it).
+                self.new_peer_epoch(h.from_epoch, ctx);
+            }
+            Some(_) => {
+                let required = self
+                    .candidates
+                    .iter()
+                    .find(|&&(e, _)| e == h.from_epoch)
+                    .map(|&(_, r)| r);
+                match required {
+                    Some(r) if h.echo_epoch == ctx.epoch && h.echo >= r => {
+                        // Proven alive after we first heard of it: the peer restarted.
+                        self.new_peer_epoch(h.from_epoch, ctx);
+                    }
+                    Some(_) => {
+                        self.stats.stale += 1;
+                        return Ok(out);
+                    }
+                    None => {
+                        // Challenge it: raise the challenge and tell the peer's node at once.
+                        self.challenge += 1;
+                        self.candidates.push_back((h.from_epoch, self.challenge));
+                        while self.candidates.len() > ctx.config.retired_epochs {
+                            self.candidates.pop_front();
+                        }
+                        self.stats.stale += 1;
+                        if self.link_up {
+                            out.push(self.hello(ctx, now));
+                        }
+                        return Ok(out);
+                    }
+                }
+            }
+        }
+        if !for_me {
+            // Meant for a previous incarnation of this node.
+            self.stats.stale += 1;
+            return Ok(out);
         }
         let addressed = h.to_epoch.is_some();
         let result = match msg.body {
@@ -434,17 +503,24 @@ impl Channel {
                 out.push(hello);
                 return;
             }
-            Pair::Initiating { history, .. } => {
-                // Both initiated: the side with history wins, else the lower id. Both sides
-                // evaluate the same rule on the two Syncs' flags, so exactly one yields.
-                let peer_wins =
-                    (peer_history && !history) || (peer_history == *history && self.peer < ctx.id);
-                if !peer_wins {
-                    self.stats.stale += 1;
-                    return;
-                }
-            }
-            Pair::Unpaired | Pair::Awaiting => {}
+            Pair::Initiating { .. } | Pair::Unpaired | Pair::Awaiting => {}
+        }
+        // Who may initiate this epoch pair: the side with history, else the lower id. A Sync
+        // from the side that may not (it acted on stale knowledge of our history, e.g. a Hello
+        // delayed from before our pairing) is refused, and we initiate instead: applying it
+        // would set C to its baseline (0 for a fresh node) and send back everything we hold,
+        // including what the peer's dead incarnation gave us. Both sides evaluate the same rule
+        // on the same flags, so exactly one Sync of the pair is applied.
+        let my_history = match &self.pair {
+            Pair::Initiating { history, .. } => *history,
+            _ => self.history,
+        };
+        self.peer_history = Some(peer_history);
+        let peer_wins =
+            (peer_history && !my_history) || (peer_history == my_history && self.peer < ctx.id);
+        if !peer_wins {
+            self.stats.stale += 1;
+            return;
         }
         // Apply: R := baseline, S := 0 (nothing to fuse: the baseline is what the peer
         // already received from us, however long ago).
@@ -478,23 +554,10 @@ impl Channel {
             return Ok(());
         }
         self.peer_seq_hint = self.peer_seq_hint.max(seq);
-        let result = if seq <= self.applied || self.buffer.contains_key(&seq) {
+        if seq <= self.applied || self.buffer.contains_key(&seq) {
             self.stats.duplicates += 1;
-            Ok(())
-        } else if seq == self.applied + 1 {
-            match self.apply(&info, target) {
-                Ok(()) => {
-                    self.applied = seq;
-                    self.stats.deltas_applied += 1;
-                    self.drain(target)
-                }
-                Err(e) => {
-                    // Keep it for a retry (next message, or the cumulative covers it).
-                    self.buffer.insert(seq, info);
-                    Err(e)
-                }
-            }
-        } else if self.buffer.len() >= ctx.config.max_buffer {
+        } else if seq > self.applied + 1 && self.buffer.len() >= ctx.config.max_buffer {
+            // No room ahead of the gap: drop it (the cumulative will cover it) and ask now.
             self.stats.buffer_overflows += 1;
             self.stats.nacks_sent += 1;
             self.last_nack = Some(now);
@@ -505,12 +568,14 @@ impl Channel {
                 },
             );
             out.push(nack);
-            Ok(())
         } else {
-            self.stats.out_of_order += 1;
+            if seq > self.applied + 1 {
+                self.stats.out_of_order += 1;
+            }
             self.buffer.insert(seq, info);
-            Ok(())
-        };
+        }
+        // Apply what is next in sequence (including a delta the estimator refused earlier).
+        let result = self.drain(target);
         self.update_gap(now);
         result
     }
@@ -563,63 +628,76 @@ impl Channel {
         result
     }
 
-    /// The periodic part: Hello, Sync resend, the delta d = Y_i − C_ik, Nack on a persisting
-    /// gap; or a submap on a CI link.
-    pub(crate) fn on_round(
+    /// The periodic exact part: Sync resend while initiating, the delta d = Y_i − C_ik, a Nack
+    /// on a persisting gap. A delta over budget switches the link to CI instead.
+    pub(crate) fn round_exact(
         &mut self,
         now: f64,
         current: &MapInformation,
-        marginal: Option<&MapMarginal>,
         ctx: &NodeCtx<'_>,
     ) -> Result<Vec<DdfMessage>, DdfError> {
         let mut out = Vec::new();
         self.decide(now, ctx, &mut out);
-        if !self.link_up {
+        if !self.link_up || self.mode != LinkMode::Exact {
             return Ok(out);
         }
         let cfg = ctx.config;
-        if self
-            .last_hello
-            .is_none_or(|t| now - t >= cfg.hello_interval)
-        {
-            let hello = self.hello(ctx, now);
-            out.push(hello);
-        }
-        if self.mode == LinkMode::Exact {
-            match self.pair {
-                Pair::Initiating { .. } => {
-                    if self
-                        .last_sync
-                        .is_none_or(|t| now - t >= cfg.sync_resend_interval)
-                    {
-                        let sync = self.sync_message(ctx);
-                        out.push(sync);
-                        self.last_sync = Some(now);
-                    }
+        match self.pair {
+            Pair::Initiating { .. } => {
+                if self
+                    .last_sync
+                    .is_none_or(|t| now - t >= cfg.sync_resend_interval)
+                {
+                    let sync = self.sync_message(ctx);
+                    out.push(sync);
+                    self.last_sync = Some(now);
                 }
-                Pair::Synced => {
-                    self.send_delta(current, ctx, &mut out)?;
-                    if self.gap_since.is_some_and(|t| now - t >= cfg.gap_timeout)
-                        && self.last_nack.is_none_or(|t| now - t >= cfg.gap_timeout)
-                    {
-                        self.stats.nacks_sent += 1;
-                        self.last_nack = Some(now);
-                        let nack = self.msg(
-                            ctx,
-                            Body::Nack {
-                                applied: self.applied,
-                            },
-                        );
-                        out.push(nack);
-                    }
-                }
-                Pair::Unpaired | Pair::Awaiting => {}
             }
+            Pair::Synced => {
+                self.send_delta(current, ctx, &mut out)?;
+                if self.gap_since.is_some_and(|t| now - t >= cfg.gap_timeout)
+                    && self.last_nack.is_none_or(|t| now - t >= cfg.gap_timeout)
+                {
+                    self.stats.nacks_sent += 1;
+                    self.last_nack = Some(now);
+                    let nack = self.msg(
+                        ctx,
+                        Body::Nack {
+                            applied: self.applied,
+                        },
+                    );
+                    out.push(nack);
+                }
+            }
+            Pair::Unpaired | Pair::Awaiting => {}
+        }
+        Ok(out)
+    }
+
+    /// The rest of a round: a submap on a CI link (from the node's covariance form, `None` if
+    /// it could not be formed), then the Hello when due (last, so that it announces this
+    /// round's seq_sent).
+    pub(crate) fn round_finish(
+        &mut self,
+        now: f64,
+        marginal: Option<&MapMarginal>,
+        ctx: &NodeCtx<'_>,
+    ) -> Vec<DdfMessage> {
+        let mut out = Vec::new();
+        if !self.link_up {
+            return out;
         }
         if self.mode == LinkMode::Ci {
             self.send_submap(now, marginal, ctx, &mut out);
         }
-        Ok(out)
+        if self
+            .last_hello
+            .is_none_or(|t| now - t >= ctx.config.hello_interval)
+        {
+            let hello = self.hello(ctx, now);
+            out.push(hello);
+        }
+        out
     }
 
     fn send_delta(

@@ -6,12 +6,19 @@ use crate::info::MapInformation;
 use crate::topology::NodeId;
 use serde::{Deserialize, Serialize};
 
-/// Epoch tags carried by every message.
+/// Epoch tags and the liveness challenge carried by every message.
 ///
 /// An epoch is chosen by a node process at start (a random u64 supplied by the caller) and
 /// never changes during its life; a restarted process has a new epoch. The receiver drops a
-/// message addressed to another epoch of itself (it was meant for a previous incarnation) or
-/// sent by a retired epoch of the peer.
+/// message addressed to another epoch of itself (it was meant for a previous incarnation).
+///
+/// A message from an unknown epoch of a known peer may be a delayed message of an incarnation
+/// that has died since (restarts faster than the network delay), so it does not switch the
+/// channel at once: the receiver raises its `challenge` and adopts that epoch only when a
+/// message from it echoes a challenge at least that high *of the receiver's epoch*, i.e. proves
+/// it was alive after it was first heard of. Dead incarnations cannot do that, so a channel
+/// never falls back to one. Echoes are tagged with the epoch they answer, because the prover
+/// may still address its messages to a dead incarnation of the receiver.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
 pub struct Header {
     /// The sender's epoch.
@@ -19,6 +26,13 @@ pub struct Header {
     /// The receiver's epoch as the sender knows it (`None` before the sender has heard from
     /// the receiver).
     pub to_epoch: Option<u64>,
+    /// The sender's current liveness challenge on this link (raised when it hears of a new
+    /// epoch of the receiver's node).
+    pub challenge: u64,
+    /// The epoch of the receiver's node that the sender heard from last.
+    pub echo_epoch: u64,
+    /// The highest challenge the sender has received from `echo_epoch`.
+    pub echo: u64,
 }
 
 /// The periodic heartbeat: keeps loss detection alive when no delta flows, carries the sync
@@ -103,8 +117,8 @@ impl DdfMessage {
 
     /// An upper bound of the encoded size in bincode's standard configuration [bytes].
     pub fn wire_bytes_bound(&self) -> usize {
-        // Header: two u64 varints (≤ 9 each) and an Option tag; enum tag; small fields.
-        const HEADER: usize = 9 + 1 + 9 + 1;
+        // Header: five u64 varints (≤ 9 each) and an Option tag; enum tag; small fields.
+        const HEADER: usize = 5 * 9 + 1 + 1;
         HEADER
             + match &self.body {
                 Body::Hello(_) => 9 + 9 + 3,

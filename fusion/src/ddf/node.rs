@@ -292,6 +292,17 @@ impl DdfNode {
             Some(f) => Some(f.sub(current).map_err(DdfError::Internal)?),
             None => None,
         };
+        let ctx = NodeCtx {
+            id: self.id,
+            epoch: self.epoch,
+            origin: self.origin,
+            config: &self.config,
+        };
+        // Exact parts first: a delta that does not fit its budget switches its link to CI.
+        let mut per_channel: BTreeMap<NodeId, Vec<DdfMessage>> = BTreeMap::new();
+        for (&peer, channel) in self.channels.iter_mut() {
+            per_channel.insert(peer, channel.round_exact(now, current, &ctx)?);
+        }
         // The covariance form, only if a CI link will send a submap.
         let needs_marginal = self
             .channels
@@ -302,17 +313,14 @@ impl DdfNode {
         } else {
             None
         };
-        let ctx = NodeCtx {
-            id: self.id,
-            epoch: self.epoch,
-            origin: self.origin,
-            config: &self.config,
-        };
         let mut messages = Vec::new();
         for (&peer, channel) in self.channels.iter_mut() {
-            for message in channel.on_round(now, current, marginal.as_ref(), &ctx)? {
-                messages.push(Outgoing { to: peer, message });
-            }
+            let mut out = per_channel.remove(&peer).unwrap_or_default();
+            out.extend(channel.round_finish(now, marginal.as_ref(), &ctx));
+            messages.extend(
+                out.into_iter()
+                    .map(|message| Outgoing { to: peer, message }),
+            );
         }
         Ok(RoundOutput { messages, ci_delta })
     }
