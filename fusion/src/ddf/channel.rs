@@ -707,8 +707,9 @@ impl Channel {
         out: &mut Vec<DdfMessage>,
     ) -> Result<(), DdfError> {
         // d = Y_i − C_ik with C_ik = S + R (design.md §4).
-        let mut d = current.sub(&self.sent).map_err(DdfError::Internal)?;
-        d.sub_assign(&self.received).map_err(DdfError::Internal)?;
+        let d = current
+            .sub_both(&self.sent, &self.received)
+            .map_err(DdfError::Internal)?;
         let rel = ctx.config.block_threshold_rel;
         let d = d.sparsified_with(
             rel * current.matrix_norm_max(),
