@@ -115,7 +115,7 @@ impl DdfMessage {
         }
     }
 
-    /// An upper bound of the encoded size in bincode's standard configuration [bytes].
+    /// An upper bound of the encoded size in bincode's standard configuration, in bytes.
     pub fn wire_bytes_bound(&self) -> usize {
         // Header: five u64 varints (≤ 9 each) and an Option tag; enum tag; small fields.
         const HEADER: usize = 5 * 9 + 1 + 1;

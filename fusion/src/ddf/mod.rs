@@ -31,7 +31,19 @@
 //! deltas flow: the side with *history* (it was paired with an earlier incarnation of the peer)
 //! initiates; at first contact the lower id does. The initiator i sends `Sync{baseline = Rtot}`
 //! where Rtot is everything i ever received from k (all epochs) and sets S := Rtot, R := 0; the
-//! responder sets R := Rtot, S := 0. Both then hold C = Rtot, and deltas flow.
+//! responder sets R := Rtot, S := 0. Both then hold C = Rtot, and deltas flow. The same rule
+//! decides which Sync is *applied*: a Sync from the side that may not initiate (it acted on a
+//! stale view of the other's history, e.g. a delayed Hello) is refused, and the refusing side
+//! initiates itself; with two crossing Syncs exactly one is applied.
+//!
+//! Adopting a new epoch of a known peer needs a liveness proof. Restarts can be faster than
+//! the network delay, so a delayed message of an incarnation that has died since may arrive
+//! after its successor took over; adopting it would point the channel at a dead process for
+//! good. An unknown epoch is therefore only a *candidate*: the node raises its per-link
+//! challenge (carried in every header) and adopts the candidate when a message from it echoes
+//! a challenge at least that high, tagged with the node's own epoch — proof that the candidate
+//! was alive after it was first heard of, which a dead incarnation cannot give. (First contact
+//! adopts at once; if that was a dead incarnation, the live one proves itself and replaces it.)
 //!
 //! Why this does not double count when a middle node k restarts between subtrees I and J
 //! (I, J: the information originating there; K_old: old k's own, lost with it; K_new: new k's):

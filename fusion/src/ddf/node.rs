@@ -34,7 +34,8 @@ pub struct DdfConfig {
     pub byte_budget: Option<usize>,
     /// What CI's ω minimises.
     pub ci_criterion: CiCriterion,
-    /// How many retired epochs of each peer are remembered (messages from them are dropped).
+    /// How many retired epochs of each peer are remembered (messages from them are dropped),
+    /// and how many unproven candidate epochs are kept.
     pub retired_epochs: usize,
 }
 
