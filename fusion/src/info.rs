@@ -9,8 +9,11 @@
 //! origin subtracted from every feature. All nodes of a team share the same origin.
 
 use crate::sensor::FeatureId;
-use faer::{Col, Mat};
+use crate::state::FEATURE_DIM;
+use faer::linalg::solvers::{DenseSolveCore, LltError, Solve};
+use faer::{Col, Mat, Side};
 use nalgebra::Vector3;
+use std::collections::{HashMap, HashSet};
 
 /// A vehicle's map marginal (x_m, P_mm) of eqs. 21.84, 21.85, keyed by feature id.
 #[derive(Clone, Debug)]
@@ -35,4 +38,1474 @@ pub struct MapInformation {
     pub matrix: Mat<f64>,
     /// y, 3n.
     pub vector: Col<f64>,
+}
+
+/// Relative tolerance of the symmetry check: |a_ij − a_ji| ≤ `SYMMETRY_RTOL` · max_kl |a_kl|.
+///
+/// Why this value: matrices produced by Cholesky inverses or Joseph-form EKF updates are
+/// symmetric to a few ulps times the condition number (~1e-12 relative for the 3N ≤ 1000 maps
+/// here); 1e-9 accepts those with margin and still rejects any matrix that is not meant to be
+/// symmetric (a hostile or corrupted one differs at O(1) relative).
+pub const SYMMETRY_RTOL: f64 = 1e-9;
+
+/// Size in bytes of one f64 on the wire.
+const F64_BYTES: usize = std::mem::size_of::<f64>();
+/// Size in bytes of one feature id on the wire (upper bound: bincode varint ≤ 9 bytes for u64;
+/// we count the fixed 8 of a plain u64 plus one for the varint tag).
+const ID_BYTES: usize = 9;
+/// Upper bound of a length prefix (bincode varint of a usize).
+const LEN_BYTES: usize = 9;
+/// Upper bound of one block index (bincode varint of a u32: ≤ 5 bytes).
+const BLOCK_INDEX_BYTES: usize = 5;
+
+/// Errors of the map-information algebra.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum InfoError {
+    /// An array has the wrong size for the number of features.
+    #[error("dimension mismatch in {what}: expected {expected}, found {found}")]
+    Dimension {
+        /// Which array.
+        what: &'static str,
+        /// Expected size (3 × number of features, or rows of a square matrix).
+        expected: usize,
+        /// Actual size.
+        found: usize,
+    },
+    /// A feature id occurs twice in one id list.
+    #[error("feature id {0} occurs twice")]
+    DuplicateId(FeatureId),
+    /// NaN or ±∞ in a matrix or vector.
+    #[error("non-finite value in {what} at row {row}, column {col}")]
+    NonFinite {
+        /// Which array.
+        what: &'static str,
+        /// Row index.
+        row: usize,
+        /// Column index (0 for vectors).
+        col: usize,
+    },
+    /// A matrix that must be symmetric is not (to [`SYMMETRY_RTOL`]).
+    #[error(
+        "{what} is not symmetric at ({row}, {col}): |a_ij - a_ji| = {asymmetry:e} > tolerance {tolerance:e}"
+    )]
+    NotSymmetric {
+        /// Which matrix.
+        what: &'static str,
+        /// Row of the worst entry.
+        row: usize,
+        /// Column of the worst entry.
+        col: usize,
+        /// |a_ij − a_ji|.
+        asymmetry: f64,
+        /// The absolute tolerance it was compared with.
+        tolerance: f64,
+    },
+    /// A Cholesky factorisation met a non-positive pivot.
+    #[error(
+        "{what} is not positive definite: Cholesky pivot {pivot} (feature {feature}, axis {axis}) is not positive"
+    )]
+    NotPositiveDefinite {
+        /// Which matrix.
+        what: &'static str,
+        /// Index of the failing pivot (row of the 3N × 3N matrix).
+        pivot: usize,
+        /// Feature owning that row.
+        feature: FeatureId,
+        /// Axis (0, 1, 2) of that row within the feature block.
+        axis: usize,
+    },
+    /// Two map informations with different team origins were combined.
+    #[error("origin mismatch: {left:?} vs {right:?}")]
+    OriginMismatch {
+        /// Origin of the left operand.
+        left: [f64; 3],
+        /// Origin of the right operand.
+        right: [f64; 3],
+    },
+    /// The symmetric eigenvalue solver did not converge.
+    #[error("symmetric eigenvalue solver did not converge")]
+    Eigen,
+}
+
+/// Which 3 × 3 feature blocks of a (delta) map information are non-zero beyond a threshold.
+///
+/// Only the upper block triangle (`row ≤ col`) is listed: the matrix is symmetric.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct BlockSparsity {
+    /// Number of features (block rows).
+    pub features: usize,
+    /// Non-zero matrix blocks `(row, col)` with `row ≤ col`, in column-major block order.
+    pub matrix_blocks: Vec<(usize, usize)>,
+    /// Feature blocks of the vector y that are non-zero.
+    pub vector_blocks: Vec<usize>,
+}
+
+impl BlockSparsity {
+    /// Number of blocks in the upper block triangle of a dense matrix of this size.
+    pub fn dense_upper_blocks(&self) -> usize {
+        self.features * (self.features + 1) / 2
+    }
+
+    /// Fraction of the upper block triangle that is non-zero (0 for an empty map).
+    pub fn density(&self) -> f64 {
+        let total = self.dense_upper_blocks();
+        if total == 0 {
+            0.0
+        } else {
+            self.matrix_blocks.len() as f64 / total as f64
+        }
+    }
+
+    /// True when no block is non-zero.
+    pub fn is_empty(&self) -> bool {
+        self.matrix_blocks.is_empty() && self.vector_blocks.is_empty()
+    }
+}
+
+fn col_slice(c: &Col<f64>) -> &[f64] {
+    c.try_as_col_major()
+        .expect("an owned Col is contiguous")
+        .as_slice()
+}
+
+fn col_slice_mut(c: &mut Col<f64>) -> &mut [f64] {
+    c.try_as_col_major_mut()
+        .expect("an owned Col is contiguous")
+        .as_slice_mut()
+}
+
+/// Largest |entry| of a matrix (0 for an empty one; NaN entries are ignored — finiteness is
+/// checked separately).
+fn mat_norm_max(m: &Mat<f64>) -> f64 {
+    (0..m.ncols())
+        .map(|j| slice_norm_max(m.col_as_slice(j)))
+        .fold(0.0, |a, b| if b > a { b } else { a })
+}
+
+/// Largest |entry| of a slice, written with plain comparisons so that it vectorises.
+fn slice_norm_max(v: &[f64]) -> f64 {
+    let mut best = [0.0_f64; 4];
+    let chunks = v.chunks_exact(4);
+    let rest = chunks.remainder();
+    for c in chunks {
+        for k in 0..4 {
+            let a = c[k].abs();
+            if a > best[k] {
+                best[k] = a;
+            }
+        }
+    }
+    for &x in rest {
+        let a = x.abs();
+        if a > best[0] {
+            best[0] = a;
+        }
+    }
+    best.into_iter().fold(0.0, |a, b| if b > a { b } else { a })
+}
+
+/// Side of the square tiles in which the transposed-access loops run (two 32 × 32 f64 tiles
+/// are 16 KiB: they stay in L1 while a tile pair is compared).
+const TILE: usize = 32;
+
+/// Largest |a_ij − a_ji| and where (i > j), visiting the matrix tile pair by tile pair so that
+/// the transposed accesses stay in cache.
+fn max_asymmetry(m: &Mat<f64>) -> (f64, usize, usize) {
+    let n = m.nrows();
+    let mut worst = (0.0_f64, 0, 0);
+    for tj in (0..n).step_by(TILE) {
+        let j1 = (tj + TILE).min(n);
+        for ti in (tj..n).step_by(TILE) {
+            let i1 = (ti + TILE).min(n);
+            // Columns ti..i1 hold the transposed entries a_ji for rows j in tj..j1.
+            let cols_i: Vec<&[f64]> = (ti..i1).map(|i| m.col_as_slice(i)).collect();
+            for j in tj..j1 {
+                let colj = m.col_as_slice(j);
+                for (i, col_i) in cols_i.iter().enumerate().map(|(k, c)| (ti + k, c)) {
+                    if i <= j {
+                        continue;
+                    }
+                    let d = (colj[i] - col_i[j]).abs();
+                    if d > worst.0 {
+                        worst = (d, i, j);
+                    }
+                }
+            }
+        }
+    }
+    worst
+}
+
+fn check_ids(ids: &[FeatureId]) -> Result<(), InfoError> {
+    let mut seen = HashSet::with_capacity(ids.len());
+    for &id in ids {
+        if !seen.insert(id) {
+            return Err(InfoError::DuplicateId(id));
+        }
+    }
+    Ok(())
+}
+
+/// True when every entry is finite (NaN and ±∞ have all exponent bits set), branch-free so
+/// that it vectorises.
+fn all_finite(v: &[f64]) -> bool {
+    const EXP: u64 = 0x7ff0_0000_0000_0000;
+    v.iter()
+        .fold(true, |ok, &x| ok & (x.to_bits() & EXP != EXP))
+}
+
+fn check_finite_mat(what: &'static str, m: &Mat<f64>) -> Result<(), InfoError> {
+    for j in 0..m.ncols() {
+        let col = m.col_as_slice(j);
+        if all_finite(col) {
+            continue;
+        }
+        if let Some(i) = col.iter().position(|v| !v.is_finite()) {
+            return Err(InfoError::NonFinite {
+                what,
+                row: i,
+                col: j,
+            });
+        }
+    }
+    Ok(())
+}
+
+fn check_finite_col(what: &'static str, c: &Col<f64>) -> Result<(), InfoError> {
+    match col_slice(c).iter().position(|v| !v.is_finite()) {
+        Some(i) => Err(InfoError::NonFinite {
+            what,
+            row: i,
+            col: 0,
+        }),
+        None => Ok(()),
+    }
+}
+
+/// Checks squareness against `n` and symmetry to [`SYMMETRY_RTOL`] relative to the largest entry.
+fn check_square_symmetric(what: &'static str, m: &Mat<f64>, n: usize) -> Result<(), InfoError> {
+    if m.nrows() != n {
+        return Err(InfoError::Dimension {
+            what,
+            expected: n,
+            found: m.nrows(),
+        });
+    }
+    if m.ncols() != n {
+        return Err(InfoError::Dimension {
+            what,
+            expected: n,
+            found: m.ncols(),
+        });
+    }
+    let tolerance = SYMMETRY_RTOL * mat_norm_max(m);
+    let worst = max_asymmetry(m);
+    if worst.0 > tolerance {
+        return Err(InfoError::NotSymmetric {
+            what,
+            row: worst.1,
+            col: worst.2,
+            asymmetry: worst.0,
+            tolerance,
+        });
+    }
+    Ok(())
+}
+
+/// Replaces `m` by (m + mᵀ)/2 (makes a numerically symmetric matrix exactly symmetric), tile
+/// pair by tile pair.
+fn symmetrize(m: &mut Mat<f64>) {
+    let n = m.nrows();
+    let mut buf = vec![0.0; TILE * TILE];
+    for tj in (0..n).step_by(TILE) {
+        let j1 = (tj + TILE).min(n);
+        for ti in (tj..n).step_by(TILE) {
+            let i1 = (ti + TILE).min(n);
+            // Average the lower-tile entries (i, j) with their transposes into buf…
+            for j in tj..j1 {
+                for i in ti.max(j + 1)..i1 {
+                    buf[(j - tj) * TILE + (i - ti)] = m.col_as_slice(j)[i];
+                }
+            }
+            for i in ti..i1 {
+                let coli = m.col_as_slice(i);
+                for j in tj..j1.min(i) {
+                    let b = &mut buf[(j - tj) * TILE + (i - ti)];
+                    *b = 0.5 * (*b + coli[j]);
+                }
+            }
+            // …and write them back to both places.
+            for j in tj..j1 {
+                let colj = m.col_as_slice_mut(j);
+                for i in ti.max(j + 1)..i1 {
+                    colj[i] = buf[(j - tj) * TILE + (i - ti)];
+                }
+            }
+            for i in ti..i1 {
+                let coli = m.col_as_slice_mut(i);
+                for j in tj..j1.min(i) {
+                    coli[j] = buf[(j - tj) * TILE + (i - ti)];
+                }
+            }
+        }
+    }
+}
+
+fn llt_error(what: &'static str, e: LltError, ids: &[FeatureId]) -> InfoError {
+    let LltError::NonPositivePivot { index } = e;
+    let block = index / FEATURE_DIM;
+    InfoError::NotPositiveDefinite {
+        what,
+        pivot: index,
+        feature: ids.get(block).copied().unwrap_or(FeatureId::MAX),
+        axis: index % FEATURE_DIM,
+    }
+}
+
+impl MapMarginal {
+    /// Number of features.
+    pub fn len(&self) -> usize {
+        self.ids.len()
+    }
+
+    /// True when the marginal holds no feature.
+    pub fn is_empty(&self) -> bool {
+        self.ids.is_empty()
+    }
+
+    /// Checks dimensions, unique ids, finiteness and symmetry of P_mm (to [`SYMMETRY_RTOL`]).
+    /// Positive definiteness is checked where it is needed (by the Cholesky of
+    /// [`MapInformation::from_marginal`]).
+    pub fn validate(&self) -> Result<(), InfoError> {
+        check_ids(&self.ids)?;
+        let n = FEATURE_DIM * self.ids.len();
+        if self.mean.nrows() != n {
+            return Err(InfoError::Dimension {
+                what: "marginal mean",
+                expected: n,
+                found: self.mean.nrows(),
+            });
+        }
+        check_finite_col("marginal mean", &self.mean)?;
+        check_square_symmetric("marginal covariance", &self.covariance, n)?;
+        check_finite_mat("marginal covariance", &self.covariance)
+    }
+
+    /// The marginal of a subset of features, in the order of `ids`; ids absent here are skipped.
+    pub fn restrict(&self, ids: &[FeatureId]) -> MapMarginal {
+        let index: HashMap<FeatureId, usize> = self
+            .ids
+            .iter()
+            .enumerate()
+            .map(|(k, &id)| (id, k))
+            .collect();
+        let picked: Vec<(FeatureId, usize)> = ids
+            .iter()
+            .filter_map(|id| index.get(id).map(|&k| (*id, k)))
+            .collect();
+        let n = FEATURE_DIM * picked.len();
+        let rows: Vec<usize> = picked
+            .iter()
+            .flat_map(|&(_, k)| (0..FEATURE_DIM).map(move |a| FEATURE_DIM * k + a))
+            .collect();
+        MapMarginal {
+            ids: picked.iter().map(|&(id, _)| id).collect(),
+            mean: Col::from_fn(n, |r| self.mean[rows[r]]),
+            covariance: Mat::from_fn(n, n, |r, c| self.covariance[(rows[r], rows[c])]),
+        }
+    }
+}
+
+impl MapInformation {
+    /// The empty map information (no features) with team origin `origin`: the neutral element of
+    /// [`add`](Self::add).
+    pub fn zero(origin: Vector3<f64>) -> Self {
+        Self {
+            ids: Vec::new(),
+            origin,
+            matrix: Mat::zeros(0, 0),
+            vector: Col::zeros(0),
+        }
+    }
+
+    /// Zero information over the given features (ids must be unique).
+    pub fn zeros_over(ids: &[FeatureId], origin: Vector3<f64>) -> Result<Self, InfoError> {
+        check_ids(ids)?;
+        let n = FEATURE_DIM * ids.len();
+        Ok(Self {
+            ids: ids.to_vec(),
+            origin,
+            matrix: Mat::zeros(n, n),
+            vector: Col::zeros(n),
+        })
+    }
+
+    /// Number of features.
+    pub fn len(&self) -> usize {
+        self.ids.len()
+    }
+
+    /// True when no feature is present (the information is then zero).
+    pub fn is_empty(&self) -> bool {
+        self.ids.is_empty()
+    }
+
+    /// Block index of a feature id.
+    pub fn index_of(&self, id: FeatureId) -> Option<usize> {
+        self.ids.iter().position(|&k| k == id)
+    }
+
+    /// Information form of a map marginal (eqs. 21.86, 21.87 with the origin convention of this
+    /// module): Y = P_mm⁻¹ by a Cholesky factorisation and its inverse, y = Y (x_m − o) by a
+    /// solve against the same factor. Y is returned exactly symmetric.
+    ///
+    /// Errors: [`InfoError::NotPositiveDefinite`] naming the failing pivot and its feature, or
+    /// any validation error of [`MapMarginal::validate`].
+    pub fn from_marginal(marginal: &MapMarginal, origin: Vector3<f64>) -> Result<Self, InfoError> {
+        marginal.validate()?;
+        let n = FEATURE_DIM * marginal.ids.len();
+        let llt = marginal
+            .covariance
+            .as_ref()
+            .llt(Side::Lower)
+            .map_err(|e| llt_error("marginal covariance", e, &marginal.ids))?;
+        let mut matrix = llt.inverse();
+        symmetrize(&mut matrix);
+        let mut vector = Col::from_fn(n, |r| marginal.mean[r] - origin[r % FEATURE_DIM]);
+        llt.solve_in_place(vector.as_mut());
+        Ok(Self {
+            ids: marginal.ids.clone(),
+            origin,
+            matrix,
+            vector,
+        })
+    }
+
+    /// Covariance form (eqs. 21.98, 21.99; 21.90, 21.91 at the hub): P_mm = Y⁻¹ by Cholesky,
+    /// x_m = P_mm y + o (a solve against the same factor). P_mm is returned exactly symmetric.
+    ///
+    /// Errors: [`InfoError::NotPositiveDefinite`] naming the failing pivot (row of Y, its feature
+    /// and axis) when Y is not positive definite, or a validation error.
+    pub fn to_marginal(&self) -> Result<MapMarginal, InfoError> {
+        self.validate()?;
+        let llt = self
+            .matrix
+            .as_ref()
+            .llt(Side::Lower)
+            .map_err(|e| llt_error("information matrix", e, &self.ids))?;
+        let mut covariance = llt.inverse();
+        symmetrize(&mut covariance);
+        let mut mean = self.vector.clone();
+        llt.solve_in_place(mean.as_mut());
+        for (r, m) in col_slice_mut(&mut mean).iter_mut().enumerate() {
+            *m += self.origin[r % FEATURE_DIM];
+        }
+        Ok(MapMarginal {
+            ids: self.ids.clone(),
+            mean,
+            covariance,
+        })
+    }
+
+    /// Checks dimensions (Y is 3N × 3N, y is 3N), unique ids, finiteness of Y, y and the origin,
+    /// and symmetry of Y to [`SYMMETRY_RTOL`]. Indefinite matrices pass: deltas may be
+    /// indefinite (design.md §4); positive definiteness is checked on fused results.
+    pub fn validate(&self) -> Result<(), InfoError> {
+        check_ids(&self.ids)?;
+        let n = FEATURE_DIM * self.ids.len();
+        if let Some(i) = self.origin.iter().position(|v| !v.is_finite()) {
+            return Err(InfoError::NonFinite {
+                what: "origin",
+                row: i,
+                col: 0,
+            });
+        }
+        if self.vector.nrows() != n {
+            return Err(InfoError::Dimension {
+                what: "information vector",
+                expected: n,
+                found: self.vector.nrows(),
+            });
+        }
+        check_finite_col("information vector", &self.vector)?;
+        check_finite_mat("information matrix", &self.matrix)?;
+        check_square_symmetric("information matrix", &self.matrix, n)
+    }
+
+    fn check_origin(&self, other: &MapInformation) -> Result<(), InfoError> {
+        if self.origin != other.origin {
+            return Err(InfoError::OriginMismatch {
+                left: self.origin.into(),
+                right: other.origin.into(),
+            });
+        }
+        Ok(())
+    }
+
+    fn check_shape(&self) -> Result<(), InfoError> {
+        let n = FEATURE_DIM * self.ids.len();
+        for (what, found) in [
+            ("information matrix rows", self.matrix.nrows()),
+            ("information matrix columns", self.matrix.ncols()),
+            ("information vector", self.vector.nrows()),
+        ] {
+            if found != n {
+                return Err(InfoError::Dimension {
+                    what,
+                    expected: n,
+                    found,
+                });
+            }
+        }
+        Ok(())
+    }
+
+    /// Block positions of `other`'s features in `self`, appending the ids `self` lacks (in
+    /// `other`'s order) and growing Y and y with zeros for them.
+    fn align_to(&mut self, other: &MapInformation) -> Vec<usize> {
+        let mut index: HashMap<FeatureId, usize> = self
+            .ids
+            .iter()
+            .enumerate()
+            .map(|(k, &id)| (id, k))
+            .collect();
+        let old = self.ids.len();
+        let map: Vec<usize> = other
+            .ids
+            .iter()
+            .map(|&id| {
+                *index.entry(id).or_insert_with(|| {
+                    self.ids.push(id);
+                    self.ids.len() - 1
+                })
+            })
+            .collect();
+        if self.ids.len() != old {
+            let (n_old, n_new) = (FEATURE_DIM * old, FEATURE_DIM * self.ids.len());
+            let mut matrix = Mat::zeros(n_new, n_new);
+            matrix
+                .as_mut()
+                .submatrix_mut(0, 0, n_old, n_old)
+                .copy_from(self.matrix.as_ref());
+            let mut vector = Col::zeros(n_new);
+            col_slice_mut(&mut vector)[..n_old].copy_from_slice(col_slice(&self.vector));
+            self.matrix = matrix;
+            self.vector = vector;
+        }
+        map
+    }
+
+    /// self += sign · other over the union of ids (order-stable: self's ids, then other's new
+    /// ones in other's order).
+    fn accumulate(&mut self, other: &MapInformation, sign: f64) -> Result<(), InfoError> {
+        self.check_origin(other)?;
+        self.check_shape()?;
+        other.check_shape()?;
+        if self.ids == other.ids {
+            for j in 0..self.matrix.ncols() {
+                let src = other.matrix.col_as_slice(j);
+                for (d, s) in self.matrix.col_as_slice_mut(j).iter_mut().zip(src) {
+                    *d += sign * s;
+                }
+            }
+            for (d, s) in col_slice_mut(&mut self.vector)
+                .iter_mut()
+                .zip(col_slice(&other.vector))
+            {
+                *d += sign * s;
+            }
+            return Ok(());
+        }
+        let map = self.align_to(other);
+        let rows: Vec<usize> = map
+            .iter()
+            .flat_map(|&k| (0..FEATURE_DIM).map(move |a| FEATURE_DIM * k + a))
+            .collect();
+        for (j, &tj) in rows.iter().enumerate() {
+            let src = other.matrix.col_as_slice(j);
+            let dst = self.matrix.col_as_slice_mut(tj);
+            for (&ti, s) in rows.iter().zip(src) {
+                dst[ti] += sign * s;
+            }
+        }
+        let dst = col_slice_mut(&mut self.vector);
+        for (&ti, s) in rows.iter().zip(col_slice(&other.vector)) {
+            dst[ti] += sign * s;
+        }
+        Ok(())
+    }
+
+    /// (Y, y) += (Y_o, y_o), aligned by feature id over the union (order-stable: this map's ids
+    /// first, then `other`'s new ids in `other`'s order). Errors on an origin or shape mismatch
+    /// before touching `self`.
+    pub fn add_assign(&mut self, other: &MapInformation) -> Result<(), InfoError> {
+        self.accumulate(other, 1.0)
+    }
+
+    /// (Y, y) −= (Y_o, y_o), aligned like [`add_assign`](Self::add_assign).
+    pub fn sub_assign(&mut self, other: &MapInformation) -> Result<(), InfoError> {
+        self.accumulate(other, -1.0)
+    }
+
+    /// self + other over the union of ids (see [`add_assign`](Self::add_assign)).
+    pub fn add(&self, other: &MapInformation) -> Result<MapInformation, InfoError> {
+        let mut out = self.clone();
+        out.accumulate(other, 1.0)?;
+        Ok(out)
+    }
+
+    /// self − other over the union of ids (see [`add_assign`](Self::add_assign)).
+    pub fn sub(&self, other: &MapInformation) -> Result<MapInformation, InfoError> {
+        let mut out = self.clone();
+        out.accumulate(other, -1.0)?;
+        Ok(out)
+    }
+
+    /// self − a − b over the union of ids, in one pass when all three have the same ids (the
+    /// channel filter's d = Y_i − S − R, eq. 21.94 per link).
+    pub fn sub_both(
+        &self,
+        a: &MapInformation,
+        b: &MapInformation,
+    ) -> Result<MapInformation, InfoError> {
+        if self.ids != a.ids || self.ids != b.ids {
+            let mut out = self.sub(a)?;
+            out.sub_assign(b)?;
+            return Ok(out);
+        }
+        self.check_origin(a)?;
+        self.check_origin(b)?;
+        self.check_shape()?;
+        a.check_shape()?;
+        b.check_shape()?;
+        let n = self.matrix.nrows();
+        let mut matrix = Mat::zeros(n, n);
+        for j in 0..n {
+            let (x, y, z) = (
+                self.matrix.col_as_slice(j),
+                a.matrix.col_as_slice(j),
+                b.matrix.col_as_slice(j),
+            );
+            for (((d, x), y), z) in matrix.col_as_slice_mut(j).iter_mut().zip(x).zip(y).zip(z) {
+                *d = x - y - z;
+            }
+        }
+        let (x, y, z) = (
+            col_slice(&self.vector),
+            col_slice(&a.vector),
+            col_slice(&b.vector),
+        );
+        let vector = Col::from_fn(n, |r| x[r] - y[r] - z[r]);
+        Ok(MapInformation {
+            ids: self.ids.clone(),
+            origin: self.origin,
+            matrix,
+            vector,
+        })
+    }
+
+    /// s · (Y, y).
+    pub fn scaled(&self, s: f64) -> MapInformation {
+        let mut out = self.clone();
+        out.matrix *= s;
+        out.vector *= s;
+        out
+    }
+
+    /// The blocks of the given features, in the order of `ids`; ids absent here are skipped.
+    ///
+    /// This is block *extraction* (the information of the features conditioned on all others),
+    /// not marginalisation: the marginal information of a subset is the inverse of the
+    /// corresponding block of P_mm (see [`MapMarginal::restrict`]).
+    pub fn restrict(&self, ids: &[FeatureId]) -> MapInformation {
+        let index: HashMap<FeatureId, usize> = self
+            .ids
+            .iter()
+            .enumerate()
+            .map(|(k, &id)| (id, k))
+            .collect();
+        let picked: Vec<(FeatureId, usize)> = ids
+            .iter()
+            .filter_map(|id| index.get(id).map(|&k| (*id, k)))
+            .collect();
+        let n = FEATURE_DIM * picked.len();
+        let rows: Vec<usize> = picked
+            .iter()
+            .flat_map(|&(_, k)| (0..FEATURE_DIM).map(move |a| FEATURE_DIM * k + a))
+            .collect();
+        MapInformation {
+            ids: picked.iter().map(|&(id, _)| id).collect(),
+            origin: self.origin,
+            matrix: Mat::from_fn(n, n, |r, c| self.matrix[(rows[r], rows[c])]),
+            vector: Col::from_fn(n, |r| self.vector[rows[r]]),
+        }
+    }
+
+    /// Largest |entry| of Y.
+    pub fn matrix_norm_max(&self) -> f64 {
+        mat_norm_max(&self.matrix)
+    }
+
+    /// Largest |entry| of y.
+    pub fn vector_norm_max(&self) -> f64 {
+        slice_norm_max(col_slice(&self.vector))
+    }
+
+    /// Frobenius norm of Y.
+    pub fn matrix_norm_frobenius(&self) -> f64 {
+        self.matrix.norm_l2()
+    }
+
+    /// Euclidean norm of y.
+    pub fn vector_norm(&self) -> f64 {
+        self.vector.norm_l2()
+    }
+
+    /// True when every entry of Y and y is at most `threshold` in magnitude.
+    pub fn is_zero(&self, threshold: f64) -> bool {
+        self.matrix_norm_max() <= threshold && self.vector_norm_max() <= threshold
+    }
+
+    /// Largest eigenvalue of the symmetric Y (−∞ for an empty map). For the PSD order:
+    /// A ⪯ B ⇔ `A.sub(&B)?.max_eigenvalue()? ≤ 0` (see [`psd_excess_over`](Self::psd_excess_over)).
+    pub fn max_eigenvalue(&self) -> Result<f64, InfoError> {
+        Ok(self
+            .eigenvalues()?
+            .last()
+            .copied()
+            .unwrap_or(f64::NEG_INFINITY))
+    }
+
+    /// Smallest eigenvalue of the symmetric Y (+∞ for an empty map).
+    pub fn min_eigenvalue(&self) -> Result<f64, InfoError> {
+        Ok(self
+            .eigenvalues()?
+            .first()
+            .copied()
+            .unwrap_or(f64::INFINITY))
+    }
+
+    /// Eigenvalues of Y in non-decreasing order (Y must be symmetric; only the lower triangle is
+    /// read).
+    pub fn eigenvalues(&self) -> Result<Vec<f64>, InfoError> {
+        self.check_shape()?;
+        if self.ids.is_empty() {
+            return Ok(Vec::new());
+        }
+        self.matrix
+            .as_ref()
+            .self_adjoint_eigenvalues(Side::Lower)
+            .map_err(|_| InfoError::Eigen)
+    }
+
+    /// λ_max(Y_self − Y_other) over the union of ids: ≤ 0 iff self ⪯ other in the PSD order
+    /// (this map holds no more information than `other` in any direction).
+    pub fn psd_excess_over(&self, other: &MapInformation) -> Result<f64, InfoError> {
+        self.sub(other)?.max_eigenvalue()
+    }
+
+    /// Largest relative difference to a reference over the union of ids:
+    /// max(max|Y − Y_ref| / max|Y_ref|, max|y − y_ref| / max|y_ref|) (a zero reference norm
+    /// counts as 1 so that the measure stays finite).
+    pub fn relative_difference(&self, reference: &MapInformation) -> Result<f64, InfoError> {
+        let d = self.sub(reference)?;
+        let ym = reference.matrix_norm_max();
+        let yv = reference.vector_norm_max();
+        let ym = if ym > 0.0 { ym } else { 1.0 };
+        let yv = if yv > 0.0 { yv } else { 1.0 };
+        Ok((d.matrix_norm_max() / ym).max(d.vector_norm_max() / yv))
+    }
+
+    /// Which 3 × 3 blocks of Y (upper block triangle) and 3-blocks of y exceed `threshold` in
+    /// max-abs. With `threshold = 0` exactly the blocks holding a non-zero entry are listed.
+    pub fn block_sparsity(&self, threshold: f64) -> BlockSparsity {
+        self.block_sparsity_with(threshold, threshold)
+    }
+
+    /// [`block_sparsity`](Self::block_sparsity) with separate thresholds for Y and y (they have
+    /// different units: y = Y (x − o) carries an extra length).
+    pub fn block_sparsity_with(
+        &self,
+        matrix_threshold: f64,
+        vector_threshold: f64,
+    ) -> BlockSparsity {
+        let nf = self.ids.len();
+        let mut matrix_blocks = Vec::new();
+        for bc in 0..nf {
+            for br in 0..=bc {
+                if self.block_max(br, bc) > matrix_threshold {
+                    matrix_blocks.push((br, bc));
+                }
+            }
+        }
+        let y = col_slice(&self.vector);
+        let vector_blocks = (0..nf)
+            .filter(|&b| {
+                y[FEATURE_DIM * b..FEATURE_DIM * (b + 1)]
+                    .iter()
+                    .any(|v| v.abs() > vector_threshold)
+            })
+            .collect();
+        BlockSparsity {
+            features: nf,
+            matrix_blocks,
+            vector_blocks,
+        }
+    }
+
+    /// Max-abs of the 3 × 3 block (br, bc) of Y.
+    fn block_max(&self, br: usize, bc: usize) -> f64 {
+        let mut m = 0.0_f64;
+        for c in 0..FEATURE_DIM {
+            let col = self.matrix.col_as_slice(FEATURE_DIM * bc + c);
+            for v in &col[FEATURE_DIM * br..FEATURE_DIM * (br + 1)] {
+                let a = v.abs();
+                if a > m {
+                    m = a;
+                }
+            }
+        }
+        m
+    }
+
+    /// A copy with every block at or below `threshold` (see
+    /// [`block_sparsity`](Self::block_sparsity)) set to zero, symmetric blocks together, and the
+    /// features whose row blocks and vector block are then all zero removed. With
+    /// `threshold = 0` this only drops features that carry nothing, losslessly.
+    pub fn sparsified(&self, threshold: f64) -> MapInformation {
+        self.sparsified_with(threshold, threshold)
+    }
+
+    /// [`sparsified`](Self::sparsified) with separate thresholds for Y and y.
+    pub fn sparsified_with(&self, matrix_threshold: f64, vector_threshold: f64) -> MapInformation {
+        let sparsity = self.block_sparsity_with(matrix_threshold, vector_threshold);
+        let nf = self.ids.len();
+        let mut keep = vec![false; nf];
+        for &(br, bc) in &sparsity.matrix_blocks {
+            keep[br] = true;
+            keep[bc] = true;
+        }
+        for &b in &sparsity.vector_blocks {
+            keep[b] = true;
+        }
+        let kept: Vec<usize> = (0..nf).filter(|&b| keep[b]).collect();
+        let pos: HashMap<usize, usize> = kept.iter().enumerate().map(|(k, &b)| (b, k)).collect();
+        let n = FEATURE_DIM * kept.len();
+        let mut out = MapInformation {
+            ids: kept.iter().map(|&b| self.ids[b]).collect(),
+            origin: self.origin,
+            matrix: Mat::zeros(n, n),
+            vector: Col::zeros(n),
+        };
+        for &(br, bc) in &sparsity.matrix_blocks {
+            let (tr, tc) = (pos[&br], pos[&bc]);
+            for c in 0..FEATURE_DIM {
+                for r in 0..FEATURE_DIM {
+                    let v = self.matrix[(FEATURE_DIM * br + r, FEATURE_DIM * bc + c)];
+                    out.matrix[(FEATURE_DIM * tr + r, FEATURE_DIM * tc + c)] = v;
+                    let w = self.matrix[(FEATURE_DIM * bc + c, FEATURE_DIM * br + r)];
+                    out.matrix[(FEATURE_DIM * tc + c, FEATURE_DIM * tr + r)] = w;
+                }
+            }
+        }
+        for &b in &sparsity.vector_blocks {
+            for a in 0..FEATURE_DIM {
+                out.vector[FEATURE_DIM * pos[&b] + a] = self.vector[FEATURE_DIM * b + a];
+            }
+        }
+        out
+    }
+
+    /// Bytes of a dense encoding: ids, origin, every entry of Y and y as f64 (length prefixes
+    /// included as upper bounds).
+    pub fn dense_wire_bytes(&self) -> usize {
+        let n = FEATURE_DIM * self.ids.len();
+        3 * LEN_BYTES + ID_BYTES * self.ids.len() + F64_BYTES * (3 + n * n + n)
+    }
+
+    /// An upper bound of the bytes of this information in the block-sparse serde encoding of
+    /// this type (ids, origin, y, and the non-zero upper-triangle 3 × 3 blocks of Y with their
+    /// block indices), as produced by bincode's standard configuration.
+    pub fn block_sparse_wire_bytes(&self) -> usize {
+        let blocks = self.block_sparsity(0.0).matrix_blocks.len();
+        let n = FEATURE_DIM * self.ids.len();
+        3 * LEN_BYTES
+            + ID_BYTES * self.ids.len()
+            + F64_BYTES * (3 + n)
+            + blocks * (2 * BLOCK_INDEX_BYTES + F64_BYTES * FEATURE_DIM * FEATURE_DIM)
+    }
+}
+
+/// One non-zero 3 × 3 block of Y in the wire form (upper block triangle, column-major entries).
+#[derive(serde::Serialize, serde::Deserialize)]
+struct WireBlock {
+    row: u32,
+    col: u32,
+    entries: [f64; FEATURE_DIM * FEATURE_DIM],
+}
+
+/// Block-sparse wire form of [`MapInformation`]: lossless for exactly symmetric Y.
+#[derive(serde::Serialize, serde::Deserialize)]
+struct WireInformation {
+    ids: Vec<FeatureId>,
+    origin: [f64; 3],
+    vector: Vec<f64>,
+    blocks: Vec<WireBlock>,
+}
+
+impl serde::Serialize for MapInformation {
+    /// Serialises the block-sparse form: the upper block triangle's non-zero 3 × 3 blocks of Y
+    /// (Y is symmetric by construction; the lower triangle is restored by symmetry), y, ids and
+    /// the origin.
+    fn serialize<S: serde::Serializer>(&self, serializer: S) -> Result<S::Ok, S::Error> {
+        let blocks = self
+            .block_sparsity(0.0)
+            .matrix_blocks
+            .into_iter()
+            .map(|(br, bc)| {
+                let mut entries = [0.0; FEATURE_DIM * FEATURE_DIM];
+                for c in 0..FEATURE_DIM {
+                    for r in 0..FEATURE_DIM {
+                        entries[FEATURE_DIM * c + r] =
+                            self.matrix[(FEATURE_DIM * br + r, FEATURE_DIM * bc + c)];
+                    }
+                }
+                WireBlock {
+                    row: br as u32,
+                    col: bc as u32,
+                    entries,
+                }
+            })
+            .collect();
+        WireInformation {
+            ids: self.ids.clone(),
+            origin: self.origin.into(),
+            vector: col_slice(&self.vector).to_vec(),
+            blocks,
+        }
+        .serialize(serializer)
+    }
+}
+
+impl<'de> serde::Deserialize<'de> for MapInformation {
+    /// Decodes the block-sparse form, rejecting (as a deserialisation error, never a panic)
+    /// duplicate ids, a y of the wrong length, block indices out of range or below the
+    /// diagonal, repeated blocks, and non-finite values.
+    fn deserialize<D: serde::Deserializer<'de>>(deserializer: D) -> Result<Self, D::Error> {
+        use serde::de::Error;
+        let wire = WireInformation::deserialize(deserializer)?;
+        check_ids(&wire.ids).map_err(D::Error::custom)?;
+        let nf = wire.ids.len();
+        let n = FEATURE_DIM * nf;
+        if wire.vector.len() != n {
+            return Err(D::Error::custom(InfoError::Dimension {
+                what: "information vector",
+                expected: n,
+                found: wire.vector.len(),
+            }));
+        }
+        let mut matrix = Mat::zeros(n, n);
+        let mut seen = HashSet::with_capacity(wire.blocks.len());
+        for b in &wire.blocks {
+            let (br, bc) = (b.row as usize, b.col as usize);
+            if br > bc || bc >= nf || !seen.insert((br, bc)) {
+                return Err(D::Error::custom(format!(
+                    "invalid or repeated information block ({br}, {bc}) for {nf} features"
+                )));
+            }
+            for c in 0..FEATURE_DIM {
+                for r in 0..FEATURE_DIM {
+                    let v = b.entries[FEATURE_DIM * c + r];
+                    matrix[(FEATURE_DIM * br + r, FEATURE_DIM * bc + c)] = v;
+                    matrix[(FEATURE_DIM * bc + c, FEATURE_DIM * br + r)] = v;
+                }
+            }
+        }
+        let info = MapInformation {
+            ids: wire.ids,
+            origin: Vector3::from(wire.origin),
+            matrix,
+            vector: Col::from_fn(n, |r| wire.vector[r]),
+        };
+        info.validate().map_err(D::Error::custom)?;
+        Ok(info)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use nalgebra::{DMatrix, DVector};
+    use rand::{Rng, SeedableRng};
+    use rand_chacha::ChaCha8Rng;
+
+    /// Random SPD matrix B Bᵀ + n·I (condition number O(10)) of size 3·nf.
+    fn random_spd(rng: &mut ChaCha8Rng, nf: usize) -> Mat<f64> {
+        let n = FEATURE_DIM * nf;
+        let b = Mat::from_fn(n, n, |_, _| rng.random_range(-1.0..1.0));
+        let mut a = &b * b.transpose();
+        for i in 0..n {
+            a[(i, i)] += n as f64;
+        }
+        symmetrize(&mut a);
+        a
+    }
+
+    fn random_marginal(rng: &mut ChaCha8Rng, ids: &[FeatureId], centre: f64) -> MapMarginal {
+        let n = FEATURE_DIM * ids.len();
+        MapMarginal {
+            ids: ids.to_vec(),
+            mean: Col::from_fn(n, |_| centre + rng.random_range(-100.0..100.0)),
+            covariance: random_spd(rng, ids.len()),
+        }
+    }
+
+    fn to_dmatrix(m: &Mat<f64>) -> DMatrix<f64> {
+        DMatrix::from_fn(m.nrows(), m.ncols(), |i, j| m[(i, j)])
+    }
+
+    type KeyedMatrix = HashMap<(u64, usize, u64, usize), f64>;
+    type KeyedVector = HashMap<(u64, usize), f64>;
+
+    /// Dense reference of a map information keyed by (feature id, axis): an independent
+    /// representation to check the aligned algebra against.
+    fn keyed(info: &MapInformation) -> (KeyedMatrix, KeyedVector) {
+        let mut m = HashMap::new();
+        let mut v = HashMap::new();
+        for (bi, &fi) in info.ids.iter().enumerate() {
+            for a in 0..3 {
+                v.insert((fi, a), info.vector[3 * bi + a]);
+                for (bj, &fj) in info.ids.iter().enumerate() {
+                    for b in 0..3 {
+                        m.insert((fi, a, fj, b), info.matrix[(3 * bi + a, 3 * bj + b)]);
+                    }
+                }
+            }
+        }
+        (m, v)
+    }
+
+    #[test]
+    fn from_marginal_matches_independent_nalgebra_inverse() {
+        let mut rng = ChaCha8Rng::seed_from_u64(1);
+        let origin = Vector3::new(-2.7e6, 4.3e6, 3.9e6);
+        let ids: Vec<FeatureId> = vec![42, 7, 1000, 3, 99];
+        let marg = random_marginal(&mut rng, &ids, 4.0e6);
+        let info = MapInformation::from_marginal(&marg, origin).unwrap();
+        // Independent reference: nalgebra's own Cholesky inverse and a dense product.
+        let p = to_dmatrix(&marg.covariance);
+        let y_ref = p.clone().cholesky().unwrap().inverse();
+        let x = DVector::from_fn(15, |r, _| marg.mean[r] - origin[r % 3]);
+        let yv_ref = &y_ref * x;
+        let y = to_dmatrix(&info.matrix);
+        // Condition number is O(10): both inverses agree to ~1e-15 relative; 1e-12 leaves margin.
+        assert!((&y - &y_ref).amax() <= 1e-12 * y_ref.amax());
+        for r in 0..15 {
+            assert!((info.vector[r] - yv_ref[r]).abs() <= 1e-12 * yv_ref.amax());
+        }
+        assert_eq!(info.ids, ids);
+        // Exactly symmetric output.
+        assert_eq!(y, y.transpose());
+    }
+
+    #[test]
+    fn to_marginal_inverts_from_marginal() {
+        let mut rng = ChaCha8Rng::seed_from_u64(2);
+        let origin = Vector3::new(10.0, -20.0, 5.0);
+        let marg = random_marginal(&mut rng, &[5, 6, 7, 8], 0.0);
+        let back = MapInformation::from_marginal(&marg, origin)
+            .unwrap()
+            .to_marginal()
+            .unwrap();
+        // Two well-conditioned (κ ~ 10) inversions: round-off ~1e-14 relative; 1e-11 margin.
+        let pm = to_dmatrix(&marg.covariance).amax();
+        for i in 0..12 {
+            assert!((back.mean[i] - marg.mean[i]).abs() <= 1e-11 * 100.0);
+            for j in 0..12 {
+                assert!((back.covariance[(i, j)] - marg.covariance[(i, j)]).abs() <= 1e-11 * pm);
+            }
+        }
+    }
+
+    #[test]
+    fn not_positive_definite_names_the_pivot() {
+        let ids = vec![10, 20, 30];
+        let mut y = Mat::<f64>::identity(9, 9);
+        y[(7, 7)] = -1.0; // row 7 = feature index 2 (id 30), axis 1
+        let info = MapInformation {
+            ids,
+            origin: Vector3::zeros(),
+            matrix: y,
+            vector: Col::zeros(9),
+        };
+        match info.to_marginal() {
+            Err(InfoError::NotPositiveDefinite {
+                pivot,
+                feature,
+                axis,
+                ..
+            }) => {
+                assert_eq!((pivot, feature, axis), (7, 30, 1));
+            }
+            other => panic!("expected NotPositiveDefinite, got {other:?}"),
+        }
+        let msg = info.to_marginal().unwrap_err().to_string();
+        assert!(
+            msg.contains("pivot 7") && msg.contains("feature 30"),
+            "{msg}"
+        );
+        // The same for a covariance that is not positive definite.
+        let marg = MapMarginal {
+            ids: vec![1, 2],
+            mean: Col::zeros(6),
+            covariance: Mat::from_fn(6, 6, |i, j| {
+                if i == j {
+                    if i == 4 { 0.0 } else { 1.0 }
+                } else {
+                    0.0
+                }
+            }),
+        };
+        assert!(matches!(
+            MapInformation::from_marginal(&marg, Vector3::zeros()),
+            Err(InfoError::NotPositiveDefinite {
+                pivot: 4,
+                feature: 2,
+                axis: 1,
+                ..
+            })
+        ));
+    }
+
+    #[test]
+    fn aligned_add_and_sub_match_keyed_reference() {
+        let mut rng = ChaCha8Rng::seed_from_u64(3);
+        let o = Vector3::new(1.0, 2.0, 3.0);
+        let a = MapInformation::from_marginal(&random_marginal(&mut rng, &[1, 2, 3, 4], 0.0), o)
+            .unwrap();
+        let b = MapInformation::from_marginal(&random_marginal(&mut rng, &[9, 3, 1, 8], 0.0), o)
+            .unwrap();
+        let sum = a.add(&b).unwrap();
+        let diff = a.sub(&b).unwrap();
+        // Order-stable union: a's ids, then b's new ones in b's order.
+        assert_eq!(sum.ids, vec![1, 2, 3, 4, 9, 8]);
+        assert_eq!(diff.ids, sum.ids);
+        let (am, av) = keyed(&a);
+        let (bm, bv) = keyed(&b);
+        let (sm, sv) = keyed(&sum);
+        let (dm, dv) = keyed(&diff);
+        for (k, &s) in &sm {
+            let (x, y) = (
+                am.get(k).copied().unwrap_or(0.0),
+                bm.get(k).copied().unwrap_or(0.0),
+            );
+            // One f64 addition: exact up to one rounding (≤ 1 ulp of the operands).
+            assert!((s - (x + y)).abs() <= 1e-15 * (x.abs() + y.abs()));
+            assert!((dm[k] - (x - y)).abs() <= 1e-15 * (x.abs() + y.abs()));
+        }
+        for (k, &s) in &sv {
+            let (x, y) = (
+                av.get(k).copied().unwrap_or(0.0),
+                bv.get(k).copied().unwrap_or(0.0),
+            );
+            assert!((s - (x + y)).abs() <= 1e-15 * (x.abs() + y.abs()));
+            assert!((dv[k] - (x - y)).abs() <= 1e-15 * (x.abs() + y.abs()));
+        }
+        // add_assign then sub_assign returns to a (over the union, b's new features zero).
+        let mut c = a.clone();
+        c.add_assign(&b).unwrap();
+        c.sub_assign(&b).unwrap();
+        // Two roundings per entry: ≤ 2 ulp of the largest operand.
+        assert!(c.relative_difference(&a).unwrap() <= 1e-14);
+        assert!(c.restrict(&[9, 8]).is_zero(1e-14 * b.matrix_norm_max()));
+        // Adding to the empty map yields the operand.
+        let z = MapInformation::zero(o).add(&a).unwrap();
+        assert_eq!(z.ids, a.ids);
+        assert_eq!(z.relative_difference(&a).unwrap(), 0.0);
+    }
+
+    #[test]
+    fn origin_mismatch_is_an_error_and_leaves_operand_untouched() {
+        let mut a = MapInformation::zeros_over(&[1], Vector3::zeros()).unwrap();
+        let b = MapInformation::zeros_over(&[2], Vector3::new(1.0, 0.0, 0.0)).unwrap();
+        assert!(matches!(
+            a.add_assign(&b),
+            Err(InfoError::OriginMismatch { .. })
+        ));
+        assert_eq!(a.ids, vec![1]);
+    }
+
+    #[test]
+    fn validation_rejects_bad_input_and_accepts_indefinite() {
+        let good = || MapInformation {
+            ids: vec![1, 2],
+            origin: Vector3::zeros(),
+            matrix: Mat::from_fn(6, 6, |i, j| {
+                if i == j {
+                    if i % 2 == 0 { 1.0 } else { -2.0 }
+                } else {
+                    0.5
+                }
+            }),
+            vector: Col::from_fn(6, |i| i as f64),
+        };
+        assert!(
+            good().validate().is_ok(),
+            "symmetric indefinite delta must pass"
+        );
+        let mut nan = good();
+        nan.matrix[(3, 4)] = f64::NAN;
+        assert!(matches!(
+            nan.validate(),
+            Err(InfoError::NonFinite { row: 3, col: 4, .. })
+        ));
+        let mut inf = good();
+        inf.vector[5] = f64::INFINITY;
+        assert!(matches!(
+            inf.validate(),
+            Err(InfoError::NonFinite { row: 5, .. })
+        ));
+        let mut asym = good();
+        asym.matrix[(0, 5)] += 1e-6; // relative asymmetry 5e-7 ≫ SYMMETRY_RTOL
+        assert!(matches!(
+            asym.validate(),
+            Err(InfoError::NotSymmetric { row: 5, col: 0, .. })
+        ));
+        let mut tiny = good();
+        tiny.matrix[(0, 5)] += 1e-13; // 5e-14 relative: round-off level, accepted
+        assert!(tiny.validate().is_ok());
+        let mut dup = good();
+        dup.ids = vec![2, 2];
+        assert!(matches!(dup.validate(), Err(InfoError::DuplicateId(2))));
+        let mut short = good();
+        short.vector = Col::zeros(5);
+        assert!(matches!(
+            short.validate(),
+            Err(InfoError::Dimension {
+                expected: 6,
+                found: 5,
+                ..
+            })
+        ));
+        let mut nonsquare = good();
+        nonsquare.matrix = Mat::zeros(6, 3);
+        assert!(matches!(
+            nonsquare.validate(),
+            Err(InfoError::Dimension { .. })
+        ));
+        let mut bad_origin = good();
+        bad_origin.origin.x = f64::NAN;
+        assert!(bad_origin.validate().is_err());
+    }
+
+    #[test]
+    fn tiled_symmetry_helpers_match_the_naive_loops() {
+        // 3·35 = 105 rows: several 32-tiles and a partial one.
+        let mut rng = ChaCha8Rng::seed_from_u64(40);
+        let n = 105;
+        let m = Mat::<f64>::from_fn(n, n, |_, _| rng.random_range(-1.0..1.0));
+        let mut naive = (0.0_f64, 0, 0);
+        for j in 0..n {
+            for i in (j + 1)..n {
+                let d = (m[(i, j)] - m[(j, i)]).abs();
+                if d > naive.0 {
+                    naive = (d, i, j);
+                }
+            }
+        }
+        assert_eq!(max_asymmetry(&m), naive);
+        let mut s = m.clone();
+        symmetrize(&mut s);
+        for i in 0..n {
+            for j in 0..n {
+                assert_eq!(s[(i, j)], 0.5 * (m[(i, j)] + m[(j, i)]));
+            }
+        }
+        assert_eq!(max_asymmetry(&s).0, 0.0);
+        // One asymmetric entry deep in an off-diagonal tile is found.
+        let mut t = s.clone();
+        t[(100, 40)] += 1.0;
+        assert_eq!(max_asymmetry(&t), (1.0, 100, 40));
+        assert!(!all_finite(&[1.0, f64::NAN]) && !all_finite(&[f64::NEG_INFINITY]));
+        assert!(all_finite(&[0.0, -1e308, 5e-324]));
+    }
+
+    #[test]
+    fn restrict_extracts_blocks_in_requested_order() {
+        let mut rng = ChaCha8Rng::seed_from_u64(4);
+        let a = MapInformation::from_marginal(
+            &random_marginal(&mut rng, &[1, 2, 3], 0.0),
+            Vector3::zeros(),
+        )
+        .unwrap();
+        let r = a.restrict(&[3, 77, 1]);
+        assert_eq!(r.ids, vec![3, 1]);
+        for (bi, si) in [(0, 2), (1, 0)] {
+            for (bj, sj) in [(0, 2), (1, 0)] {
+                for p in 0..3 {
+                    for q in 0..3 {
+                        assert_eq!(
+                            r.matrix[(3 * bi + p, 3 * bj + q)],
+                            a.matrix[(3 * si + p, 3 * sj + q)]
+                        );
+                    }
+                }
+            }
+            for p in 0..3 {
+                assert_eq!(r.vector[3 * bi + p], a.vector[3 * si + p]);
+            }
+        }
+    }
+
+    #[test]
+    fn psd_order_helpers_match_closed_form() {
+        let o = Vector3::zeros();
+        let diag = |d: [f64; 3]| MapInformation {
+            ids: vec![1],
+            origin: o,
+            matrix: Mat::from_fn(3, 3, |i, j| if i == j { d[i] } else { 0.0 }),
+            vector: Col::zeros(3),
+        };
+        let a = diag([1.0, 2.0, 3.0]);
+        let b = diag([2.0, 2.0, 2.5]);
+        // A − B = diag(−1, 0, 0.5): λ_max = 0.5, λ_min = −1.
+        // Tridiagonal QR on a diagonal matrix is exact to round-off: 1e-14.
+        assert!((a.psd_excess_over(&b).unwrap() - 0.5).abs() < 1e-14);
+        assert!((a.sub(&b).unwrap().min_eigenvalue().unwrap() + 1.0).abs() < 1e-14);
+        assert!((b.psd_excess_over(&a).unwrap() - 1.0).abs() < 1e-14);
+        // Over a union: a feature only in B makes A − B negative there, not positive.
+        let mut c = diag([1.0, 1.0, 1.0]);
+        c.ids = vec![2];
+        let bc = b.add(&c).unwrap();
+        assert!((b.psd_excess_over(&bc).unwrap() - 0.0).abs() < 1e-14);
+        assert!((bc.psd_excess_over(&b).unwrap() - 1.0).abs() < 1e-14);
+        assert_eq!(
+            MapInformation::zero(o).max_eigenvalue().unwrap(),
+            f64::NEG_INFINITY
+        );
+    }
+
+    #[test]
+    fn block_sparsity_and_sparsified() {
+        let o = Vector3::zeros();
+        let mut d = MapInformation::zeros_over(&[1, 2, 3, 4], o).unwrap();
+        // Non-zero blocks: (0,0), (0,2)/(2,0); vector block 3; feature 2 (block 1) carries nothing.
+        d.matrix[(0, 0)] = 1.0;
+        d.matrix[(1, 7)] = 0.5;
+        d.matrix[(7, 1)] = 0.5;
+        d.vector[10] = -3.0;
+        d.matrix[(4, 4)] = 1e-20; // below a threshold of 1e-12
+        let s0 = d.block_sparsity(0.0);
+        assert_eq!(s0.matrix_blocks, vec![(0, 0), (1, 1), (0, 2)]);
+        assert_eq!(s0.vector_blocks, vec![3]);
+        let s = d.block_sparsity(1e-12);
+        assert_eq!(s.matrix_blocks, vec![(0, 0), (0, 2)]);
+        assert_eq!(s.dense_upper_blocks(), 10);
+        assert!((s.density() - 0.2).abs() < 1e-15);
+        let sp = d.sparsified(1e-12);
+        assert_eq!(sp.ids, vec![1, 3, 4]);
+        // Lossless apart from the dropped 1e-20 block.
+        assert!(sp.sub(&d).unwrap().is_zero(1e-20));
+        assert_eq!(sp.matrix[(1, 4)], 0.5);
+        assert_eq!(sp.matrix[(4, 1)], 0.5);
+        // Lossless at threshold 0 except for dropped all-zero features.
+        let z = d.sparsified(0.0);
+        assert_eq!(z.ids, vec![1, 2, 3, 4]);
+        assert!(z.sub(&d).unwrap().is_zero(0.0));
+        assert!(
+            MapInformation::zeros_over(&[5, 6], o)
+                .unwrap()
+                .sparsified(0.0)
+                .is_empty()
+        );
+        assert!(d.block_sparse_wire_bytes() < d.dense_wire_bytes());
+    }
+
+    fn encode(info: &MapInformation) -> Vec<u8> {
+        bincode::serde::encode_to_vec(info, bincode::config::standard()).unwrap()
+    }
+
+    fn decode(bytes: &[u8]) -> Result<MapInformation, bincode::error::DecodeError> {
+        bincode::serde::decode_from_slice(bytes, bincode::config::standard()).map(|(v, _)| v)
+    }
+
+    #[test]
+    fn wire_round_trip_is_lossless_and_within_the_stated_bound() {
+        let mut rng = ChaCha8Rng::seed_from_u64(5);
+        let info = MapInformation::from_marginal(
+            &random_marginal(&mut rng, &[4, 8, 15, 16, 23, 42], 1e6),
+            Vector3::new(1e6, 1e6, 1e6),
+        )
+        .unwrap();
+        let bytes = encode(&info);
+        let back = decode(&bytes).unwrap();
+        assert_eq!(back.ids, info.ids);
+        assert_eq!(back.origin, info.origin);
+        assert!(
+            back.sub(&info).unwrap().is_zero(0.0),
+            "bit-exact round trip"
+        );
+        assert!(bytes.len() <= info.block_sparse_wire_bytes());
+        assert!(bytes.len() <= info.dense_wire_bytes());
+        // A block-sparse delta is much smaller on the wire.
+        let mut delta = MapInformation::zeros_over(&info.ids, info.origin).unwrap();
+        delta.matrix[(0, 0)] = 2.0;
+        delta.vector[0] = 1.0;
+        let small = encode(&delta.sparsified(0.0));
+        assert!(small.len() <= delta.sparsified(0.0).block_sparse_wire_bytes());
+        assert!(small.len() < 200, "{}", small.len());
+    }
+
+    #[test]
+    fn hostile_wire_input_is_an_error_not_a_panic() {
+        let mut rng = ChaCha8Rng::seed_from_u64(6);
+        let info = MapInformation::from_marginal(
+            &random_marginal(&mut rng, &[1, 2, 3], 0.0),
+            Vector3::zeros(),
+        )
+        .unwrap();
+        let bytes = encode(&info);
+        for cut in 0..bytes.len() {
+            assert!(decode(&bytes[..cut]).is_err(), "truncated at {cut}");
+        }
+        // Out-of-range block, below-diagonal block, repeated block, wrong y length, NaN.
+        let mk = |ids: Vec<u64>, vector: Vec<f64>, blocks: Vec<(u32, u32, f64)>| {
+            let w = WireInformation {
+                ids,
+                origin: [0.0; 3],
+                vector,
+                blocks: blocks
+                    .into_iter()
+                    .map(|(row, col, v)| WireBlock {
+                        row,
+                        col,
+                        entries: [v; 9],
+                    })
+                    .collect(),
+            };
+            bincode::serde::encode_to_vec(&w, bincode::config::standard()).unwrap()
+        };
+        assert!(decode(&mk(vec![1], vec![0.0; 3], vec![(0, 0, 1.0)])).is_ok());
+        assert!(decode(&mk(vec![1], vec![0.0; 3], vec![(0, 1, 1.0)])).is_err());
+        assert!(decode(&mk(vec![1, 2], vec![0.0; 6], vec![(1, 0, 1.0)])).is_err());
+        assert!(
+            decode(&mk(
+                vec![1, 2],
+                vec![0.0; 6],
+                vec![(0, 1, 1.0), (0, 1, 1.0)]
+            ))
+            .is_err()
+        );
+        assert!(decode(&mk(vec![1], vec![0.0; 2], vec![])).is_err());
+        assert!(decode(&mk(vec![1], vec![0.0; 3], vec![(0, 0, f64::NAN)])).is_err());
+        assert!(decode(&mk(vec![1, 1], vec![0.0; 6], vec![])).is_err());
+        assert!(
+            decode(&mk(
+                vec![u32::MAX as u64],
+                vec![0.0; 3],
+                vec![(u32::MAX, u32::MAX, 1.0)]
+            ))
+            .is_err()
+        );
+    }
 }

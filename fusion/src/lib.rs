@@ -10,13 +10,18 @@
 //! - [`sensor`]: the estimator's inputs (IMU samples, terrain observations, sensor models).
 //! - [`imu`]: IMU error model and grades (21.13–21.17).
 //! - [`consistency`]: NEES, χ² quantiles, ANEES bands, angle-aware errors.
-//! - [`info`]: map information keyed by feature id (21.86, 21.87).
 //! - [`ins`]: INS mechanization in both frames with ∇F, ∇G and Q (21.19–21.38).
 //! - [`observation`]: terrain observation models, J_1 initialization and their Jacobians (21.41–21.50).
 //! - [`slam`]: the EKF-SLAM filter with M ≥ 1 vehicles: lazy INS prediction, association
 //!   (descriptor, NN, JCBB), Joseph updates, feature initialization, fuse-back of map information.
+//! - [`info`]: map information keyed by feature id (21.86, 21.87), its algebra, (21.98, 21.99).
+//! - [`ci`]: covariance intersection for bandwidth-limited links (full and submap forms).
+//! - [`ddf`]: the channel-filter protocol as a sans-IO state machine (decentralized, central).
+//! - [`topology`]: fusion-network graphs and tree validation (channel filters need a tree).
 
+pub mod ci;
 pub mod consistency;
+pub mod ddf;
 pub mod geodesy;
 pub mod imu;
 pub mod info;
@@ -26,3 +31,4 @@ pub mod rotation;
 pub mod sensor;
 pub mod slam;
 pub mod state;
+pub mod topology;

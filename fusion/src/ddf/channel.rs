@@ -1,0 +1,814 @@
+//! One channel filter: node i's record of what it shares with neighbour k, and the per-link
+//! protocol state (sequence numbers, reorder buffer, epochs, sync, CI fallback).
+
+use super::message::{Body, DdfMessage, Header, Hello};
+use super::node::{DdfConfig, DdfError};
+use super::{FuseTarget, LinkMode};
+use crate::ci::{self, Submap, SubmapTracker};
+use crate::info::{InfoError, MapInformation, MapMarginal};
+use crate::topology::NodeId;
+use nalgebra::Vector3;
+use serde::{Deserialize, Serialize};
+use std::collections::{BTreeMap, VecDeque};
+
+/// Counters of one channel (one neighbour), for metrics and tests.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct ChannelStats {
+    /// Messages handed to the caller for this neighbour.
+    pub messages_sent: u64,
+    /// Messages received from this neighbour (valid or not).
+    pub messages_received: u64,
+    /// Deltas sent.
+    pub deltas_sent: u64,
+    /// Deltas applied (fused) in sequence.
+    pub deltas_applied: u64,
+    /// Deltas or Syncs received again after they took effect (dropped).
+    pub duplicates: u64,
+    /// Messages of a retired epoch, addressed to another epoch of this node, of the wrong
+    /// phase (e.g. a delta before the Sync), or outdated cumulatives (dropped).
+    pub stale: u64,
+    /// Deltas that arrived ahead of a gap and were buffered.
+    pub out_of_order: u64,
+    /// Deltas dropped because the reorder buffer was full (recovered by a cumulative).
+    pub buffer_overflows: u64,
+    /// Nacks sent.
+    pub nacks_sent: u64,
+    /// Nacks received.
+    pub nacks_received: u64,
+    /// Cumulatives sent.
+    pub cumulatives_sent: u64,
+    /// Cumulatives applied.
+    pub cumulatives_applied: u64,
+    /// Epoch pairs this node initiated (first contact or after a peer restart).
+    pub syncs_initiated: u64,
+    /// Syncs of the peer this node applied.
+    pub syncs_applied: u64,
+    /// Times the peer was seen with a new epoch after an earlier one (restarts).
+    pub peer_restarts: u64,
+    /// Messages rejected as invalid (non-finite, asymmetric, wrong size or origin).
+    pub rejected: u64,
+    /// Deltas the caller's estimator refused to fuse (retried later).
+    pub fuse_failures: u64,
+    /// Submaps sent (CI mode).
+    pub submaps_sent: u64,
+    /// Submaps fused by CI.
+    pub submaps_fused: u64,
+    /// Submaps that could not be fused (CI error, e.g. a receiver map that is not positive
+    /// definite) or not built (the sender's map not positive definite).
+    pub ci_failures: u64,
+    /// Rounds in which a CI link had no room for even one feature.
+    pub budget_starved: u64,
+}
+
+/// Where the current epoch pair is.
+#[derive(Clone, Debug)]
+enum Pair {
+    /// Peer epoch unknown, or known but roles not decided (waiting for the peer's Hello).
+    Unpaired,
+    /// This node sent the Sync and waits for its acknowledgement; the Sync is resent as is.
+    Initiating {
+        generation: u64,
+        history: bool,
+        baseline: MapInformation,
+    },
+    /// The peer initiates; this node waits for its Sync (sends only Hellos).
+    Awaiting,
+    /// Deltas flow.
+    Synced,
+}
+
+/// The channel filter of node i for neighbour k (design.md §4), plus its link protocol.
+#[derive(Clone, Debug)]
+pub(crate) struct Channel {
+    peer: NodeId,
+    link_up: bool,
+    mode: LinkMode,
+    budget: Option<usize>,
+    peer_epoch: Option<u64>,
+    retired: VecDeque<u64>,
+    /// Unknown epochs of the peer heard of, with the challenge they must echo to be adopted.
+    candidates: VecDeque<(u64, u64)>,
+    /// Our liveness challenge on this link (raised for every new candidate).
+    challenge: u64,
+    /// The peer epoch heard from last (any non-retired one) and the highest challenge it sent.
+    heard: Option<(u64, u64)>,
+    /// Paired (or initiated a pairing) with some incarnation of the peer.
+    history: bool,
+    /// The peer's history flag, from its latest Hello in the current peer epoch.
+    peer_history: Option<bool>,
+    pair: Pair,
+    sync_gen: u64,
+    /// S: cumulative information sent in the current epoch pair.
+    sent: MapInformation,
+    /// R: cumulative information received from the peer and applied in the current pair.
+    received: MapInformation,
+    seq_sent: u64,
+    applied: u64,
+    buffer: BTreeMap<u64, MapInformation>,
+    /// Highest sequence number the peer is known to have sent in this pair.
+    peer_seq_hint: u64,
+    gap_since: Option<f64>,
+    last_nack: Option<f64>,
+    last_hello: Option<f64>,
+    last_sync: Option<f64>,
+    /// R_total: everything ever received from the peer and applied, over all epochs.
+    received_total: MapInformation,
+    tracker: SubmapTracker,
+    pending_submap: Option<Submap>,
+    pub(crate) stats: ChannelStats,
+}
+
+/// What a channel needs to know about its node.
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct NodeCtx<'a> {
+    pub id: NodeId,
+    pub epoch: u64,
+    pub origin: Vector3<f64>,
+    pub config: &'a DdfConfig,
+}
+
+impl Channel {
+    pub(crate) fn new(peer: NodeId, origin: Vector3<f64>, budget: Option<usize>) -> Self {
+        Self {
+            peer,
+            link_up: true,
+            mode: LinkMode::Exact,
+            budget,
+            peer_epoch: None,
+            retired: VecDeque::new(),
+            candidates: VecDeque::new(),
+            challenge: 1,
+            heard: None,
+            history: false,
+            peer_history: None,
+            pair: Pair::Unpaired,
+            sync_gen: 0,
+            sent: MapInformation::zero(origin),
+            received: MapInformation::zero(origin),
+            seq_sent: 0,
+            applied: 0,
+            buffer: BTreeMap::new(),
+            peer_seq_hint: 0,
+            gap_since: None,
+            last_nack: None,
+            last_hello: None,
+            last_sync: None,
+            received_total: MapInformation::zero(origin),
+            tracker: SubmapTracker::default(),
+            pending_submap: None,
+            stats: ChannelStats::default(),
+        }
+    }
+
+    pub(crate) fn mode(&self) -> LinkMode {
+        self.mode
+    }
+
+    pub(crate) fn is_synced(&self) -> bool {
+        matches!(self.pair, Pair::Synced)
+    }
+
+    pub(crate) fn link_up(&self) -> bool {
+        self.link_up
+    }
+
+    pub(crate) fn set_budget(&mut self, budget: Option<usize>) {
+        self.budget = budget;
+    }
+
+    pub(crate) fn take_pending_submap(&mut self) -> Option<Submap> {
+        self.pending_submap.take()
+    }
+
+    fn header(&self, ctx: &NodeCtx<'_>) -> Header {
+        Header {
+            from_epoch: ctx.epoch,
+            to_epoch: self.peer_epoch,
+            challenge: self.challenge,
+            echo_epoch: self.heard.map_or(0, |(e, _)| e),
+            echo: self.heard.map_or(0, |(_, c)| c),
+        }
+    }
+
+    fn msg(&mut self, ctx: &NodeCtx<'_>, body: Body) -> DdfMessage {
+        self.stats.messages_sent += 1;
+        DdfMessage {
+            header: self.header(ctx),
+            body,
+        }
+    }
+
+    fn hello(&mut self, ctx: &NodeCtx<'_>, now: f64) -> DdfMessage {
+        self.last_hello = Some(now);
+        let body = Body::Hello(Hello {
+            seq_sent: self.seq_sent,
+            applied: self.applied,
+            history: self.history,
+            synced: self.is_synced(),
+            ci: self.mode == LinkMode::Ci,
+        });
+        self.msg(ctx, body)
+    }
+
+    /// Forgets the epoch pair: a new one starts with the peer's new epoch.
+    fn reset_pair(&mut self, origin: Vector3<f64>) {
+        self.pair = Pair::Unpaired;
+        self.sent = MapInformation::zero(origin);
+        self.received = MapInformation::zero(origin);
+        self.seq_sent = 0;
+        self.applied = 0;
+        self.buffer.clear();
+        self.peer_seq_hint = 0;
+        self.gap_since = None;
+        self.last_nack = None;
+        self.last_sync = None;
+        self.peer_history = None;
+    }
+
+    fn new_peer_epoch(&mut self, epoch: u64, ctx: &NodeCtx<'_>) {
+        if let Some(old) = self.peer_epoch {
+            self.stats.peer_restarts += 1;
+            self.retired.push_back(old);
+            while self.retired.len() > ctx.config.retired_epochs {
+                self.retired.pop_front();
+            }
+        }
+        self.peer_epoch = Some(epoch);
+        self.candidates.clear();
+        self.reset_pair(ctx.origin);
+        // The restarted peer lost what it had from us.
+        self.tracker.clear();
+        self.pending_submap = None;
+    }
+
+    /// Decides this node's role in an undecided epoch pair, and initiates if it is ours:
+    /// the side with history initiates (it alone knows R_total); at first contact the lower id.
+    fn decide(&mut self, now: f64, ctx: &NodeCtx<'_>, out: &mut Vec<DdfMessage>) {
+        if !matches!(self.pair, Pair::Unpaired)
+            || self.mode == LinkMode::Ci
+            || self.peer_epoch.is_none()
+        {
+            return;
+        }
+        let initiate = if self.history {
+            true
+        } else {
+            match self.peer_history {
+                None => return,
+                Some(peer_history) => !peer_history && ctx.id < self.peer,
+            }
+        };
+        if !initiate {
+            self.pair = Pair::Awaiting;
+            return;
+        }
+        // S := baseline = R_total, R := 0: this node claims the peer holds everything it ever
+        // sent us; the restarted peer's first delta (Y_k − C_k, C_k = baseline) removes that
+        // old information again where it is no longer backed (docs of `crate::ddf`).
+        self.sync_gen += 1;
+        let baseline = self.received_total.clone();
+        self.sent = baseline.clone();
+        self.received = MapInformation::zero(ctx.origin);
+        self.stats.syncs_initiated += 1;
+        self.pair = Pair::Initiating {
+            generation: self.sync_gen,
+            history: self.history,
+            baseline,
+        };
+        self.history = true;
+        if self.link_up {
+            let sync = self.sync_message(ctx);
+            out.push(sync);
+            self.last_sync = Some(now);
+        }
+    }
+
+    fn sync_message(&mut self, ctx: &NodeCtx<'_>) -> DdfMessage {
+        let Pair::Initiating {
+            generation,
+            history,
+            baseline,
+        } = &self.pair
+        else {
+            unreachable!("sync_message is only called while initiating")
+        };
+        let body = Body::Sync {
+            generation: *generation,
+            history: *history,
+            baseline: baseline.clone(),
+        };
+        self.msg(ctx, body)
+    }
+
+    /// Any message of the peer that proves it applied our Sync completes the pair.
+    fn acknowledge(&mut self) {
+        if matches!(self.pair, Pair::Initiating { .. }) {
+            self.pair = Pair::Synced;
+        }
+    }
+
+    fn gap_open(&self) -> bool {
+        let last_buffered = self.buffer.keys().next_back().copied().unwrap_or(0);
+        self.peer_seq_hint.max(last_buffered) > self.applied
+    }
+
+    fn update_gap(&mut self, now: f64) {
+        if self.gap_open() {
+            self.gap_since.get_or_insert(now);
+        } else {
+            self.gap_since = None;
+        }
+    }
+
+    fn switch_to_ci(&mut self, origin: Vector3<f64>) {
+        if self.mode == LinkMode::Ci {
+            return;
+        }
+        // One-way: the channel filter is retired on this link (design.md §4).
+        self.mode = LinkMode::Ci;
+        self.reset_pair(origin);
+        self.received_total = MapInformation::zero(origin);
+    }
+
+    /// Fuses `info` into the caller's estimate, then records it (R, R_total, watermark).
+    fn apply(
+        &mut self,
+        info: &MapInformation,
+        target: &mut dyn FuseTarget,
+    ) -> Result<(), DdfError> {
+        if let Err(e) = target.fuse(info) {
+            self.stats.fuse_failures += 1;
+            return Err(DdfError::FuseRejected {
+                from: self.peer,
+                source: e,
+            });
+        }
+        self.received.add_assign(info).map_err(DdfError::Internal)?;
+        self.received_total
+            .add_assign(info)
+            .map_err(DdfError::Internal)?;
+        Ok(())
+    }
+
+    /// Applies buffered deltas that are next in sequence.
+    fn drain(&mut self, target: &mut dyn FuseTarget) -> Result<(), DdfError> {
+        while let Some(info) = self.buffer.remove(&(self.applied + 1)) {
+            if let Err(e) = self.apply(&info, target) {
+                self.buffer.insert(self.applied + 1, info);
+                return Err(e);
+            }
+            self.applied += 1;
+            self.stats.deltas_applied += 1;
+        }
+        Ok(())
+    }
+
+    /// Handles one received message (already validated). Returns the replies.
+    pub(crate) fn on_message(
+        &mut self,
+        now: f64,
+        msg: DdfMessage,
+        ctx: &NodeCtx<'_>,
+        target: &mut dyn FuseTarget,
+    ) -> Result<Vec<DdfMessage>, DdfError> {
+        self.stats.messages_received += 1;
+        let mut out = Vec::new();
+        let h = msg.header;
+        if self.retired.contains(&h.from_epoch) {
+            // From an incarnation of the peer this channel has moved on from.
+            self.stats.stale += 1;
+            return Ok(out);
+        }
+        // Remember the sender's challenge (echoed in our headers); answer a raised one at once
+        // so that a node checking our liveness need not wait for our next round.
+        let previous = match self.heard {
+            Some((e, c)) if e == h.from_epoch => c,
+            _ => 0,
+        };
+        if h.challenge > previous {
+            self.heard = Some((h.from_epoch, h.challenge));
+            // Challenges start at 1; a higher one was raised for a candidate epoch.
+            if h.challenge > 1 && self.link_up {
+                out.push(self.hello(ctx, now));
+            }
+        } else {
+            self.heard = Some((h.from_epoch, previous));
+        }
+        let for_me = h.to_epoch.is_none_or(|e| e == ctx.epoch);
+        match self.peer_epoch {
+            Some(current) if current == h.from_epoch => {}
+            None => {
+                // First contact: adopt it (if it is a dead incarnation, the live one will prove
+                // itself as a candidate and replace it).
+                self.new_peer_epoch(h.from_epoch, ctx);
+            }
+            Some(_) => {
+                let required = self
+                    .candidates
+                    .iter()
+                    .find(|&&(e, _)| e == h.from_epoch)
+                    .map(|&(_, r)| r);
+                match required {
+                    Some(r) if h.echo_epoch == ctx.epoch && h.echo >= r => {
+                        // Proven alive after we first heard of it: the peer restarted.
+                        self.new_peer_epoch(h.from_epoch, ctx);
+                    }
+                    Some(_) => {
+                        self.stats.stale += 1;
+                        return Ok(out);
+                    }
+                    None => {
+                        // Challenge it: raise the challenge and tell the peer's node at once.
+                        self.challenge += 1;
+                        self.candidates.push_back((h.from_epoch, self.challenge));
+                        while self.candidates.len() > ctx.config.retired_epochs {
+                            self.candidates.pop_front();
+                        }
+                        self.stats.stale += 1;
+                        if self.link_up {
+                            out.push(self.hello(ctx, now));
+                        }
+                        return Ok(out);
+                    }
+                }
+            }
+        }
+        if !for_me {
+            // Meant for a previous incarnation of this node.
+            self.stats.stale += 1;
+            return Ok(out);
+        }
+        let addressed = h.to_epoch.is_some();
+        let result = match msg.body {
+            Body::Hello(hello) => {
+                self.on_hello(now, hello, addressed, ctx);
+                Ok(())
+            }
+            Body::Submap(submap) => {
+                self.switch_to_ci(ctx.origin);
+                self.pending_submap = Some(submap);
+                Ok(())
+            }
+            _ if self.mode == LinkMode::Ci || !addressed => {
+                // Exact-protocol messages on a CI link, or not addressed to this epoch.
+                self.stats.stale += 1;
+                Ok(())
+            }
+            Body::Sync {
+                history, baseline, ..
+            } => {
+                self.on_sync(now, history, baseline, ctx, &mut out);
+                Ok(())
+            }
+            Body::Delta { seq, info } => self.on_delta(now, seq, info, ctx, target, &mut out),
+            Body::Nack { applied } => {
+                self.on_nack(applied, ctx, &mut out);
+                Ok(())
+            }
+            Body::Cumulative { upto, info } => self.on_cumulative(now, upto, info, target),
+        };
+        self.decide(now, ctx, &mut out);
+        result.map(|()| out)
+    }
+
+    fn on_hello(&mut self, now: f64, hello: Hello, addressed: bool, ctx: &NodeCtx<'_>) {
+        self.peer_history = Some(hello.history);
+        if hello.ci {
+            self.switch_to_ci(ctx.origin);
+            return;
+        }
+        if !addressed || !hello.synced {
+            return;
+        }
+        self.acknowledge();
+        if self.is_synced() {
+            self.peer_seq_hint = self.peer_seq_hint.max(hello.seq_sent);
+            self.update_gap(now);
+        }
+    }
+
+    fn on_sync(
+        &mut self,
+        now: f64,
+        peer_history: bool,
+        baseline: MapInformation,
+        ctx: &NodeCtx<'_>,
+        out: &mut Vec<DdfMessage>,
+    ) {
+        match &self.pair {
+            Pair::Synced => {
+                // Already applied (or we initiated and were acknowledged): re-acknowledge.
+                self.stats.duplicates += 1;
+                let hello = self.hello(ctx, now);
+                out.push(hello);
+                return;
+            }
+            Pair::Initiating { .. } | Pair::Unpaired | Pair::Awaiting => {}
+        }
+        // Who may initiate this epoch pair: the side with history, else the lower id. A Sync
+        // from the side that may not (it acted on stale knowledge of our history, e.g. a Hello
+        // delayed from before our pairing) is refused, and we initiate instead: applying it
+        // would set C to its baseline (0 for a fresh node) and send back everything we hold,
+        // including what the peer's dead incarnation gave us. Both sides evaluate the same rule
+        // on the same flags, so exactly one Sync of the pair is applied.
+        let my_history = match &self.pair {
+            Pair::Initiating { history, .. } => *history,
+            _ => self.history,
+        };
+        self.peer_history = Some(peer_history);
+        let peer_wins =
+            (peer_history && !my_history) || (peer_history == my_history && self.peer < ctx.id);
+        if !peer_wins {
+            self.stats.stale += 1;
+            return;
+        }
+        // Apply: R := baseline, S := 0 (nothing to fuse: the baseline is what the peer
+        // already received from us, however long ago).
+        self.sent = MapInformation::zero(ctx.origin);
+        self.received = baseline;
+        self.seq_sent = 0;
+        self.applied = 0;
+        self.buffer.clear();
+        self.peer_seq_hint = 0;
+        self.gap_since = None;
+        self.pair = Pair::Synced;
+        self.history = true;
+        self.stats.syncs_applied += 1;
+        let hello = self.hello(ctx, now);
+        out.push(hello);
+    }
+
+    fn on_delta(
+        &mut self,
+        now: f64,
+        seq: u64,
+        info: MapInformation,
+        ctx: &NodeCtx<'_>,
+        target: &mut dyn FuseTarget,
+        out: &mut Vec<DdfMessage>,
+    ) -> Result<(), DdfError> {
+        // A delta of this pair proves the peer applied our Sync.
+        self.acknowledge();
+        if !self.is_synced() {
+            self.stats.stale += 1;
+            return Ok(());
+        }
+        self.peer_seq_hint = self.peer_seq_hint.max(seq);
+        if seq <= self.applied || self.buffer.contains_key(&seq) {
+            self.stats.duplicates += 1;
+        } else if seq > self.applied + 1 && self.buffer.len() >= ctx.config.max_buffer {
+            // No room ahead of the gap: drop it (the cumulative will cover it) and ask now.
+            self.stats.buffer_overflows += 1;
+            self.stats.nacks_sent += 1;
+            self.last_nack = Some(now);
+            let nack = self.msg(
+                ctx,
+                Body::Nack {
+                    applied: self.applied,
+                },
+            );
+            out.push(nack);
+        } else {
+            if seq > self.applied + 1 {
+                self.stats.out_of_order += 1;
+            }
+            self.buffer.insert(seq, info);
+        }
+        // Apply what is next in sequence (including a delta the estimator refused earlier).
+        let result = self.drain(target);
+        self.update_gap(now);
+        result
+    }
+
+    fn on_nack(&mut self, applied: u64, ctx: &NodeCtx<'_>, out: &mut Vec<DdfMessage>) {
+        self.acknowledge();
+        self.stats.nacks_received += 1;
+        if self.is_synced() && self.seq_sent > applied {
+            self.stats.cumulatives_sent += 1;
+            let body = Body::Cumulative {
+                upto: self.seq_sent,
+                info: self.sent.clone(),
+            };
+            let msg = self.msg(ctx, body);
+            out.push(msg);
+        }
+    }
+
+    fn on_cumulative(
+        &mut self,
+        now: f64,
+        upto: u64,
+        info: MapInformation,
+        target: &mut dyn FuseTarget,
+    ) -> Result<(), DdfError> {
+        self.acknowledge();
+        if !self.is_synced() || upto <= self.applied {
+            self.stats.stale += 1;
+            return Ok(());
+        }
+        // Apply S − R: exactly the deltas ≤ upto not applied yet.
+        let missing = info.sub(&self.received).map_err(DdfError::Internal)?;
+        if let Err(e) = target.fuse(&missing) {
+            self.stats.fuse_failures += 1;
+            return Err(DdfError::FuseRejected {
+                from: self.peer,
+                source: e,
+            });
+        }
+        self.received_total
+            .add_assign(&missing)
+            .map_err(DdfError::Internal)?;
+        self.received = info;
+        self.applied = upto;
+        self.peer_seq_hint = self.peer_seq_hint.max(upto);
+        self.buffer.retain(|&s, _| s > upto);
+        self.stats.cumulatives_applied += 1;
+        let result = self.drain(target);
+        self.update_gap(now);
+        result
+    }
+
+    /// The periodic exact part: Sync resend while initiating, the delta d = Y_i − C_ik, a Nack
+    /// on a persisting gap. A delta over budget switches the link to CI instead.
+    pub(crate) fn round_exact(
+        &mut self,
+        now: f64,
+        current: &MapInformation,
+        ctx: &NodeCtx<'_>,
+    ) -> Result<Vec<DdfMessage>, DdfError> {
+        let mut out = Vec::new();
+        self.decide(now, ctx, &mut out);
+        if !self.link_up || self.mode != LinkMode::Exact {
+            return Ok(out);
+        }
+        let cfg = ctx.config;
+        match self.pair {
+            Pair::Initiating { .. } => {
+                if self
+                    .last_sync
+                    .is_none_or(|t| now - t >= cfg.sync_resend_interval)
+                {
+                    let sync = self.sync_message(ctx);
+                    out.push(sync);
+                    self.last_sync = Some(now);
+                }
+            }
+            Pair::Synced => {
+                self.send_delta(current, ctx, &mut out)?;
+                if self.gap_since.is_some_and(|t| now - t >= cfg.gap_timeout)
+                    && self.last_nack.is_none_or(|t| now - t >= cfg.gap_timeout)
+                {
+                    self.stats.nacks_sent += 1;
+                    self.last_nack = Some(now);
+                    let nack = self.msg(
+                        ctx,
+                        Body::Nack {
+                            applied: self.applied,
+                        },
+                    );
+                    out.push(nack);
+                }
+            }
+            Pair::Unpaired | Pair::Awaiting => {}
+        }
+        Ok(out)
+    }
+
+    /// The rest of a round: a submap on a CI link (from the node's covariance form, `None` if
+    /// it could not be formed), then the Hello when due (last, so that it announces this
+    /// round's seq_sent).
+    pub(crate) fn round_finish(
+        &mut self,
+        now: f64,
+        marginal: Option<&MapMarginal>,
+        ctx: &NodeCtx<'_>,
+    ) -> Vec<DdfMessage> {
+        let mut out = Vec::new();
+        if !self.link_up {
+            return out;
+        }
+        if self.mode == LinkMode::Ci {
+            self.send_submap(now, marginal, ctx, &mut out);
+        }
+        if self
+            .last_hello
+            .is_none_or(|t| now - t >= ctx.config.hello_interval)
+        {
+            let hello = self.hello(ctx, now);
+            out.push(hello);
+        }
+        out
+    }
+
+    fn send_delta(
+        &mut self,
+        current: &MapInformation,
+        ctx: &NodeCtx<'_>,
+        out: &mut Vec<DdfMessage>,
+    ) -> Result<(), DdfError> {
+        // d = Y_i − C_ik with C_ik = S + R (design.md §4).
+        let d = current
+            .sub_both(&self.sent, &self.received)
+            .map_err(DdfError::Internal)?;
+        let rel = ctx.config.block_threshold_rel;
+        let d = d.sparsified_with(
+            rel * current.matrix_norm_max(),
+            rel * current.vector_norm_max(),
+        );
+        if d.is_empty() {
+            return Ok(());
+        }
+        if self.budget.is_some_and(|b| d.block_sparse_wire_bytes() > b) {
+            // The full delta does not fit: fall back to CI for good (both directions: the
+            // peer switches on our first submap or Hello).
+            self.switch_to_ci(ctx.origin);
+            return Ok(());
+        }
+        self.sent.add_assign(&d).map_err(DdfError::Internal)?;
+        self.seq_sent += 1;
+        self.stats.deltas_sent += 1;
+        let msg = self.msg(
+            ctx,
+            Body::Delta {
+                seq: self.seq_sent,
+                info: d,
+            },
+        );
+        out.push(msg);
+        Ok(())
+    }
+
+    fn send_submap(
+        &mut self,
+        now: f64,
+        marginal: Option<&MapMarginal>,
+        ctx: &NodeCtx<'_>,
+        out: &mut Vec<DdfMessage>,
+    ) {
+        let Some(marginal) = marginal else {
+            // The node could not form its covariance (its map is not positive definite).
+            self.stats.ci_failures += 1;
+            return;
+        };
+        if marginal.is_empty() {
+            return;
+        }
+        let budget = self.budget.unwrap_or(usize::MAX);
+        let ids = ci::select_submap(self.tracker.priorities(marginal), budget);
+        if ids.is_empty() {
+            self.stats.budget_starved += 1;
+            return;
+        }
+        let submap = Submap::from_marginal(marginal, &ids, ctx.origin);
+        self.tracker.record_sent(&submap, now);
+        self.stats.submaps_sent += 1;
+        let msg = self.msg(ctx, Body::Submap(submap));
+        out.push(msg);
+    }
+
+    pub(crate) fn on_link_up(&mut self, now: f64, ctx: &NodeCtx<'_>) -> Vec<DdfMessage> {
+        self.link_up = true;
+        let mut out = vec![self.hello(ctx, now)];
+        if matches!(self.pair, Pair::Initiating { .. }) {
+            out.push(self.sync_message(ctx));
+            self.last_sync = Some(now);
+        }
+        out
+    }
+
+    pub(crate) fn on_link_down(&mut self) {
+        self.link_up = false;
+    }
+
+    /// Validation of a received payload against the node's origin (before any state change).
+    pub(crate) fn validate_payload(
+        msg: &DdfMessage,
+        origin: Vector3<f64>,
+    ) -> Result<(), InfoError> {
+        let check = |info: &MapInformation| -> Result<(), InfoError> {
+            info.validate()?;
+            if info.origin != origin {
+                return Err(InfoError::OriginMismatch {
+                    left: origin.into(),
+                    right: info.origin.into(),
+                });
+            }
+            Ok(())
+        };
+        match &msg.body {
+            Body::Hello(_) | Body::Nack { .. } => Ok(()),
+            Body::Delta { info, .. } | Body::Cumulative { info, .. } => check(info),
+            Body::Sync { baseline, .. } => check(baseline),
+            Body::Submap(s) => {
+                s.validate()?;
+                if Vector3::from(s.origin) != origin {
+                    return Err(InfoError::OriginMismatch {
+                        left: origin.into(),
+                        right: s.origin,
+                    });
+                }
+                Ok(())
+            }
+        }
+    }
+}

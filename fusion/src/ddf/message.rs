@@ -1,0 +1,142 @@
+//! The messages of the channel-filter protocol (sans-IO: the caller moves them; serde gives the
+//! wire form).
+
+use crate::ci::Submap;
+use crate::info::MapInformation;
+use crate::topology::NodeId;
+use serde::{Deserialize, Serialize};
+
+/// Epoch tags and the liveness challenge carried by every message.
+///
+/// An epoch is chosen by a node process at start (a random u64 supplied by the caller) and
+/// never changes during its life; a restarted process has a new epoch. The receiver drops a
+/// message addressed to another epoch of itself (it was meant for a previous incarnation).
+///
+/// A message from an unknown epoch of a known peer may be a delayed message of an incarnation
+/// that has died since (restarts faster than the network delay), so it does not switch the
+/// channel at once: the receiver raises its `challenge` and adopts that epoch only when a
+/// message from it echoes a challenge at least that high *of the receiver's epoch*, i.e. proves
+/// it was alive after it was first heard of. Dead incarnations cannot do that, so a channel
+/// never falls back to one. Echoes are tagged with the epoch they answer, because the prover
+/// may still address its messages to a dead incarnation of the receiver.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Header {
+    /// The sender's epoch.
+    pub from_epoch: u64,
+    /// The receiver's epoch as the sender knows it (`None` before the sender has heard from
+    /// the receiver).
+    pub to_epoch: Option<u64>,
+    /// The sender's current liveness challenge on this link (raised when it hears of a new
+    /// epoch of the receiver's node).
+    pub challenge: u64,
+    /// The epoch of the receiver's node that the sender heard from last.
+    pub echo_epoch: u64,
+    /// The highest challenge the sender has received from `echo_epoch`.
+    pub echo: u64,
+}
+
+/// The periodic heartbeat: keeps loss detection alive when no delta flows, carries the sync
+/// state and the link mode.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Hello {
+    /// Highest delta sequence number sent in the current epoch pair.
+    pub seq_sent: u64,
+    /// Contiguous receive watermark in the current epoch pair.
+    pub applied: u64,
+    /// The sender has been paired with some incarnation of the receiver before (decides who
+    /// initiates a resynchronisation).
+    pub history: bool,
+    /// The sender has completed the Sync of the current epoch pair (acknowledges a Sync).
+    pub synced: bool,
+    /// The sender's side of the link has fallen back to covariance intersection.
+    pub ci: bool,
+}
+
+/// The body of a [`DdfMessage`].
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub enum Body {
+    /// Heartbeat.
+    Hello(Hello),
+    /// One channel-filter delta d = Y_i − C_ik (eqs. 21.94, 21.95 without the double counting):
+    /// applied strictly in sequence order, exactly once.
+    Delta {
+        /// Sequence number in the epoch pair, from 1.
+        seq: u64,
+        /// The delta (symmetric, possibly indefinite).
+        info: MapInformation,
+    },
+    /// Receiver → sender: "I have applied up to `applied`; a later delta is missing".
+    Nack {
+        /// The receiver's contiguous watermark.
+        applied: u64,
+    },
+    /// Sender → receiver: the cumulative information S sent in this epoch pair, up to `upto`.
+    /// The receiver applies S − R (what it has not applied yet) and sets R = S.
+    Cumulative {
+        /// The sequence number S includes.
+        upto: u64,
+        /// S.
+        info: MapInformation,
+    },
+    /// Starts an epoch pair: the receiver sets R := baseline, S := 0; the sender has set
+    /// S := baseline, R := 0. The baseline is everything the sender ever applied from any
+    /// incarnation of the receiver (docs of [`crate::ddf`]).
+    Sync {
+        /// Generation (per channel, for diagnostics).
+        generation: u64,
+        /// The sender's history flag before initiating (tie-break between two initiators).
+        history: bool,
+        /// The baseline.
+        baseline: MapInformation,
+    },
+    /// A covariance-form submap on a link that has fallen back to covariance intersection.
+    Submap(Submap),
+}
+
+/// A protocol message.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct DdfMessage {
+    /// Epoch tags.
+    pub header: Header,
+    /// Payload.
+    pub body: Body,
+}
+
+impl DdfMessage {
+    /// Short name of the message kind (for logs and metrics).
+    pub fn kind(&self) -> &'static str {
+        match self.body {
+            Body::Hello(_) => "hello",
+            Body::Delta { .. } => "delta",
+            Body::Nack { .. } => "nack",
+            Body::Cumulative { .. } => "cumulative",
+            Body::Sync { .. } => "sync",
+            Body::Submap(_) => "submap",
+        }
+    }
+
+    /// An upper bound of the encoded size in bincode's standard configuration, in bytes.
+    pub fn wire_bytes_bound(&self) -> usize {
+        // Header: five u64 varints (≤ 9 each) and an Option tag; enum tag; small fields.
+        const HEADER: usize = 5 * 9 + 1 + 1;
+        HEADER
+            + match &self.body {
+                Body::Hello(_) => 9 + 9 + 3,
+                Body::Delta { info, .. } | Body::Cumulative { info, .. } => {
+                    9 + info.block_sparse_wire_bytes()
+                }
+                Body::Nack { .. } => 9,
+                Body::Sync { baseline, .. } => 9 + 1 + baseline.block_sparse_wire_bytes(),
+                Body::Submap(s) => s.wire_bytes(),
+            }
+    }
+}
+
+/// A message to send to a neighbour.
+#[derive(Clone, Debug)]
+pub struct Outgoing {
+    /// Destination.
+    pub to: NodeId,
+    /// The message.
+    pub message: DdfMessage,
+}

@@ -1,0 +1,135 @@
+//! Decentralized data fusion: channel filters over a tree, as a sans-IO state machine
+//! (design.md §4; chapter §21.5.2–21.5.4, eqs. 21.88–21.99 with their errata).
+//!
+//! # Bookkeeping
+//! Node i keeps, for each neighbour k, the channel information C_ik: what i knows it shares
+//! with k. Sending: d = Y_i − C_ik, C_ik += d (eqs. 21.94, 21.95 per link). Receiving d from k:
+//! (Y_i, y_i) += d, C_ik += d (21.96, 21.97 per link, *without* eq. 21.96's sum over all
+//! vehicles including i itself, which double counts). Deltas commute, so delay and reordering
+//! are harmless; loss, duplication and outages are handled by sequence numbers and a
+//! cumulative resync; restarts by link epochs. On a tree no information reaches a node by two
+//! paths, so after as many rounds as the diameter every node holds the centralized sum.
+//!
+//! Central mode (eqs. 21.88–21.93) is the star special case: the hub is a [`DdfNode`] without
+//! observations whose estimate is the sum of what it received, and each vehicle–hub link is a
+//! channel filter, so the feedback to a vehicle carries only what it does not hold (eq. 21.92
+//! as printed adds the whole central increment, including the vehicle's own contribution).
+//!
+//! # Exactly-once per epoch pair
+//! C = S + R: S is what i sent k in the current epoch pair, R what i received from k and
+//! applied. Deltas carry seq = 1, 2, …; the receiver applies seq = applied + 1 and drains its
+//! reorder buffer, buffers later ones, drops earlier ones (duplicates). A gap that persists
+//! (buffered deltas ahead of it, or a Hello announcing seq_sent > applied) for `gap_timeout`,
+//! or a full buffer, triggers `Nack{applied}`; the sender answers `Cumulative{upto, S}` and the
+//! receiver applies S − R, sets R := S and applied := upto. S − R is exactly the sum of the
+//! deltas it has not applied, so each delta takes effect once, whatever was lost or repeated.
+//!
+//! # Epochs and resynchronisation
+//! Every process has a random epoch; messages carry (sender epoch, receiver epoch as known).
+//! A message for another epoch of the receiver, or from a retired epoch of the sender, is
+//! dropped. A new epoch of the peer starts a new epoch pair, which must be synchronised before
+//! deltas flow: the side with *history* (it was paired with an earlier incarnation of the peer)
+//! initiates; at first contact the lower id does. The initiator i sends `Sync{baseline = Rtot}`
+//! where Rtot is everything i ever received from k (all epochs) and sets S := Rtot, R := 0; the
+//! responder sets R := Rtot, S := 0. Both then hold C = Rtot, and deltas flow. The same rule
+//! decides which Sync is *applied*: a Sync from the side that may not initiate (it acted on a
+//! stale view of the other's history, e.g. a delayed Hello) is refused, and the refusing side
+//! initiates itself; with two crossing Syncs exactly one is applied.
+//!
+//! Adopting a new epoch of a known peer needs a liveness proof. Restarts can be faster than
+//! the network delay, so a delayed message of an incarnation that has died since may arrive
+//! after its successor took over; adopting it would point the channel at a dead process for
+//! good. An unknown epoch is therefore only a *candidate*: the node raises its per-link
+//! challenge (carried in every header) and adopts the candidate when a message from it echoes
+//! a challenge at least that high, tagged with the node's own epoch — proof that the candidate
+//! was alive after it was first heard of, which a dead incarnation cannot give. (First contact
+//! adopts at once; if that was a dead incarnation, the live one proves itself and replaces it.)
+//!
+//! Why this does not double count when a middle node k restarts between subtrees I and J
+//! (I, J: the information originating there; K_old: old k's own, lost with it; K_new: new k's):
+//! before the restart, i holds I + J + K_old and Rtot_ik = J + K_old (everything k sent i).
+//! i's first delta to k is Y_i − C_ik = I + J + K_old − (J + K_old) = I: only i's side. k's first
+//! delta to i is Y_k − C_ki = K_new − (J + K_old) (indefinite): it removes from i exactly what
+//! k can no longer vouch for. i then holds I + K_new, and j's side J reaches i through k by the
+//! next deltas: i ends with I + J + K_new. Information is lost (K_old), never counted twice;
+//! at every instant each node holds a sum of distinct contributions. The same argument with
+//! J = ∅ covers a leaf, and with Rtot = 0 first contact.
+//!
+//! The integrator's design sends `Sync{fuse = Y_i − Rtot, baseline = Y_i}` instead; ours is
+//! the same algebra with the i-side information moved from the Sync into i's first delta
+//! (it needs no Y_i when the restart is detected, so the Sync can be answered inside
+//! `on_message`), at the cost of one more round for J to reach i.
+//!
+//! # Covariance intersection fallback
+//! When a link's byte budget cannot carry the delta, the link switches to CI for good, in both
+//! directions (the peer switches on the first submap or on a Hello with `ci` set): its channel
+//! filter is retired, and each round a budgeted [`Submap`](crate::ci::Submap) of the
+//! highest-priority features is sent and fused by [`crate::ci::fuse_submap`]. Exact-protocol
+//! messages still in flight on that link are dropped (information lost, never double counted).
+//! The CI change of the estimate reaches the node's exact links as part of Y_i − C_ij, so
+//! deltas there may be indefinite: payloads are validated as finite and symmetric, positive
+//! definiteness is the estimator's check on its fused result.
+
+mod channel;
+mod message;
+mod node;
+
+pub use channel::ChannelStats;
+pub use message::{Body, DdfMessage, Header, Hello, Outgoing};
+pub use node::{ChannelView, DdfConfig, DdfError, DdfNode, NodeStats, RoundOutput};
+
+use crate::info::MapInformation;
+use crate::topology::NodeId;
+use serde::{Deserialize, Serialize};
+
+/// How a team fuses maps.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(tag = "kind", rename_all = "lowercase")]
+pub enum Mode {
+    /// Channel filters on a tree of vehicles, hop by hop (eqs. 21.94–21.99, corrected).
+    Decentralized,
+    /// A hub without observations; channel filters on each vehicle–hub link (the independent
+    /// opinion pool with local feedback, eqs. 21.88–21.93, corrected).
+    Central {
+        /// The hub's id.
+        hub: NodeId,
+    },
+    /// No fusion.
+    Isolated,
+}
+
+/// Whether a link runs the exact channel filter or the CI fallback.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum LinkMode {
+    /// Channel filter: exact, additive deltas.
+    Exact,
+    /// Covariance intersection of budgeted submaps (one-way switch).
+    Ci,
+}
+
+/// The estimator refused to fuse information.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+#[error("fusion refused: {reason}")]
+pub struct FuseRejected {
+    /// Why.
+    pub reason: String,
+}
+
+/// The caller's estimator as seen by the channel filters: received information is added to
+/// it (the EKF's fuse-back, eqs. 21.92, 21.93 / 21.96–21.99). A refusal (e.g. the fused map
+/// would not be positive definite) leaves the delta pending.
+pub trait FuseTarget {
+    /// Adds `delta` (aligned by feature id; new features augment the map).
+    fn fuse(&mut self, delta: &MapInformation) -> Result<(), FuseRejected>;
+}
+
+/// A plain information accumulator (the hub's estimate, and the stand-in for the EKF's map in
+/// linear-Gaussian tests): adds every delta.
+impl FuseTarget for MapInformation {
+    fn fuse(&mut self, delta: &MapInformation) -> Result<(), FuseRejected> {
+        self.add_assign(delta).map_err(|e| FuseRejected {
+            reason: e.to_string(),
+        })
+    }
+}

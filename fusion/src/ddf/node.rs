@@ -1,0 +1,398 @@
+//! The per-process DDF state machine: one [`DdfNode`] per vehicle or hub, one channel per
+//! configured neighbour.
+
+use super::channel::{Channel, ChannelStats, NodeCtx};
+use super::message::{DdfMessage, Outgoing};
+use super::{FuseRejected, FuseTarget, LinkMode, Mode};
+use crate::ci::{self, CiCriterion};
+use crate::info::{InfoError, MapInformation};
+use crate::topology::{NodeId, Topology, TopologyError};
+use nalgebra::Vector3;
+use serde::{Deserialize, Serialize};
+use std::collections::BTreeMap;
+
+/// Protocol parameters. Times are in the caller's clock units (seconds in the node process,
+/// rounds in a lock-step simulation).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct DdfConfig {
+    /// Interval between Hellos on each link.
+    pub hello_interval: f64,
+    /// How long a gap in the received sequence may persist before a Nack (and between Nacks).
+    pub gap_timeout: f64,
+    /// Interval between resends of an unacknowledged Sync.
+    pub sync_resend_interval: f64,
+    /// Out-of-order deltas buffered per link; beyond it a Nack is sent at once.
+    pub max_buffer: usize,
+    /// A block of a delta is not sent while its max-abs is at most this times max|Y_i| (for Y)
+    /// or max|y_i| (for y). It stays in Y_i − C_ik and goes out once it grows: nothing is lost.
+    /// The default 1e-12 is ~4500 ulps: above the round-off left by aligned sums (so a quiet
+    /// network sends no deltas), far below any tolerance a user would judge estimates by.
+    pub block_threshold_rel: f64,
+    /// Per-link byte budget of one round's delta (`None`: unlimited). A delta that does not fit
+    /// switches the link to covariance intersection for good (design.md §4). Recovery messages
+    /// (Sync, Cumulative) are exempt.
+    pub byte_budget: Option<usize>,
+    /// What CI's ω minimises.
+    pub ci_criterion: CiCriterion,
+    /// How many retired epochs of each peer are remembered (messages from them are dropped),
+    /// and how many unproven candidate epochs are kept.
+    pub retired_epochs: usize,
+}
+
+impl Default for DdfConfig {
+    fn default() -> Self {
+        Self {
+            hello_interval: 1.0,
+            gap_timeout: 2.0,
+            sync_resend_interval: 1.0,
+            max_buffer: 64,
+            block_threshold_rel: 1e-12,
+            byte_budget: None,
+            ci_criterion: CiCriterion::Trace,
+            retired_epochs: 64,
+        }
+    }
+}
+
+/// Errors of the DDF state machine. None of them leaves a channel half-updated.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum DdfError {
+    /// A message from a node that is not a configured neighbour (counted in [`NodeStats`]).
+    #[error("message from node {0}, which is not a neighbour")]
+    UnknownSender(NodeId),
+    /// An API call naming a node that is not a neighbour.
+    #[error("node {0} is not a neighbour")]
+    UnknownNeighbour(NodeId),
+    /// A non-finite time stamp.
+    #[error("time stamp {0} is not finite")]
+    InvalidTime(f64),
+    /// A message whose payload is invalid (counted as rejected on its channel).
+    #[error("invalid message from node {from}: {source}")]
+    InvalidMessage {
+        /// Sender.
+        from: NodeId,
+        /// What is wrong.
+        source: InfoError,
+    },
+    /// The caller's own estimate passed to `on_round` is invalid.
+    #[error("invalid local estimate: {0}")]
+    InvalidEstimate(InfoError),
+    /// The caller's estimator refused a delta; it stays pending and is retried.
+    #[error("estimator refused information from node {from}: {source}")]
+    FuseRejected {
+        /// Sender of the refused information.
+        from: NodeId,
+        /// The estimator's reason.
+        source: FuseRejected,
+    },
+    /// The topology does not suit the mode.
+    #[error(transparent)]
+    Topology(#[from] TopologyError),
+    /// An internal invariant broke (shapes or origins of validated data); reported, not
+    /// panicked on.
+    #[error("internal error: {0}")]
+    Internal(InfoError),
+}
+
+/// Node-level counters.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct NodeStats {
+    /// Messages from nodes that are not neighbours (rejected).
+    pub unknown_sender: u64,
+}
+
+/// What [`DdfNode::on_round`] asks the caller to do.
+#[derive(Clone, Debug, Default)]
+pub struct RoundOutput {
+    /// Messages to send.
+    pub messages: Vec<Outgoing>,
+    /// The change that covariance intersection with the submaps received since the last round
+    /// makes to the estimate (fused − current), to be added to it like a delta (usually
+    /// indefinite). `None` when no submap was pending.
+    pub ci_delta: Option<MapInformation>,
+}
+
+/// A read-only view of one channel.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct ChannelView {
+    /// The neighbour.
+    pub peer: NodeId,
+    /// Exact channel filter or CI fallback.
+    pub mode: LinkMode,
+    /// The current epoch pair is synchronised (deltas flow).
+    pub synced: bool,
+    /// The caller reported the link up.
+    pub link_up: bool,
+    /// Counters.
+    pub stats: ChannelStats,
+}
+
+/// The DDF state machine of one process (vehicle or hub). Sans-IO: the caller feeds time,
+/// its current map information, received messages and link events, and moves the returned
+/// messages; received information reaches the caller's estimator through [`FuseTarget`].
+#[derive(Clone, Debug)]
+pub struct DdfNode {
+    id: NodeId,
+    epoch: u64,
+    origin: Vector3<f64>,
+    config: DdfConfig,
+    channels: BTreeMap<NodeId, Channel>,
+    stats: NodeStats,
+}
+
+impl DdfNode {
+    /// A node with channels to `neighbours`. `epoch` must be chosen afresh (randomly) at every
+    /// process start; `origin` is the team origin of all map information.
+    pub fn new(
+        id: NodeId,
+        epoch: u64,
+        neighbours: impl IntoIterator<Item = NodeId>,
+        origin: Vector3<f64>,
+        config: DdfConfig,
+    ) -> Self {
+        let channels = neighbours
+            .into_iter()
+            .map(|k| (k, Channel::new(k, origin, config.byte_budget)))
+            .collect();
+        Self {
+            id,
+            epoch,
+            origin,
+            config,
+            channels,
+            stats: NodeStats::default(),
+        }
+    }
+
+    /// A node configured for a mode on a topology: `Decentralized` needs a tree and links the
+    /// node to its tree neighbours; `Central { hub }` needs the star around the hub (vehicles
+    /// get one channel to the hub, the hub one per vehicle); `Isolated` has no channels.
+    pub fn for_mode(
+        mode: Mode,
+        id: NodeId,
+        epoch: u64,
+        topology: &Topology,
+        origin: Vector3<f64>,
+        config: DdfConfig,
+    ) -> Result<Self, DdfError> {
+        let neighbours: Vec<NodeId> = match mode {
+            Mode::Isolated => Vec::new(),
+            Mode::Decentralized => {
+                topology.require_tree()?;
+                topology
+                    .neighbours(id)
+                    .ok_or(TopologyError::UnknownNode {
+                        node: id,
+                        a: id,
+                        b: id,
+                    })?
+                    .to_vec()
+            }
+            Mode::Central { hub } => {
+                topology.require_star(hub)?;
+                topology
+                    .neighbours(id)
+                    .ok_or(TopologyError::UnknownNode {
+                        node: id,
+                        a: id,
+                        b: id,
+                    })?
+                    .to_vec()
+            }
+        };
+        Ok(Self::new(id, epoch, neighbours, origin, config))
+    }
+
+    /// This node's id.
+    pub fn id(&self) -> NodeId {
+        self.id
+    }
+
+    /// This node's epoch.
+    pub fn epoch(&self) -> u64 {
+        self.epoch
+    }
+
+    /// The configured neighbours.
+    pub fn neighbours(&self) -> impl Iterator<Item = NodeId> + '_ {
+        self.channels.keys().copied()
+    }
+
+    /// Node-level counters.
+    pub fn stats(&self) -> NodeStats {
+        self.stats
+    }
+
+    /// A view of the channel to `peer`.
+    pub fn channel(&self, peer: NodeId) -> Option<ChannelView> {
+        self.channels.get(&peer).map(|c| ChannelView {
+            peer,
+            mode: c.mode(),
+            synced: c.is_synced(),
+            link_up: c.link_up(),
+            stats: c.stats,
+        })
+    }
+
+    /// Views of all channels.
+    pub fn channels(&self) -> impl Iterator<Item = ChannelView> + '_ {
+        self.channels.keys().filter_map(|&k| self.channel(k))
+    }
+
+    /// Sets the byte budget of one link (`None`: unlimited).
+    pub fn set_link_budget(&mut self, peer: NodeId, budget: Option<usize>) -> Result<(), DdfError> {
+        self.channels
+            .get_mut(&peer)
+            .ok_or(DdfError::UnknownNeighbour(peer))?
+            .set_budget(budget);
+        Ok(())
+    }
+
+    fn check_time(now: f64) -> Result<(), DdfError> {
+        if now.is_finite() {
+            Ok(())
+        } else {
+            Err(DdfError::InvalidTime(now))
+        }
+    }
+
+    /// One fusion round. `current` is this node's map information (Y_i, y_i) now (eqs. 21.86,
+    /// 21.87 of its map marginal; the hub's running sum). Fuses pending CI submaps against it
+    /// (returned as [`RoundOutput::ci_delta`]), and for every link that is up: a Hello when
+    /// due, the Sync while initiating, the channel-filter delta d = Y_i − C_ik when it is not
+    /// empty (C_ik += d), a Nack when a gap persists, or a submap on a CI link.
+    pub fn on_round(
+        &mut self,
+        now: f64,
+        current: &MapInformation,
+    ) -> Result<RoundOutput, DdfError> {
+        Self::check_time(now)?;
+        current.validate().map_err(DdfError::InvalidEstimate)?;
+        if current.origin != self.origin {
+            return Err(DdfError::InvalidEstimate(InfoError::OriginMismatch {
+                left: self.origin.into(),
+                right: current.origin.into(),
+            }));
+        }
+        // CI with the submaps received since the last round.
+        let mut fused: Option<MapInformation> = None;
+        let criterion = self.config.ci_criterion;
+        for channel in self.channels.values_mut() {
+            if let Some(submap) = channel.take_pending_submap() {
+                let base = fused.as_ref().unwrap_or(current);
+                match ci::fuse_submap(base, &submap, criterion) {
+                    Ok(r) => {
+                        channel.stats.submaps_fused += 1;
+                        fused = Some(r.fused);
+                    }
+                    Err(_) => channel.stats.ci_failures += 1,
+                }
+            }
+        }
+        let ci_delta = match fused {
+            Some(f) => Some(f.sub(current).map_err(DdfError::Internal)?),
+            None => None,
+        };
+        let ctx = NodeCtx {
+            id: self.id,
+            epoch: self.epoch,
+            origin: self.origin,
+            config: &self.config,
+        };
+        // Exact parts first: a delta that does not fit its budget switches its link to CI.
+        let mut per_channel: BTreeMap<NodeId, Vec<DdfMessage>> = BTreeMap::new();
+        for (&peer, channel) in self.channels.iter_mut() {
+            per_channel.insert(peer, channel.round_exact(now, current, &ctx)?);
+        }
+        // The covariance form, only if a CI link will send a submap.
+        let needs_marginal = self
+            .channels
+            .values()
+            .any(|c| c.mode() == LinkMode::Ci && c.link_up());
+        let marginal = if needs_marginal {
+            current.to_marginal().ok()
+        } else {
+            None
+        };
+        let mut messages = Vec::new();
+        for (&peer, channel) in self.channels.iter_mut() {
+            let mut out = per_channel.remove(&peer).unwrap_or_default();
+            out.extend(channel.round_finish(now, marginal.as_ref(), &ctx));
+            messages.extend(
+                out.into_iter()
+                    .map(|message| Outgoing { to: peer, message }),
+            );
+        }
+        Ok(RoundOutput { messages, ci_delta })
+    }
+
+    /// Handles a message from `from`. Information to fuse goes to `target` (the caller's
+    /// estimator); the channel records a delta only after `target` accepted it, so every
+    /// delta takes effect exactly once. Returns replies to send.
+    ///
+    /// Errors: [`DdfError::UnknownSender`] (not a neighbour), [`DdfError::InvalidMessage`]
+    /// (payload not finite/symmetric/well-sized, or another origin; nothing changed),
+    /// [`DdfError::FuseRejected`] (the estimator refused; the delta stays pending).
+    pub fn on_message(
+        &mut self,
+        now: f64,
+        from: NodeId,
+        message: DdfMessage,
+        target: &mut dyn FuseTarget,
+    ) -> Result<Vec<Outgoing>, DdfError> {
+        Self::check_time(now)?;
+        let origin = self.origin;
+        let ctx = NodeCtx {
+            id: self.id,
+            epoch: self.epoch,
+            origin,
+            config: &self.config,
+        };
+        let Some(channel) = self.channels.get_mut(&from) else {
+            self.stats.unknown_sender += 1;
+            return Err(DdfError::UnknownSender(from));
+        };
+        if let Err(source) = Channel::validate_payload(&message, origin) {
+            channel.stats.messages_received += 1;
+            channel.stats.rejected += 1;
+            return Err(DdfError::InvalidMessage { from, source });
+        }
+        let replies = channel.on_message(now, message, &ctx, target)?;
+        Ok(replies
+            .into_iter()
+            .map(|message| Outgoing { to: from, message })
+            .collect())
+    }
+
+    /// The transport reports the link to `peer` up: sends a Hello at once (and the pending Sync
+    /// if this node is initiating), so a peer that lost messages during an outage detects the
+    /// gap without waiting for the next round.
+    pub fn on_link_up(&mut self, now: f64, peer: NodeId) -> Result<Vec<Outgoing>, DdfError> {
+        Self::check_time(now)?;
+        let ctx = NodeCtx {
+            id: self.id,
+            epoch: self.epoch,
+            origin: self.origin,
+            config: &self.config,
+        };
+        let channel = self
+            .channels
+            .get_mut(&peer)
+            .ok_or(DdfError::UnknownNeighbour(peer))?;
+        Ok(channel
+            .on_link_up(now, &ctx)
+            .into_iter()
+            .map(|message| Outgoing { to: peer, message })
+            .collect())
+    }
+
+    /// The transport reports the link to `peer` down: nothing is sent on it until it is up
+    /// again; what accumulates in Y_i − C_ik goes out as one delta afterwards.
+    pub fn on_link_down(&mut self, peer: NodeId) -> Result<(), DdfError> {
+        self.channels
+            .get_mut(&peer)
+            .ok_or(DdfError::UnknownNeighbour(peer))?
+            .on_link_down();
+        Ok(())
+    }
+}
