@@ -77,6 +77,7 @@ fn filter_with(n: usize, mode: AssociationMode) -> SlamFilter {
         association: AssociationConfig {
             mode,
             gate_probability: 0.95,
+            ..AssociationConfig::default()
         },
         fresh_id_namespace: 0,
     };

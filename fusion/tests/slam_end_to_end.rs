@@ -103,6 +103,7 @@ fn config_with_gate(frame: NavFrame, origin: Vector3<f64>, gate_probability: f64
         association: AssociationConfig {
             mode: AssociationMode::Descriptor,
             gate_probability,
+            ..AssociationConfig::default()
         },
         fresh_id_namespace: 0,
     }

@@ -7,10 +7,18 @@
 //!   coordinated-flight attitude, IMU synthesis (discrete inverse of the mechanization or
 //!   continuous), the terrain sensor, and per-step truth; a pure, step-able library used by the
 //!   `world` process and by `canopy sim`.
+//! - [`network`]: the scenario's `[run]`, `[fusion]`, `[[link]]`, `[[partition]]`, `[[event]]`,
+//!   `[secrets]` tables, their validation and the fusion topology.
 //! - [`record`]: what a run gathers (estimates vs truth, maps, link statistics, events).
 //! - [`output`]: summary.json, TUM trajectories, CSVs and report.html.
 
+pub mod agent;
+pub mod cli;
+pub mod metrics;
+pub mod network;
 pub mod output;
 pub mod record;
 pub mod scenario;
+pub mod sim;
+pub mod wire;
 pub mod world;

@@ -34,6 +34,11 @@ use canopy_fusion::state::NavFrame;
 use nalgebra::{Matrix3, Vector3};
 use serde::{Deserialize, Serialize};
 
+pub use crate::network::{
+    EventKind, EventSpec, FaultSpec, FusionConfig, FusionMode, LinkSpec, PartitionSpec, RunConfig,
+    SecretsConfig, TransportKind,
+};
+
 /// A scenario's configuration error.
 #[derive(Debug, thiserror::Error)]
 pub enum ScenarioError {
@@ -48,6 +53,14 @@ pub enum ScenarioError {
     /// The TOML did not parse or did not match the schema (unknown field, wrong type, …).
     #[error("scenario TOML: {0}")]
     Parse(#[from] toml::de::Error),
+    /// An error in a scenario file (the file, then what is wrong in it).
+    #[error("{path}: {error}")]
+    File {
+        /// The file.
+        path: PathBuf,
+        /// What is wrong.
+        error: Box<ScenarioError>,
+    },
     /// A field holds a value that is out of range or inconsistent with another field.
     #[error("invalid `{field}`: {reason}")]
     Invalid {
@@ -90,6 +103,24 @@ pub struct Scenario {
     /// The vehicles (`[[vehicle]]`), at least one (*required*).
     #[serde(rename = "vehicle")]
     pub vehicles: Vec<VehicleConfig>,
+    /// Duration, recording and pacing (`[run]`).
+    #[serde(default)]
+    pub run: RunConfig,
+    /// Fusion architecture and parameters (`[fusion]`).
+    #[serde(default)]
+    pub fusion: FusionConfig,
+    /// Links of the fusion network (`[[link]]`).
+    #[serde(default, rename = "link", skip_serializing_if = "Vec::is_empty")]
+    pub links: Vec<LinkSpec>,
+    /// Network partitions (`[[partition]]`).
+    #[serde(default, rename = "partition", skip_serializing_if = "Vec::is_empty")]
+    pub partitions: Vec<PartitionSpec>,
+    /// Crashes, restarts, hub loss (`[[event]]`).
+    #[serde(default, rename = "event", skip_serializing_if = "Vec::is_empty")]
+    pub events: Vec<EventSpec>,
+    /// Credentials (`[secrets]`).
+    #[serde(default)]
+    pub secrets: SecretsConfig,
 }
 
 impl Scenario {
@@ -106,7 +137,10 @@ impl Scenario {
             path: path.to_path_buf(),
             source,
         })?;
-        Self::from_toml_str(&text)
+        Self::from_toml_str(&text).map_err(|error| ScenarioError::File {
+            path: path.to_path_buf(),
+            error: Box::new(error),
+        })
     }
 
     /// The scenario as TOML text (round-trips through [`Scenario::from_toml_str`]).
@@ -161,6 +195,26 @@ impl Scenario {
                 orbit,
                 eight,
             ],
+            run: RunConfig {
+                name: Some("default (tree-4)".into()),
+                ..RunConfig::default()
+            },
+            fusion: FusionConfig::default(),
+            // A tree: uav3 (the orbit, crossing both halves) in the middle.
+            links: [(1, 3), (2, 3), (3, 4)]
+                .into_iter()
+                .map(|(a, b)| LinkSpec {
+                    a,
+                    b,
+                    transport: TransportKind::Shm,
+                    listen: None,
+                    byte_budget: None,
+                    faults: FaultSpec::default(),
+                })
+                .collect(),
+            partitions: Vec::new(),
+            events: Vec::new(),
+            secrets: SecretsConfig::default(),
         }
     }
 
@@ -196,7 +250,7 @@ impl Scenario {
                 }
             }
         }
-        Ok(())
+        crate::network::validate(self)
     }
 }
 
@@ -1102,6 +1156,9 @@ imu = { grade = "tactical", rate_hz = 100.0 }
 [world]
 seed = 3
 earth_model = "flat"
+
+[fusion]
+mode = "isolated"
 
 [[vehicle]]
 id = 1

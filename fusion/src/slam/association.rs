@@ -2,6 +2,7 @@
 //! neighbour, or joint compatibility branch and bound (JCBB, Neira & Tardós 2001).
 
 use super::{AssociationMode, ObservationOutcome, RejectReason, SlamFilter};
+use crate::consistency::chi2_quantile;
 use crate::observation::{ObservationError, ObservationModel, SensorPose};
 use crate::sensor::{FeatureId, SensorModel};
 use crate::state::{ATT, POS};
@@ -163,6 +164,10 @@ impl SlamFilter {
         };
         let d = model.measurement_dim();
         let gate = self.gate(d);
+        // The wider "is it new?" gate (at least the validation gate).
+        let new_gate = chi2_quantile(d as f64, self.config.association.new_feature_probability)
+            .unwrap_or(f64::INFINITY)
+            .max(gate);
         let can_init = matches!(model.sensor, SensorModel::RangeBearing { .. });
         let mut plan = AssociationPlan {
             outcomes: vec![ObservationOutcome::Rejected(RejectReason::NotInitializable); zs.len()],
@@ -219,6 +224,8 @@ impl SlamFilter {
                         (id, off, self.vec3_at(off), trace)
                     })
                     .collect();
+                // Per observation: the nearest feature inside the wider new-feature gate.
+                let mut near: Vec<Option<(FeatureId, f64)>> = vec![None; zs.len()];
                 let mut cands: Vec<Vec<UpdateItem>> = zs
                     .iter()
                     .enumerate()
@@ -230,14 +237,16 @@ impl SlamFilter {
                                 // 4× the linearized bound: margin for nonlinearity.
                                 Some((m_obs, tr_obs)) => {
                                     (m_obs - m).norm_squared()
-                                        <= 4.0 * gate * 2.0 * (tr_obs + trace)
+                                        <= 4.0 * new_gate * 2.0 * (tr_obs + trace)
                                 }
                                 None => true,
                             })
                             .filter_map(|&(id, off, _, _)| self.candidate(&ctx, i, z, id, off).ok())
-                            .filter(|c| c.nis <= gate)
+                            .filter(|c| c.nis <= new_gate)
                             .collect();
                         v.sort_by(|a, b| a.nis.total_cmp(&b.nis));
+                        near[i] = v.first().map(|c| (c.feature, c.nis));
+                        v.retain(|c| c.nis <= gate);
                         v
                     })
                     .collect();
@@ -269,7 +278,17 @@ impl SlamFilter {
                         None if !cands[i].is_empty() => {
                             plan.outcomes[i] = ObservationOutcome::Rejected(RejectReason::Ambiguous)
                         }
-                        None => unmatched(&mut plan, i),
+                        None => match near[i] {
+                            // Outside the validation gate but too close to call it new.
+                            Some((feature, nis)) => {
+                                plan.outcomes[i] =
+                                    ObservationOutcome::Rejected(RejectReason::GateFailed {
+                                        feature,
+                                        nis,
+                                    })
+                            }
+                            None => unmatched(&mut plan, i),
+                        },
                     }
                 }
             }

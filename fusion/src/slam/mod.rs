@@ -70,6 +70,11 @@ pub struct AssociationConfig {
     pub mode: AssociationMode,
     /// Probability of the χ² validation gate (eq. 21.55; 0.95 gives 7.815 for 3 dof).
     pub gate_probability: f64,
+    /// Gating modes only: an observation that matches no feature at `gate_probability` starts a
+    /// new feature only if it is also outside this wider gate of every feature (0.9999 gives
+    /// 21.1 for 3 dof); in between it is rejected. Without this band, the 5 % of a feature's own
+    /// observations that fall outside the 95 % gate would each start a duplicate of it.
+    pub new_feature_probability: f64,
 }
 
 impl Default for AssociationConfig {
@@ -77,9 +82,13 @@ impl Default for AssociationConfig {
         Self {
             mode: AssociationMode::Descriptor,
             gate_probability: 0.95,
+            new_feature_probability: DEFAULT_NEW_FEATURE_PROBABILITY,
         }
     }
 }
+
+/// Default of [`AssociationConfig::new_feature_probability`].
+pub const DEFAULT_NEW_FEATURE_PROBABILITY: f64 = 0.9999;
 
 /// Filter-wide options.
 #[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]

@@ -27,6 +27,7 @@ fn config(frame: NavFrame, mode: AssociationMode) -> SlamConfig {
         association: AssociationConfig {
             mode,
             gate_probability: 0.95,
+            ..AssociationConfig::default()
         },
         fresh_id_namespace: 1,
     }

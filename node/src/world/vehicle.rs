@@ -111,6 +111,8 @@ pub struct VehicleSim {
     truth: TruthSample,
     initial_truth: TruthSample,
     initial_estimate: InitialEstimate,
+    cfg: VehicleConfig,
+    seed: u64,
 }
 
 impl VehicleSim {
@@ -149,7 +151,17 @@ impl VehicleSim {
             truth,
             initial_truth: truth,
             initial_estimate,
+            cfg: cfg.clone(),
+            seed,
         })
+    }
+
+    /// A fresh initial estimate at the current time (truth plus an offset drawn from the
+    /// configured σ), for a vehicle process that restarts mid-run and re-initializes from an
+    /// external fix. `draw` selects an independent offset (e.g. the restart count).
+    pub fn restart_estimate(&self, draw: u64) -> InitialEstimate {
+        let seed = super::splitmix64(self.seed ^ draw.wrapping_mul(0x9e37_79b9_7f4a_7c15));
+        draw_initial_estimate(&self.cfg, &self.world, &self.truth, seed)
     }
 
     /// Vehicle id.

@@ -1,0 +1,329 @@
+//! The vehicle and hub agents: the estimator and the DDF state machine of one process, wired
+//! together, without any I/O. The deterministic simulation ([`crate::sim`]) and the vehicle and
+//! hub processes ([`crate::process`]) drive the same agents; only the transport differs.
+//!
+//! A vehicle agent owns an M = 1 [`SlamFilter`] and, unless the mode is isolated, a
+//! [`DdfNode`]. Each fusion round it reads the filter's map information (Y_i, y_i) (eqs. 21.86,
+//! 21.87), lets the DDF node form the per-link deltas, and fuses what neighbours send back into
+//! the filter (eqs. 21.92, 21.93 as corrected by the channel filters, design.md §4).
+
+use canopy_fusion::ddf::{
+    DdfConfig, DdfError, DdfMessage, DdfNode, FuseRejected, FuseTarget, Mode, Outgoing,
+};
+use canopy_fusion::info::MapInformation;
+use canopy_fusion::sensor::{ImuSample, ObservationFrame};
+use canopy_fusion::slam::{
+    FrameReport, ObservationOutcome, SlamConfig, SlamError, SlamFilter, VehicleSetup,
+};
+use canopy_fusion::topology::{NodeId, Topology};
+use nalgebra::Vector3;
+
+/// Counters of a vehicle agent.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct AgentCounters {
+    /// IMU samples applied.
+    pub imu_samples: u64,
+    /// IMU samples rejected by the estimator (non-finite, bad Δt).
+    pub imu_rejected: u64,
+    /// Observation frames processed.
+    pub frames: u64,
+    /// Frames rejected whole by the estimator.
+    pub frames_rejected: u64,
+    /// Observations processed.
+    pub observations: u64,
+    /// Observations associated to a feature.
+    pub associated: u64,
+    /// Observations that initialized a feature.
+    pub initialized: u64,
+    /// Observations rejected (gate, ambiguity, …).
+    pub rejected_observations: u64,
+    /// Fusion rounds run.
+    pub rounds: u64,
+    /// Received deltas fused into the estimator.
+    pub fused: u64,
+    /// Received deltas the estimator refused (non-PD result, …); the channel keeps them pending.
+    pub fuse_refused: u64,
+    /// Received DDF messages rejected (unknown sender, invalid payload, bad time).
+    pub messages_rejected: u64,
+    /// CI changes fused (bandwidth-limited links).
+    pub ci_fused: u64,
+}
+
+/// Adapter: the EKF as the DDF's fuse target.
+struct EkfTarget<'a> {
+    filter: &'a mut SlamFilter,
+    fused: &'a mut u64,
+    refused: &'a mut u64,
+}
+
+impl FuseTarget for EkfTarget<'_> {
+    fn fuse(&mut self, delta: &MapInformation) -> Result<(), FuseRejected> {
+        match self.filter.fuse_map_information(delta) {
+            Ok(_) => {
+                *self.fused += 1;
+                Ok(())
+            }
+            Err(e) => {
+                *self.refused += 1;
+                Err(FuseRejected {
+                    reason: e.to_string(),
+                })
+            }
+        }
+    }
+}
+
+/// Errors of an agent.
+#[derive(Debug, thiserror::Error)]
+pub enum AgentError {
+    /// The estimator refused an input.
+    #[error(transparent)]
+    Slam(#[from] SlamError),
+    /// The DDF state machine refused an input.
+    #[error(transparent)]
+    Ddf(#[from] DdfError),
+}
+
+/// One vehicle: inertial SLAM plus its DDF node.
+#[derive(Debug)]
+pub struct VehicleAgent {
+    id: NodeId,
+    filter: SlamFilter,
+    ddf: Option<DdfNode>,
+    counters: AgentCounters,
+}
+
+impl VehicleAgent {
+    /// A vehicle agent. `epoch` must be fresh for every process start (a random u64).
+    #[allow(clippy::too_many_arguments)]
+    pub fn new(
+        id: NodeId,
+        epoch: u64,
+        slam: SlamConfig,
+        setup: VehicleSetup,
+        mode: Mode,
+        topology: &Topology,
+        ddf: DdfConfig,
+        link_budgets: &[(NodeId, Option<usize>)],
+    ) -> Result<Self, AgentError> {
+        let filter = SlamFilter::new(slam, &[setup])?;
+        let ddf = match mode {
+            Mode::Isolated => None,
+            _ => {
+                let mut node = DdfNode::for_mode(mode, id, epoch, topology, slam.origin, ddf)?;
+                for &(peer, budget) in link_budgets {
+                    if budget.is_some() {
+                        node.set_link_budget(peer, budget)?;
+                    }
+                }
+                Some(node)
+            }
+        };
+        Ok(Self {
+            id,
+            filter,
+            ddf,
+            counters: AgentCounters::default(),
+        })
+    }
+
+    /// This node's id.
+    pub fn id(&self) -> NodeId {
+        self.id
+    }
+
+    /// The estimator.
+    pub fn filter(&self) -> &SlamFilter {
+        &self.filter
+    }
+
+    /// The DDF node (None in isolated mode).
+    pub fn ddf(&self) -> Option<&DdfNode> {
+        self.ddf.as_ref()
+    }
+
+    /// Counters.
+    pub fn counters(&self) -> AgentCounters {
+        self.counters
+    }
+
+    /// One IMU sample (eqs. 21.46/21.47). A rejected sample leaves the estimate unchanged.
+    pub fn on_imu(&mut self, imu: &ImuSample) -> Result<(), SlamError> {
+        match self.filter.predict(0, imu) {
+            Ok(()) => {
+                self.counters.imu_samples += 1;
+                Ok(())
+            }
+            Err(e) => {
+                self.counters.imu_rejected += 1;
+                Err(e)
+            }
+        }
+    }
+
+    /// One terrain-sensor frame (association, update, initialization).
+    pub fn on_frame(&mut self, frame: &ObservationFrame) -> Result<FrameReport, SlamError> {
+        match self.filter.process_frame(0, frame) {
+            Ok(report) => {
+                self.counters.frames += 1;
+                self.counters.observations += report.outcomes.len() as u64;
+                self.counters.associated += report.associated() as u64;
+                self.counters.initialized += report.initialized() as u64;
+                self.counters.rejected_observations += report.rejected() as u64;
+                Ok(report)
+            }
+            Err(e) => {
+                self.counters.frames_rejected += 1;
+                Err(e)
+            }
+        }
+    }
+
+    /// A fusion round at time `now`: the messages to send.
+    pub fn on_round(&mut self, now: f64) -> Result<Vec<Outgoing>, AgentError> {
+        let Some(ddf) = self.ddf.as_mut() else {
+            return Ok(Vec::new());
+        };
+        self.counters.rounds += 1;
+        let info = self.filter.map_information().map_err(AgentError::Slam)?;
+        let out = ddf.on_round(now, &info)?;
+        if let Some(ci) = out.ci_delta {
+            // The CI change of the map (possibly indefinite); a refusal leaves the map as it was
+            // (conservative: the CI information is not used).
+            match self.filter.fuse_map_information(&ci) {
+                Ok(_) => self.counters.ci_fused += 1,
+                Err(_) => self.counters.fuse_refused += 1,
+            }
+        }
+        Ok(out.messages)
+    }
+
+    /// A DDF message from `from`: fuses what it carries, returns replies. An error means the
+    /// message was rejected and counted; the estimate is unchanged.
+    pub fn on_message(
+        &mut self,
+        now: f64,
+        from: NodeId,
+        msg: DdfMessage,
+    ) -> Result<Vec<Outgoing>, AgentError> {
+        let Some(ddf) = self.ddf.as_mut() else {
+            self.counters.messages_rejected += 1;
+            return Err(AgentError::Ddf(DdfError::UnknownSender(from)));
+        };
+        let mut target = EkfTarget {
+            filter: &mut self.filter,
+            fused: &mut self.counters.fused,
+            refused: &mut self.counters.fuse_refused,
+        };
+        ddf.on_message(now, from, msg, &mut target).map_err(|e| {
+            if !matches!(e, DdfError::FuseRejected { .. }) {
+                self.counters.messages_rejected += 1;
+            }
+            AgentError::Ddf(e)
+        })
+    }
+
+    /// The link to `peer` came up.
+    pub fn on_link_up(&mut self, now: f64, peer: NodeId) -> Result<Vec<Outgoing>, AgentError> {
+        match self.ddf.as_mut() {
+            Some(d) => Ok(d.on_link_up(now, peer)?),
+            None => Ok(Vec::new()),
+        }
+    }
+
+    /// The link to `peer` went down.
+    pub fn on_link_down(&mut self, peer: NodeId) -> Result<(), AgentError> {
+        match self.ddf.as_mut() {
+            Some(d) => Ok(d.on_link_down(peer)?),
+            None => Ok(()),
+        }
+    }
+}
+
+/// Counts wrong associations of a frame against the true feature ids (harness only: the
+/// estimator never sees them). An observation associated to a feature whose id is not the
+/// observed feature's true id is wrong.
+pub fn wrong_associations(report: &FrameReport, true_ids: &[u64]) -> u64 {
+    report
+        .outcomes
+        .iter()
+        .zip(true_ids)
+        .filter(
+            |(o, t)| matches!(o, ObservationOutcome::Associated { feature, .. } if feature != *t),
+        )
+        .count() as u64
+}
+
+/// The hub of central mode: no observations; its estimate is the sum of what it received
+/// (the independent opinion pool, eqs. 21.88–21.91), fed back through channel filters.
+#[derive(Debug)]
+pub struct HubAgent {
+    store: MapInformation,
+    ddf: DdfNode,
+    rejected: u64,
+}
+
+impl HubAgent {
+    /// A hub with node id `id` in the star `topology`.
+    pub fn new(
+        id: NodeId,
+        epoch: u64,
+        origin: Vector3<f64>,
+        topology: &Topology,
+        ddf: DdfConfig,
+    ) -> Result<Self, DdfError> {
+        let node = DdfNode::for_mode(Mode::Central { hub: id }, id, epoch, topology, origin, ddf)?;
+        Ok(Self {
+            store: MapInformation::zero(origin),
+            ddf: node,
+            rejected: 0,
+        })
+    }
+
+    /// The hub's map information.
+    pub fn store(&self) -> &MapInformation {
+        &self.store
+    }
+
+    /// The DDF node.
+    pub fn ddf(&self) -> &DdfNode {
+        &self.ddf
+    }
+
+    /// Rejected messages.
+    pub fn rejected(&self) -> u64 {
+        self.rejected
+    }
+
+    /// A fusion round.
+    pub fn on_round(&mut self, now: f64) -> Result<Vec<Outgoing>, DdfError> {
+        let out = self.ddf.on_round(now, &self.store)?;
+        if let Some(ci) = out.ci_delta {
+            // The hub's store is a plain sum; a CI change that does not apply is dropped.
+            let _ = self.store.add_assign(&ci);
+        }
+        Ok(out.messages)
+    }
+
+    /// A DDF message.
+    pub fn on_message(
+        &mut self,
+        now: f64,
+        from: NodeId,
+        msg: DdfMessage,
+    ) -> Result<Vec<Outgoing>, DdfError> {
+        self.ddf
+            .on_message(now, from, msg, &mut self.store)
+            .inspect_err(|_| self.rejected += 1)
+    }
+
+    /// Link events.
+    pub fn on_link_up(&mut self, now: f64, peer: NodeId) -> Result<Vec<Outgoing>, DdfError> {
+        self.ddf.on_link_up(now, peer)
+    }
+
+    /// Link events.
+    pub fn on_link_down(&mut self, peer: NodeId) -> Result<(), DdfError> {
+        self.ddf.on_link_down(peer)
+    }
+}

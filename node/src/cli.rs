@@ -1,0 +1,252 @@
+//! The `canopy` command line (clap). `main.rs` only parses and calls [`run_cli`].
+
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
+
+use anyhow::{Context, Result};
+use clap::{Args, Parser, Subcommand};
+
+use crate::network::{FusionMode, effective_links, node_names, topology};
+use crate::output::{Summary, table, write_all};
+use crate::scenario::Scenario;
+use crate::sim::{SimOptions, simulate};
+
+/// Decentralized multi-vehicle inertial SLAM.
+#[derive(Debug, Parser)]
+#[command(name = "canopy", version, about, long_about = None)]
+pub struct Cli {
+    /// What to do.
+    #[command(subcommand)]
+    pub command: Command,
+}
+
+/// Sub-commands.
+#[derive(Debug, Subcommand)]
+pub enum Command {
+    /// Run a scenario as real processes (world, one per vehicle, hub) on this host.
+    Run(RunArgs),
+    /// Run a scenario in one deterministic process (simulated network).
+    Sim(RunArgs),
+    /// Validate a scenario and explain what it will run.
+    Check {
+        /// Scenario TOML file.
+        scenario: PathBuf,
+    },
+    /// Print the built-in default scenario as TOML (a starting point for your own).
+    Default,
+    /// Print the summaries of finished runs side by side.
+    Compare {
+        /// Output directories (each with a summary.json).
+        #[arg(required = true)]
+        dirs: Vec<PathBuf>,
+    },
+}
+
+/// Arguments of `run` and `sim`.
+#[derive(Debug, Args)]
+pub struct RunArgs {
+    /// Scenario TOML file (default: the built-in 4-UAV decentralized tree).
+    pub scenario: Option<PathBuf>,
+    /// Output directory (default: out/<scenario name>).
+    #[arg(long)]
+    pub out: Option<PathBuf>,
+    /// Override the simulated duration [s].
+    #[arg(long)]
+    pub duration: Option<f64>,
+    /// Do not run the centralized all-data EKF reference.
+    #[arg(long)]
+    pub no_baseline: bool,
+    /// Do not show a progress bar.
+    #[arg(long)]
+    pub quiet: bool,
+}
+
+/// Loads the scenario named on the command line, or the built-in default.
+pub fn load_scenario(path: Option<&Path>) -> Result<Scenario> {
+    let mut s = match path {
+        Some(p) => {
+            Scenario::load(p).with_context(|| format!("loading scenario {}", p.display()))?
+        }
+        None => Scenario::builtin_default(),
+    };
+    if s.run.name.is_none() {
+        s.run.name = Some(path.and_then(|p| p.file_stem()).map_or_else(
+            || "default".to_string(),
+            |n| n.to_string_lossy().into_owned(),
+        ));
+    }
+    Ok(s)
+}
+
+fn out_dir(args: &RunArgs, s: &Scenario) -> PathBuf {
+    args.out.clone().unwrap_or_else(|| {
+        let name: String = s
+            .run
+            .name
+            .as_deref()
+            .unwrap_or("default")
+            .chars()
+            .map(|c| {
+                if c.is_ascii_alphanumeric() || c == '-' || c == '_' {
+                    c
+                } else {
+                    '_'
+                }
+            })
+            .collect();
+        PathBuf::from("out").join(name)
+    })
+}
+
+/// A Ctrl-C flag: the first Ctrl-C asks for a clean stop (outputs are still written).
+pub fn ctrl_c_flag() -> Arc<AtomicBool> {
+    let flag = Arc::new(AtomicBool::new(false));
+    let f = flag.clone();
+    // If a handler is already installed (tests calling twice), keep going without one.
+    let _ = ctrlc::set_handler(move || f.store(true, Ordering::SeqCst));
+    flag
+}
+
+/// A progress bar over simulated time.
+pub fn progress_bar(duration: f64, quiet: bool) -> indicatif::ProgressBar {
+    if quiet {
+        return indicatif::ProgressBar::hidden();
+    }
+    let pb = indicatif::ProgressBar::new(duration.ceil().max(1.0) as u64);
+    pb.set_style(
+        indicatif::ProgressStyle::with_template(
+            "{spinner} [{elapsed_precise}] {bar:40} {pos}/{len} s simulated {msg}",
+        )
+        .expect("static template")
+        .progress_chars("=> "),
+    );
+    pb
+}
+
+fn cmd_sim(args: &RunArgs) -> Result<()> {
+    let s = load_scenario(args.scenario.as_deref())?;
+    let out = out_dir(args, &s);
+    let duration = args.duration.unwrap_or(s.run.duration_s);
+    let pb = progress_bar(duration, args.quiet);
+    let stop = ctrl_c_flag();
+    let mut progress = |t: f64, _d: f64| pb.set_position(t as u64);
+    let outcome = simulate(
+        &s,
+        SimOptions {
+            duration: args.duration,
+            baseline: args.no_baseline.then_some(false),
+            progress: Some(&mut progress),
+            stop: Some(stop.clone()),
+        },
+    )
+    .context("simulation failed")?;
+    pb.finish_and_clear();
+    if stop.load(Ordering::Relaxed) {
+        eprintln!(
+            "interrupted: writing what was gathered up to t = {:.1} s",
+            outcome.record.duration
+        );
+    }
+    let summary = write_all(&outcome.record, &out)
+        .with_context(|| format!("writing outputs to {}", out.display()))?;
+    print!(
+        "{}",
+        table(&[(s.run.name.as_deref().unwrap_or("run"), &summary)])
+    );
+    println!("outputs in {}", out.display());
+    Ok(())
+}
+
+fn cmd_check(path: &Path) -> Result<()> {
+    let s = load_scenario(Some(path))?;
+    let names = node_names(&s);
+    println!("{}: valid", path.display());
+    println!(
+        "  world: seed {}, {} frame, {} features over {:.0} m × {:.0} m",
+        s.world.seed,
+        s.world.earth_model.frame(),
+        s.world.feature_count(),
+        s.world.area.size_north_m,
+        s.world.area.size_east_m
+    );
+    for v in &s.vehicles {
+        println!(
+            "  vehicle {} `{}`: {:?} at {:.0} m, {:.0} m/s; sensor {:?} at {} Hz; IMU {:?} at {} Hz",
+            v.id,
+            v.display_name(),
+            v.trajectory.shape,
+            v.trajectory.altitude_m,
+            v.trajectory.speed_mps,
+            v.sensor.model,
+            v.sensor.rate_hz,
+            v.imu.grade,
+            v.imu.rate_hz
+        );
+    }
+    println!(
+        "  fusion: {} at {} Hz, association {:?}",
+        s.fusion.mode, s.fusion.rate_hz, s.fusion.association
+    );
+    let topo = topology(&s)?;
+    if s.fusion.mode != FusionMode::Isolated {
+        println!(
+            "  topology: tree of {} nodes, diameter {}",
+            names.len(),
+            topo.diameter().unwrap_or(0)
+        );
+    }
+    for l in effective_links(&s) {
+        let faults = if l.faults.is_none() {
+            "no faults".to_string()
+        } else {
+            format!("faults {:?}", l.faults)
+        };
+        println!("  link {}: {:?}, {}", l.label(&names), l.transport, faults);
+    }
+    for e in &s.events {
+        println!(
+            "  event: {:?} {:?} at {} s (restart after {:?} s)",
+            e.kind, e.vehicle, e.at_s, e.restart_after_s
+        );
+    }
+    println!("  run: {} s, baseline {}", s.run.duration_s, s.run.baseline);
+    Ok(())
+}
+
+fn cmd_compare(dirs: &[PathBuf]) -> Result<()> {
+    let mut loaded: Vec<(String, Summary)> = Vec::new();
+    for d in dirs {
+        let p = d.join("summary.json");
+        let text =
+            std::fs::read_to_string(&p).with_context(|| format!("reading {}", p.display()))?;
+        let s: Summary =
+            serde_json::from_str(&text).with_context(|| format!("parsing {}", p.display()))?;
+        loaded.push((
+            d.file_name().map_or_else(
+                || d.display().to_string(),
+                |n| n.to_string_lossy().into_owned(),
+            ),
+            s,
+        ));
+    }
+    let refs: Vec<(&str, &Summary)> = loaded.iter().map(|(n, s)| (n.as_str(), s)).collect();
+    print!("{}", table(&refs));
+    Ok(())
+}
+
+/// Runs the parsed command line.
+pub fn run_cli(cli: Cli) -> Result<()> {
+    match cli.command {
+        Command::Sim(args) => cmd_sim(&args),
+        Command::Run(_) => {
+            anyhow::bail!("`canopy run` (multi-process) is not wired yet; use `canopy sim`")
+        }
+        Command::Check { scenario } => cmd_check(&scenario),
+        Command::Compare { dirs } => cmd_compare(&dirs),
+        Command::Default => {
+            print!("{}", Scenario::builtin_default().to_toml_string());
+            Ok(())
+        }
+    }
+}

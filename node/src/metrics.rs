@@ -1,0 +1,151 @@
+//! Estimate-vs-truth metrics in the launch frame: pose samples with NEES, map records, and the
+//! per-feature confidence check against the centralized reference. Used by the simulation and
+//! by the monitor of multi-process runs.
+
+use canopy_fusion::consistency::vehicle_error;
+use canopy_fusion::geodesy::{ecef_from_ned, ecef_to_geodetic};
+use canopy_fusion::ins::{VehicleCovariance, VehicleState};
+use canopy_fusion::rotation::{euler_from_nav_from_body, nav_from_body};
+use canopy_fusion::sensor::FeatureId;
+use canopy_fusion::slam::SlamFilter;
+use canopy_fusion::state::{ATT, NavFrame, POS};
+use nalgebra::{Matrix3, Matrix6, Vector3, Vector6};
+
+use crate::record::{MapFeatureRecord, PoseSample};
+use crate::world::{TruthSample, World};
+
+/// Rotation from the estimator's frame to the launch NED frame (C_e^{n0} in global SLAM).
+pub fn launch_from_nav(world: &World) -> Matrix3<f64> {
+    match world.frame() {
+        NavFrame::Local => Matrix3::identity(),
+        NavFrame::Global => world.launch_frame().ecef_from_ned.transpose(),
+    }
+}
+
+/// Attitude relative to the launch frame of an attitude Ψ relative to the local level at
+/// `position` (global) or to the launch frame itself (local).
+pub fn launch_attitude(
+    world: &World,
+    position: &Vector3<f64>,
+    attitude: &Vector3<f64>,
+) -> Vector3<f64> {
+    match world.frame() {
+        NavFrame::Local => *attitude,
+        NavFrame::Global => {
+            let g = ecef_to_geodetic(position);
+            let c = launch_from_nav(world) * ecef_from_ned(g.lat, g.lon) * nav_from_body(attitude);
+            euler_from_nav_from_body(&c)
+        }
+    }
+}
+
+/// The truth as an estimator state (biases in effect for the last sample).
+pub fn truth_state(t: &TruthSample) -> VehicleState {
+    VehicleState {
+        position: t.position,
+        velocity: t.velocity,
+        attitude: t.attitude,
+        accel_bias: t.accel_bias,
+        gyro_bias: t.gyro_bias,
+    }
+}
+
+fn arr(v: &Vector3<f64>) -> [f64; 3] {
+    [v.x, v.y, v.z]
+}
+
+fn arr9(m: &Matrix3<f64>) -> [f64; 9] {
+    let mut a = [0.0; 9];
+    for r in 0..3 {
+        for c in 0..3 {
+            a[3 * r + c] = m[(r, c)];
+        }
+    }
+    a
+}
+
+/// NEES of a small error/covariance pair; NaN when the covariance is not positive definite.
+fn nees6(e: &Vector6<f64>, p: &Matrix6<f64>) -> f64 {
+    p.cholesky().map_or(f64::NAN, |c| e.dot(&c.solve(e)))
+}
+
+/// One estimate-vs-truth sample. NEES is computed in the estimator's own frame (position error
+/// and wrapped Euler-angle error with the filter's covariance of p and Ψ).
+pub fn pose_sample(
+    world: &World,
+    est: &VehicleState,
+    cov: &VehicleCovariance,
+    truth: &TruthSample,
+) -> PoseSample {
+    let e = vehicle_error(est, &truth_state(truth));
+    let mut e6 = Vector6::zeros();
+    let mut p6 = Matrix6::zeros();
+    let idx = [POS, POS + 1, POS + 2, ATT, ATT + 1, ATT + 2];
+    for (i, &a) in idx.iter().enumerate() {
+        e6[i] = e[a];
+        for (j, &b) in idx.iter().enumerate() {
+            p6[(i, j)] = cov[(a, b)];
+        }
+    }
+    let p3: Matrix3<f64> = p6.fixed_view::<3, 3>(0, 0).into();
+    let e3: Vector3<f64> = e6.fixed_rows::<3>(0).into();
+    let nees_pos = p3.cholesky().map_or(f64::NAN, |c| e3.dot(&c.solve(&e3)));
+    let r = launch_from_nav(world);
+    PoseSample {
+        t: truth.time,
+        est_pos: arr(&world.to_launch(&est.position)),
+        est_att: arr(&launch_attitude(world, &est.position, &est.attitude)),
+        truth_pos: arr(&truth.launch_position),
+        truth_att: arr(&truth.launch_attitude),
+        pos_cov: arr9(&(r * p3 * r.transpose())),
+        nees_pos,
+        nees_pose: nees6(&e6, &p6),
+    }
+}
+
+/// The filter's map in the launch frame, with truth where the id names a world feature.
+pub fn map_records(world: &World, filter: &SlamFilter) -> Vec<MapFeatureRecord> {
+    let r = launch_from_nav(world);
+    filter
+        .features()
+        .into_iter()
+        .filter_map(|(id, m)| {
+            let cov = filter.feature_covariance(id)?;
+            Some(MapFeatureRecord {
+                id,
+                est: arr(&world.to_launch(&m)),
+                cov: arr9(&(r * cov * r.transpose())),
+                truth: world.feature(id).map(|f| arr(&f.position_ned)),
+            })
+        })
+        .collect()
+}
+
+/// Largest over common features of λ_max(P_ref · P_i⁻¹): how much more confident the vehicle
+/// is about a feature than the reference filter (≤ 1 when it is never more confident). With a
+/// centralized all-data reference, a value well above 1 means information was counted twice.
+pub fn confidence_ratio(filter: &SlamFilter, reference: &SlamFilter) -> Option<(f64, FeatureId)> {
+    let mut worst: Option<(f64, FeatureId)> = None;
+    for (id, _) in filter.features() {
+        let (Some(pi), Some(pr)) = (
+            filter.feature_covariance(id),
+            reference.feature_covariance(id),
+        ) else {
+            continue;
+        };
+        // Eigenvalues of P_i^{-1/2} P_ref P_i^{-1/2} via the Cholesky factor of P_i.
+        let Some(l) = pi.cholesky().map(|c| c.l()) else {
+            continue;
+        };
+        let Some(linv) = l.try_inverse() else {
+            continue;
+        };
+        let m = linv * pr * linv.transpose();
+        let m = (m + m.transpose()) * 0.5;
+        let lmax = m.symmetric_eigenvalues().max();
+        if worst.is_none_or(|(w, _)| lmax > w) {
+            worst = Some((lmax, id));
+        }
+    }
+    worst
+}

@@ -1,0 +1,778 @@
+//! `canopy sim`: the whole scenario in one deterministic process.
+//!
+//! The same agents as the multi-process run ([`crate::agent`]), the world simulator stepped in
+//! simulation time, and a simulated network made of the transport's in-memory links wrapped in
+//! its fault layer ([`canopy_transport::fault`]) on a manual clock: delay, jitter, loss,
+//! duplication, reordering, outages, partitions and bandwidth caps from the scenario, in
+//! simulated time, seeded. Messages really are encoded, checksummed, decoded and validated, so
+//! byte counts are the real ones. Alongside runs the centralized all-data EKF (one filter over
+//! all vehicles and the whole map, fed the same IMU samples and observation frames) as the
+//! reference. Same scenario and seed ⇒ bit-identical record.
+
+use std::collections::BTreeMap;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
+
+use canopy_fusion::ddf::Outgoing;
+use canopy_fusion::ins::VehicleState;
+use canopy_fusion::slam::{
+    AssociationConfig, AssociationMode, SlamConfig, SlamFilter, VehicleSetup,
+};
+use canopy_fusion::topology::NodeId;
+use canopy_transport::fault::{Clock, FaultyLink, ManualClock};
+use canopy_transport::link::{Link, LinkEvent, PeerState};
+use canopy_transport::memory::{InMemoryHub, InMemoryLink};
+
+use crate::agent::{AgentError, HubAgent, VehicleAgent, wrong_associations};
+use crate::metrics::{confidence_ratio, map_records, pose_sample};
+use crate::network::{EventKind, FusionMode, effective_links, node_names, topology};
+use crate::record::{EventRecord, LinkRecord, LinkSample, RunRecord, VehicleRecord};
+use crate::scenario::{Scenario, ScenarioError};
+use crate::wire::{decode_ddf, send_ddf};
+use crate::world::{self, InitialEstimate, VehicleSim, World};
+
+/// Options of a simulation run.
+#[derive(Default)]
+pub struct SimOptions<'a> {
+    /// Override of `[run].duration_s`.
+    pub duration: Option<f64>,
+    /// Override of `[run].baseline`.
+    pub baseline: Option<bool>,
+    /// Called with (simulated time, duration) about every simulated second.
+    pub progress: Option<&'a mut dyn FnMut(f64, f64)>,
+    /// Set to stop early; the record gathered so far is returned.
+    pub stop: Option<Arc<AtomicBool>>,
+}
+
+impl std::fmt::Debug for SimOptions<'_> {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("SimOptions")
+            .field("duration", &self.duration)
+            .field("baseline", &self.baseline)
+            .finish()
+    }
+}
+
+/// Errors of a simulation run.
+#[derive(Debug, thiserror::Error)]
+pub enum SimError {
+    /// The scenario is invalid.
+    #[error(transparent)]
+    Scenario(#[from] ScenarioError),
+    /// An agent could not be built.
+    #[error("building {node}: {source}")]
+    Agent {
+        /// Node name.
+        node: String,
+        /// Cause.
+        source: AgentError,
+    },
+    /// The reference filter could not be built.
+    #[error("building the centralized reference: {0}")]
+    Baseline(canopy_fusion::slam::SlamError),
+    /// The simulated network could not be built.
+    #[error("building link {link}: {reason}")]
+    Link {
+        /// Link label.
+        link: String,
+        /// Cause.
+        reason: String,
+    },
+}
+
+/// What a simulation returns beyond the record: checks that need the filters themselves.
+#[derive(Debug, Default, Clone)]
+pub struct SimChecks {
+    /// Per record time, the largest over vehicles and common features of
+    /// λ_max(P_central · P_vehicle⁻¹) (≤ 1 when no vehicle is more confident about a feature
+    /// than the centralized all-data EKF); empty without baseline.
+    pub confidence_ratio: Vec<(f64, f64)>,
+    /// DDF messages rejected per vehicle name (invalid, unknown sender, …).
+    pub rejected_messages: BTreeMap<String, u64>,
+    /// Received deltas the estimators refused, all vehicles.
+    pub fuse_refused: u64,
+    /// Frames or IMU samples the estimators rejected, all vehicles.
+    pub inputs_rejected: u64,
+}
+
+/// The outcome of a simulation.
+#[derive(Debug)]
+pub struct SimOutcome {
+    /// The run record (outputs are written from it).
+    pub record: RunRecord,
+    /// Extra checks.
+    pub checks: SimChecks,
+}
+
+type SimLink = FaultyLink<InMemoryLink>;
+
+enum Agent {
+    Vehicle(Box<VehicleAgent>),
+    Hub(Box<HubAgent>),
+}
+
+struct Node {
+    name: String,
+    agent: Option<Agent>,
+    links: BTreeMap<NodeId, SimLink>,
+    restarts: u32,
+}
+
+impl Node {
+    fn on_message(
+        &mut self,
+        now: f64,
+        from: NodeId,
+        msg: canopy_fusion::ddf::DdfMessage,
+    ) -> Vec<Outgoing> {
+        match self.agent.as_mut() {
+            Some(Agent::Vehicle(a)) => a.on_message(now, from, msg).unwrap_or_default(),
+            Some(Agent::Hub(h)) => h.on_message(now, from, msg).unwrap_or_default(),
+            None => Vec::new(),
+        }
+    }
+    fn on_link(&mut self, now: f64, peer: NodeId, up: bool) -> Vec<Outgoing> {
+        match (self.agent.as_mut(), up) {
+            (Some(Agent::Vehicle(a)), true) => a.on_link_up(now, peer).unwrap_or_default(),
+            (Some(Agent::Vehicle(a)), false) => {
+                let _ = a.on_link_down(peer);
+                Vec::new()
+            }
+            (Some(Agent::Hub(h)), true) => h.on_link_up(now, peer).unwrap_or_default(),
+            (Some(Agent::Hub(h)), false) => {
+                let _ = h.on_link_down(peer);
+                Vec::new()
+            }
+            (None, _) => Vec::new(),
+        }
+    }
+    fn send(&mut self, now: f64, out: Vec<Outgoing>) {
+        for o in out {
+            if let Some(link) = self.links.get_mut(&o.to) {
+                // Undeliverable messages are counted by the link; the DDF recovers losses.
+                let _ = send_ddf(link, now, o.message);
+            }
+        }
+    }
+}
+
+/// The estimator's setup from the simulator's initial estimate (σ floors keep a perfect IMU's
+/// zero bias variances positive definite: 1e-12 is far below any grade's turn-on bias²).
+pub fn vehicle_setup(
+    sim: &VehicleSim,
+    estimate: &InitialEstimate,
+    imu: canopy_fusion::imu::ImuNoise,
+) -> VehicleSetup {
+    let mut covariance = estimate.covariance;
+    for i in 0..covariance.nrows() {
+        covariance[(i, i)] = covariance[(i, i)].max(1e-12);
+    }
+    VehicleSetup {
+        state: VehicleState {
+            position: estimate.position,
+            velocity: estimate.velocity,
+            attitude: estimate.attitude,
+            accel_bias: estimate.accel_bias,
+            gyro_bias: estimate.gyro_bias,
+        },
+        covariance,
+        imu_noise: imu,
+        sensor: sim.sensor_model(),
+        mount: sim.sensor_mount(),
+    }
+}
+
+/// A fresh epoch for a (re)started node: deterministic in the simulation.
+fn epoch_for(seed: u64, node: u32, incarnation: u32) -> u64 {
+    world::vehicle_seed(seed ^ 0x5eed_e90c, node)
+        .wrapping_add(u64::from(incarnation).wrapping_mul(0x9e37_79b9_7f4a_7c15))
+        | 1
+}
+
+struct Sim<'s> {
+    s: &'s Scenario,
+    world: Arc<World>,
+    vehicles: Vec<VehicleSim>,
+    nodes: BTreeMap<NodeId, Node>,
+    clock: Arc<ManualClock>,
+    baseline: Option<SlamFilter>,
+    records: Vec<VehicleRecord>,
+    baseline_records: Vec<VehicleRecord>,
+    links: Vec<(NodeId, NodeId, LinkRecord)>,
+    checks: SimChecks,
+}
+
+impl<'s> Sim<'s> {
+    fn slam_config(&self, vehicle: u32, association: AssociationConfig) -> SlamConfig {
+        SlamConfig {
+            frame: self.world.frame(),
+            origin: self.world.map_origin(),
+            association,
+            fresh_id_namespace: vehicle,
+        }
+    }
+
+    fn vehicle_agent(
+        &self,
+        index: usize,
+        estimate: &InitialEstimate,
+        incarnation: u32,
+    ) -> Result<VehicleAgent, SimError> {
+        let s = self.s;
+        let cfg = &s.vehicles[index];
+        let sim = &self.vehicles[index];
+        let topo = topology(s)?;
+        let budgets: Vec<(NodeId, Option<usize>)> = effective_links(s)
+            .iter()
+            .filter_map(|l| {
+                let peer = if l.a == cfg.id {
+                    l.b
+                } else if l.b == cfg.id {
+                    l.a
+                } else {
+                    return None;
+                };
+                Some((NodeId(peer), l.byte_budget))
+            })
+            .collect();
+        VehicleAgent::new(
+            NodeId(cfg.id),
+            epoch_for(s.world.seed, cfg.id, incarnation),
+            self.slam_config(cfg.id, s.fusion.association_config()),
+            vehicle_setup(sim, estimate, cfg.imu.noise_model()),
+            s.fusion.ddf_mode(),
+            &topo,
+            s.fusion.ddf_config(),
+            &budgets,
+        )
+        .map_err(|source| SimError::Agent {
+            node: cfg.display_name(),
+            source,
+        })
+    }
+
+    fn poll_network(&mut self, now: f64) {
+        // Deliver until quiet: replies produced now may be due now (zero-delay links).
+        for _ in 0..8 {
+            let mut any = false;
+            let ids: Vec<NodeId> = self.nodes.keys().copied().collect();
+            for id in ids {
+                let node = self.nodes.get_mut(&id).expect("node exists");
+                let peers: Vec<NodeId> = node.links.keys().copied().collect();
+                for peer in peers {
+                    let mut events = Vec::new();
+                    let mut msgs = Vec::new();
+                    {
+                        let link = node.links.get_mut(&peer).expect("link exists");
+                        while let Some(ev) = link.poll_event() {
+                            events.push(ev);
+                        }
+                        while let Ok(Some(m)) = link.try_recv() {
+                            // Rejected bodies are counted by the link (`rejected.body`).
+ if let Some(Ok(msg)) = decode_ddf(&m) {
+ msgs.push(msg);
+ }
+                            }
+                        }
+                    }
+                    any |= !events.is_empty() || !msgs.is_empty();
+                    for ev in events {
+                        let up = matches!(ev, LinkEvent::PeerUp);
+                        let out = node.on_link(now, peer, up);
+                        node.send(now, out);
+                    }
+                    for msg in msgs {
+                        let out = node.on_message(now, peer, msg);
+                        node.send(now, out);
+                    }
+                }
+            }
+            if !any {
+                break;
+            }
+        }
+    }
+
+    fn round(&mut self, now: f64) {
+        let ids: Vec<NodeId> = self.nodes.keys().copied().collect();
+        for id in ids {
+            let node = self.nodes.get_mut(&id).expect("node exists");
+            let out = match node.agent.as_mut() {
+                Some(Agent::Vehicle(a)) => a.on_round(now).unwrap_or_default(),
+                Some(Agent::Hub(h)) => h.on_round(now).unwrap_or_default(),
+                None => Vec::new(),
+            };
+            node.send(now, out);
+        }
+        self.poll_network(now);
+    }
+
+    fn record(&mut self, now: f64) {
+        for (i, sim) in self.vehicles.iter().enumerate() {
+            let id = NodeId(self.s.vehicles[i].id);
+            if let Some(Agent::Vehicle(a)) = self.nodes.get(&id).and_then(|n| n.agent.as_ref()) {
+                let f = a.filter();
+                if let (Ok(est), Ok(cov)) = (f.vehicle_state(0), f.vehicle_covariance(0)) {
+                    self.records[i]
+                        .samples
+                        .push(pose_sample(&self.world, &est, &cov, sim.truth()));
+                }
+            }
+            if let Some(b) = &self.baseline
+                && let (Ok(est), Ok(cov)) = (b.vehicle_state(i), b.vehicle_covariance(i))
+            {
+                self.baseline_records[i].samples.push(pose_sample(
+                    &self.world,
+                    &est,
+                    &cov,
+                    sim.truth(),
+                ));
+            }
+        }
+        if let Some(b) = &self.baseline {
+            let worst = self
+                .nodes
+                .values()
+                .filter_map(|n| match n.agent.as_ref() {
+                    Some(Agent::Vehicle(a)) => confidence_ratio(a.filter(), b).map(|r| r.0),
+                    _ => None,
+                })
+                .fold(f64::NAN, f64::max);
+            if worst.is_finite() {
+                self.checks.confidence_ratio.push((now, worst));
+            }
+        }
+        for (a, b, rec) in &mut self.links {
+            let sample = |n: &BTreeMap<NodeId, Node>, x: NodeId, y: NodeId| {
+                n.get(&x)
+                    .and_then(|node| node.links.get(&y))
+                    .map(|l| (l.stats(), l.fault_stats(), l.peer_state()))
+            };
+            let (Some((sa, fa, pa)), Some((sb, fb, _))) =
+                (sample(&self.nodes, *a, *b), sample(&self.nodes, *b, *a))
+            else {
+                continue;
+            };
+            let chan_rejected =
+                |x: NodeId, y: NodeId| match self.nodes.get(&x).and_then(|n| n.agent.as_ref()) {
+                    Some(Agent::Vehicle(v)) => v
+                        .ddf()
+                        .and_then(|d| d.channel(y))
+                        .map_or(0, |c| c.stats.rejected),
+                    Some(Agent::Hub(h)) => h.ddf().channel(y).map_or(0, |c| c.stats.rejected),
+                    None => 0,
+                };
+            let ci = |x: NodeId, y: NodeId| match self.nodes.get(&x).and_then(|n| n.agent.as_ref())
+            {
+                Some(Agent::Vehicle(v)) => v
+                    .ddf()
+                    .and_then(|d| d.channel(y))
+                    .is_some_and(|c| c.mode != canopy_fusion::ddf::LinkMode::Exact),
+                Some(Agent::Hub(h)) => h
+                    .ddf()
+                    .channel(y)
+                    .is_some_and(|c| c.mode != canopy_fusion::ddf::LinkMode::Exact),
+                None => false,
+            };
+            rec.ci |= ci(*a, *b) || ci(*b, *a);
+            rec.samples.push(LinkSample {
+                t: now,
+                bytes_ab: sa.sent_bytes,
+                bytes_ba: sb.sent_bytes,
+                messages: sa.sent_messages + sb.sent_messages,
+                drops: fa.dropped()
+                    + fb.dropped()
+                    + sa.dropped_no_peer
+                    + sb.dropped_no_peer
+                    + sa.dropped_overflow
+                    + sb.dropped_overflow,
+                rejections: sa.rejected.total()
+                    + sb.rejected.total()
+                    + chan_rejected(*a, *b)
+                    + chan_rejected(*b, *a),
+                up: pa == PeerState::Up,
+            });
+        }
+    }
+}
+
+/// Runs a scenario in one deterministic process.
+pub fn simulate(s: &Scenario, mut opts: SimOptions<'_>) -> Result<SimOutcome, SimError> {
+    s.validate()?;
+    let started = std::time::Instant::now();
+    let duration = opts.duration.unwrap_or(s.run.duration_s);
+    let (world, vehicles) = world::build(s)?;
+    let names = node_names(s);
+    let clock = Arc::new(ManualClock::new(0.0));
+    let dyn_clock: Arc<dyn Clock> = clock.clone();
+    let with_baseline = opts.baseline.unwrap_or(s.run.baseline);
+
+    let mut sim = Sim {
+        s,
+        world: world.clone(),
+        vehicles,
+        nodes: BTreeMap::new(),
+        clock: clock.clone(),
+        baseline: None,
+        records: s
+            .vehicles
+            .iter()
+            .map(|v| VehicleRecord {
+                name: v.display_name(),
+                ..Default::default()
+            })
+            .collect(),
+        baseline_records: s
+            .vehicles
+            .iter()
+            .map(|v| VehicleRecord {
+                name: v.display_name(),
+                ..Default::default()
+            })
+            .collect(),
+        links: Vec::new(),
+        checks: SimChecks::default(),
+    };
+
+    // Agents.
+    for i in 0..s.vehicles.len() {
+        let est = sim.vehicles[i].initial_estimate().clone();
+        let agent = sim.vehicle_agent(i, &est, 0)?;
+        sim.nodes.insert(
+            NodeId(s.vehicles[i].id),
+            Node {
+                name: s.vehicles[i].display_name(),
+                agent: Some(Agent::Vehicle(Box::new(agent))),
+                links: BTreeMap::new(),
+                restarts: 0,
+            },
+        );
+    }
+    if s.fusion.mode == FusionMode::Central {
+        let hub_id = NodeId(s.fusion.hub_id);
+        let hub = HubAgent::new(
+            hub_id,
+            epoch_for(s.world.seed, s.fusion.hub_id, 0),
+            world.map_origin(),
+            &topology(s)?,
+            s.fusion.ddf_config(),
+        )
+        .map_err(|e| SimError::Agent {
+            node: "hub".into(),
+            source: AgentError::Ddf(e),
+        })?;
+        sim.nodes.insert(
+            hub_id,
+            Node {
+                name: "hub".into(),
+                agent: Some(Agent::Hub(Box::new(hub))),
+                links: BTreeMap::new(),
+                restarts: 0,
+            },
+        );
+    }
+
+    // The simulated network: each end's inbound direction through the fault layer.
+    for (li, l) in effective_links(s).iter().enumerate() {
+        let label = l.label(&names);
+        let (la, lb) = InMemoryHub::pair(l.a, l.b);
+        let seed =
+            |end: u64| world::vehicle_seed(s.world.seed ^ 0xfa017, (li as u32) << 1 | end as u32);
+        let wrap = |inner: InMemoryLink, end: u64| {
+            FaultyLink::new(
+                inner,
+                l.faults.to_transport(seed(end), &s.partitions),
+                dyn_clock.clone(),
+            )
+            .map_err(|e| SimError::Link {
+                link: label.clone(),
+                reason: e.to_string(),
+            })
+        };
+        let fa = wrap(la, 0)?;
+        let fb = wrap(lb, 1)?;
+        sim.nodes
+            .get_mut(&NodeId(l.a))
+            .expect("validated")
+            .links
+            .insert(NodeId(l.b), fa);
+        sim.nodes
+            .get_mut(&NodeId(l.b))
+            .expect("validated")
+            .links
+            .insert(NodeId(l.a), fb);
+        sim.links.push((
+            NodeId(l.a),
+            NodeId(l.b),
+            LinkRecord {
+                a: names[&l.a].clone(),
+                b: names[&l.b].clone(),
+                transport: "sim".into(),
+                ci: false,
+                samples: Vec::new(),
+            },
+        ));
+    }
+
+    // The centralized all-data reference EKF.
+    if with_baseline {
+        let setups: Vec<VehicleSetup> = sim
+            .vehicles
+            .iter()
+            .zip(&s.vehicles)
+            .map(|(v, cfg)| vehicle_setup(v, v.initial_estimate(), cfg.imu.noise_model()))
+            .collect();
+        let cfg = SlamConfig {
+            frame: world.frame(),
+            origin: world.map_origin(),
+            // The reference associates by descriptor, verified by the gate.
+            association: AssociationConfig {
+                mode: AssociationMode::Descriptor,
+                gate_probability: s.fusion.gate_probability,
+                ..AssociationConfig::default()
+            },
+            fresh_id_namespace: u32::MAX,
+        };
+        sim.baseline = Some(SlamFilter::new(cfg, &setups).map_err(SimError::Baseline)?);
+    }
+
+    // Events: crash/restart/hub loss in time order.
+    let mut pending: Vec<(f64, usize, bool)> = Vec::new(); // (time, event index, is_restart)
+    let mut events = Vec::new();
+    for l in effective_links(s) {
+        for w in &l.faults.outages {
+            events.push(EventRecord {
+                t: w[0],
+                until: Some(w[1].min(duration)),
+                kind: "outage".into(),
+                subject: l.label(&names),
+            });
+        }
+    }
+    for p in &s.partitions {
+        let side: Vec<String> = p
+            .side
+            .iter()
+            .map(|id| names.get(id).cloned().unwrap_or_default())
+            .collect();
+        events.push(EventRecord {
+            t: p.start_s,
+            until: Some(p.end_s.min(duration)),
+            kind: "partition".into(),
+            subject: side.join("+"),
+        });
+    }
+    for (i, e) in s.events.iter().enumerate() {
+        pending.push((e.at_s, i, false));
+        if let Some(r) = e.restart_after_s {
+            pending.push((e.at_s + r, i, true));
+        }
+    }
+    pending.sort_by(|a, b| a.0.total_cmp(&b.0));
+    let mut pending = pending.into_iter().peekable();
+
+    let round_dt = 1.0 / s.fusion.rate_hz;
+    let mut next_round = round_dt;
+    let record_dt = s.run.record_interval_s;
+    let mut next_record = 0.0;
+    let poll_dt = 0.01;
+    let mut next_poll = poll_dt;
+    let mut next_progress = 1.0;
+    let eps = 1e-9;
+    sim.record(0.0);
+    next_record += record_dt;
+
+    loop {
+        if opts
+            .stop
+            .as_ref()
+            .is_some_and(|f| f.load(Ordering::Relaxed))
+        {
+            break;
+        }
+        // The vehicle whose next sample is earliest.
+        let Some((vi, t)) = sim
+            .vehicles
+            .iter()
+            .enumerate()
+            .map(|(i, v)| (i, v.time() + v.imu_dt()))
+            .min_by(|a, b| a.1.total_cmp(&b.1).then(a.0.cmp(&b.0)))
+        else {
+            break;
+        };
+        if t > duration + eps {
+            break;
+        }
+        while next_round <= t + eps {
+            sim.clock.set(next_round);
+            sim.poll_network(next_round);
+            sim.round(next_round);
+            next_round += round_dt;
+        }
+        while pending.peek().is_some_and(|p| p.0 <= t + eps) {
+            let (at, ei, restart) = pending.next().expect("peeked");
+            sim.clock.set(at);
+            let e = &s.events[ei];
+            let target = match e.kind {
+                EventKind::Crash => NodeId(e.vehicle.expect("validated")),
+                EventKind::HubLoss => NodeId(s.fusion.hub_id),
+            };
+            let label = sim
+                .nodes
+                .get(&target)
+                .map(|n| n.name.clone())
+                .unwrap_or_default();
+            let neighbours: Vec<NodeId> = sim
+                .nodes
+                .get(&target)
+                .map(|n| n.links.keys().copied().collect())
+                .unwrap_or_default();
+            if restart {
+                let idx = s
+                    .vehicles
+                    .iter()
+                    .position(|v| NodeId(v.id) == target)
+                    .expect("validated");
+                let node = sim.nodes.get_mut(&target).expect("exists");
+                node.restarts += 1;
+                let inc = node.restarts;
+                let est = sim.vehicles[idx].restart_estimate(u64::from(inc));
+                let agent = sim.vehicle_agent(idx, &est, inc)?;
+                sim.nodes.get_mut(&target).expect("exists").agent =
+                    Some(Agent::Vehicle(Box::new(agent)));
+                sim.records[idx].restarts += 1;
+                events.push(EventRecord {
+                    t: at,
+                    until: None,
+                    kind: "restart".into(),
+                    subject: label,
+                });
+                for n in neighbours {
+                    for (x, y) in [(target, n), (n, target)] {
+                        if let Some(node) = sim.nodes.get_mut(&x) {
+                            let out = node.on_link(at, y, true);
+                            node.send(at, out);
+                        }
+                    }
+                }
+            } else {
+                if let Some(node) = sim.nodes.get_mut(&target) {
+                    node.agent = None;
+                }
+                let until = e.restart_after_s.map(|r| at + r);
+                let kind = if e.kind == EventKind::HubLoss {
+                    "hub-loss"
+                } else {
+                    "crash"
+                };
+                events.push(EventRecord {
+                    t: at,
+                    until,
+                    kind: kind.into(),
+                    subject: label,
+                });
+                for n in neighbours {
+                    if let Some(node) = sim.nodes.get_mut(&n) {
+                        let out = node.on_link(at, target, false);
+                        node.send(at, out);
+                    }
+                }
+            }
+        }
+        sim.clock.set(t);
+        let id = NodeId(s.vehicles[vi].id);
+        let out = sim.vehicles[vi].step();
+        if let Some(Agent::Vehicle(a)) = sim.nodes.get_mut(&id).and_then(|n| n.agent.as_mut()) {
+            if a.on_imu(&out.imu).is_err() {
+                sim.checks.inputs_rejected += 1;
+            }
+            if let Some(sensed) = &out.frame {
+                match a.on_frame(&sensed.frame) {
+                    Ok(report) => {
+                        sim.records[vi].wrong_associations +=
+                            wrong_associations(&report, &sensed.true_ids);
+                        sim.records[vi].observations += sensed.frame.observations.len() as u64;
+                    }
+                    Err(_) => sim.checks.inputs_rejected += 1,
+                }
+            }
+        }
+        if let Some(b) = sim.baseline.as_mut() {
+            let _ = b.predict(vi, &out.imu);
+            if let Some(sensed) = &out.frame
+                && let Ok(report) = b.process_frame(vi, &sensed.frame)
+            {
+                sim.baseline_records[vi].wrong_associations +=
+                    wrong_associations(&report, &sensed.true_ids);
+                sim.baseline_records[vi].observations += sensed.frame.observations.len() as u64;
+            }
+        }
+        if t + eps >= next_poll {
+            sim.poll_network(t);
+            next_poll += poll_dt;
+        }
+        let tmin = sim
+            .vehicles
+            .iter()
+            .map(|v| v.time())
+            .fold(f64::INFINITY, f64::min);
+        if tmin + eps >= next_record {
+            sim.record(tmin);
+            next_record += record_dt;
+        }
+        if tmin >= next_progress {
+            if let Some(p) = opts.progress.as_mut() {
+                p(tmin, duration);
+            }
+            next_progress += 1.0;
+        }
+    }
+
+    // Final maps and counters.
+    let end = sim
+        .vehicles
+        .iter()
+        .map(|v| v.time())
+        .fold(f64::INFINITY, f64::min);
+    for (i, cfg) in s.vehicles.iter().enumerate() {
+        if let Some(node) = sim.nodes.get(&NodeId(cfg.id))
+            && let Some(Agent::Vehicle(a)) = node.agent.as_ref()
+        {
+            sim.records[i].map = map_records(&world, a.filter());
+            let c = a.counters();
+            sim.records[i].rejected_messages = c.messages_rejected;
+            sim.checks
+                .rejected_messages
+                .insert(node.name.clone(), c.messages_rejected);
+            sim.checks.fuse_refused += c.fuse_refused;
+        }
+    }
+    if let Some(b) = &sim.baseline {
+        let map = map_records(&world, b);
+        for r in &mut sim.baseline_records {
+            r.map = map.clone();
+        }
+    }
+    let mut record = RunRecord {
+        scenario: s.run.name.clone().unwrap_or_else(|| "scenario".into()),
+        mode: s.fusion.mode.to_string(),
+        frame: world.frame().to_string(),
+        seed: s.world.seed,
+        duration: end.min(duration),
+        wall_time: started.elapsed().as_secs_f64(),
+        vehicles: std::mem::take(&mut sim.records),
+        links: sim.links.drain(..).map(|l| l.2).collect(),
+        events,
+        baseline: with_baseline.then(|| std::mem::take(&mut sim.baseline_records)),
+        truth_features: world
+            .features()
+            .iter()
+            .map(|f| (f.id, [f.position_ned.x, f.position_ned.y, f.position_ned.z]))
+            .collect(),
+    };
+    record.events.sort_by(|a, b| a.t.total_cmp(&b.t));
+    Ok(SimOutcome {
+        record,
+        checks: sim.checks,
+    })
+}

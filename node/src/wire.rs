@@ -1,0 +1,62 @@
+//! canopy's message bodies on top of the transport's envelope and codec.
+//!
+//! The transport knows bytes and envelopes; this module knows what canopy puts in them. Bodies
+//! implement the transport's [`Validate`]; the DDF state machine and the estimator validate the
+//! numbers again (finite, symmetric, positive definite where needed) before anything changes.
+
+use canopy_fusion::ddf::{Body, DdfMessage};
+use canopy_transport::link::{Link, LinkError, Received};
+use canopy_transport::wire::{Validate, ValidationError};
+use canopy_transport::{CodecError, MessageKind, SendMeta};
+use serde::{Deserialize, Serialize};
+
+/// A DDF protocol message as a message body.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+#[serde(transparent)]
+pub struct DdfBody(pub DdfMessage);
+
+impl Validate for DdfBody {
+    fn validate(&self) -> Result<(), ValidationError> {
+        // Map information decodes through its validating block-sparse serde form (sizes, ids,
+        // finiteness, symmetry); submaps are checked here.
+        match &self.0.body {
+            Body::Submap(s) => s
+                .validate()
+                .map_err(|e| ValidationError::Other(e.to_string())),
+            _ => Ok(()),
+        }
+    }
+}
+
+/// The envelope kind of a DDF message: deltas and everything carrying information are
+/// `DDF_DELTA`, heartbeats and Nacks `DDF_CONTROL`.
+pub fn ddf_kind(msg: &DdfMessage) -> MessageKind {
+    match msg.body {
+        Body::Hello(_) | Body::Nack { .. } => MessageKind::DDF_CONTROL,
+        _ => MessageKind::DDF_DELTA,
+    }
+}
+
+/// Sends a DDF message over a link.
+pub fn send_ddf(link: &mut dyn Link, now: f64, msg: DdfMessage) -> Result<(), LinkError> {
+    let seq = match &msg.body {
+        Body::Delta { seq, .. } => *seq,
+        Body::Cumulative { upto, .. } => *upto,
+        _ => 0,
+    };
+    let meta = SendMeta {
+        kind: ddf_kind(&msg),
+        sender_epoch: msg.header.from_epoch,
+        receiver_epoch: msg.header.to_epoch.unwrap_or(0),
+        seq,
+        sim_time: now,
+    };
+    link.send(&meta, &DdfBody(msg))
+}
+
+/// Decodes a received DDF message (None for other kinds).
+pub fn decode_ddf(m: &Received) -> Option<Result<DdfMessage, CodecError>> {
+    let k = m.header().kind;
+    (k == MessageKind::DDF_DELTA || k == MessageKind::DDF_CONTROL)
+        .then(|| m.decode::<DdfBody>().map(|b| b.0))
+}
