@@ -269,9 +269,8 @@ impl<'s> Sim<'s> {
                         }
                         while let Ok(Some(m)) = link.try_recv() {
                             // Rejected bodies are counted by the link (`rejected.body`).
- if let Some(Ok(msg)) = decode_ddf(&m) {
- msgs.push(msg);
- }
+                            if let Some(Ok(msg)) = decode_ddf(&m) {
+                                msgs.push(msg);
                             }
                         }
                     }
