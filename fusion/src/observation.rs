@@ -139,10 +139,8 @@ impl SensorPose {
         for j in 0..3 {
             let dp = self.ecef_from_ned_dp[j] * self.nav_from_body;
             let da = self.ecef_from_ned * self.nav_from_body_datt[j];
-            origin_d_position.set_column(
-                j,
-                &(origin_d_position.column(j) + dp * self.lever_arm_body),
-            );
+            origin_d_position
+                .set_column(j, &(origin_d_position.column(j) + dp * self.lever_arm_body));
             origin_d_attitude.set_column(j, &(da * self.lever_arm_body));
             direction_d_position.set_column(j, &(dp * d_body));
             direction_d_attitude.set_column(j, &(da * d_body));

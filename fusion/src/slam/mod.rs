@@ -24,6 +24,7 @@
 mod association;
 mod fuse;
 pub mod layout;
+pub mod triangulation;
 mod update;
 
 pub use fuse::{FuseMethod, FuseReport};
