@@ -22,11 +22,13 @@
 //! (eqs. 21.48–21.54) from the updated vehicle estimate.
 
 mod association;
+mod bearing;
 mod fuse;
 pub mod layout;
 pub mod triangulation;
 mod update;
 
+pub use bearing::{BearingConfig, BearingStats, TrackId, TrackInfo};
 pub use fuse::{FuseMethod, FuseReport};
 pub use layout::{Layout, PoseId, Slot, SlotKind};
 
@@ -170,6 +172,12 @@ pub enum RejectReason {
     NumericalFailure,
     /// A finite but physically invalid measurement (range ≤ 0).
     InvalidMeasurement,
+    /// Bearing-only: no stored pose could be freed under `max_stored_poses` (every track was
+    /// matched in this frame).
+    PoseCapacity,
+    /// Bearing-only: the triangulation this observation took part in was rejected (lines
+    /// missing each other, or meeting behind a sensor); the observation was discarded.
+    TriangulationFailed,
 }
 
 /// What happened to one observation of a frame.
@@ -182,10 +190,15 @@ pub enum ObservationOutcome {
         /// NIS of the individual innovation against the prior.
         nis: f64,
     },
-    /// Initialized a new feature.
+    /// Initialized a new feature (bearing-only: completed the initialization of a track).
     Initialized {
         /// The new feature's id.
         feature: FeatureId,
+    },
+    /// Bearing-only: stored with an uninitialized feature track (delayed initialization).
+    Stored {
+        /// The track.
+        track: TrackId,
     },
     /// Not used.
     Rejected(RejectReason),
@@ -202,6 +215,8 @@ pub struct FrameReport {
     pub jcbb_truncated: bool,
     /// Joint NIS of the hypothesis JCBB accepted (None for the other modes or no pairing).
     pub jcbb_joint_nis: Option<f64>,
+    /// Bearing-only: tracks that initialized a feature in this frame (track, feature).
+    pub initialized_tracks: Vec<(TrackId, FeatureId)>,
 }
 
 impl FrameReport {
@@ -217,6 +232,13 @@ impl FrameReport {
         self.outcomes
             .iter()
             .filter(|o| matches!(o, ObservationOutcome::Initialized { .. }))
+            .count()
+    }
+    /// Number of observations stored with uninitialized tracks (bearing-only).
+    pub fn stored(&self) -> usize {
+        self.outcomes
+            .iter()
+            .filter(|o| matches!(o, ObservationOutcome::Stored { .. }))
             .count()
     }
     /// Number of rejected observations.
@@ -255,6 +277,8 @@ pub struct SlamFilter {
     info_cache: Option<(u64, Mat<f64>)>,
     /// Reserved row/column capacity of P (see `grow`).
     capacity: usize,
+    /// Bearing-only tracks, stored observations and stored-pose bookkeeping.
+    bearing: bearing::BearingState,
 }
 
 fn is_symmetric_pd(m: &SMatrix<f64, VEHICLE_DIM, VEHICLE_DIM>) -> bool {
@@ -322,7 +346,19 @@ impl SlamFilter {
                     .map_err(|e| SlamError::InvalidConfig(e.to_string()))?,
             );
         }
+        let pose_frame = triangulation::PoseFrame::new(config.frame, &config.origin);
+        let bearing_only = vehicles
+            .iter()
+            .any(|v| !matches!(v.sensor, SensorModel::RangeBearing { .. }));
+        if bearing_only && pose_frame.is_none() {
+            return Err(SlamError::InvalidConfig(
+                "bearing-only vehicles in global SLAM need the team origin (ECEF launch site) \
+                 near the Earth's surface"
+                    .into(),
+            ));
+        }
         Ok(Self {
+            bearing: bearing::BearingState::new(pose_frame),
             capacity: n,
             map_generation: 0,
             info_cache: None,
@@ -628,9 +664,26 @@ impl SlamFilter {
             jcbb_nodes: plan.jcbb_nodes,
             jcbb_truncated: plan.jcbb_truncated,
             jcbb_joint_nis: plan.jcbb_joint_nis,
+            initialized_tracks: Vec::new(),
         };
         self.apply_updates(vehicle, &model, &plan.updates, &mut report);
-        for &i in &plan.initializations {
+        if !matches!(model.sensor, SensorModel::RangeBearing { .. }) {
+            // Bearing-only: delayed initialization through stored poses and tracks (§21.4).
+            self.process_bearing_observations(
+                vehicle,
+                &model,
+                frame.time,
+                &zs,
+                &descriptors,
+                &plan.initializations,
+                &mut report,
+            );
+        }
+        for &i in plan
+            .initializations
+            .iter()
+            .filter(|_| matches!(model.sensor, SensorModel::RangeBearing { .. }))
+        {
             match self.initialize_feature(vehicle, &model, &zs[i], descriptors[i]) {
                 Ok(id) => report.outcomes[i] = ObservationOutcome::Initialized { feature: id },
                 Err(_) => {
