@@ -706,4 +706,6 @@ impl SlamFilter {
 }
 
 #[cfg(test)]
+mod bearing_tests;
+#[cfg(test)]
 mod tests;
