@@ -19,12 +19,14 @@
 //!    (eqs. 21.66–21.68; shared by all observations stored in the frame, so a frame adds at most
 //!    one 6-state block) and every matched or new observation is stored outside the state with
 //!    a reference to it. A new track gets `hypotheses` hypotheses at equally spaced ranges in
-//!    [min_range, max_range] along the line of sight (eqs. 21.79, 21.80; the range itself gets a
-//!    σ of half the spacing so neighbouring hypotheses overlap).
+//!    [min_range, max_range] along the line of sight (eqs. 21.79, 21.80; the range itself gets
+//!    the σ of a uniform bin of one spacing, Δ/√12, so the hypotheses cover the segment).
 //! 4. *Initialization* (21.4.2.2/21.4.2.3): a track initializes once the largest separation
 //!    angle of any two of its stored lines of sight reaches `min_parallax`; that pair is
 //!    triangulated (eqs. 21.69–21.74) and the state augmented with ∇G_p, ∇G_z (21.75–21.77).
-//!    Lines missing each other by more than `max_miss_distance`, or meeting behind a sensor,
+//!    Lines missing each other by more than max(`max_miss_distance`, 3 σ_miss) — σ_miss the
+//!    miss's predicted σ from the two stored poses' joint covariance and R, so that drift
+//!    between poses long apart does not reject correct pairs — or meeting behind a sensor,
 //!    discard the pair's observations (counted) and the track goes on.
 //! 5. *Recovery* (21.4.2.4): the track's remaining stored observations are applied in one
 //!    stacked EKF update (eq. 21.78) through their stored poses; an observation failing its
@@ -60,9 +62,11 @@ pub struct BearingConfig {
     /// Minimum separation angle of two stored lines of sight before a feature is initialized
     /// [rad] (21.4.2.2). Default 10°.
     pub min_parallax: f64,
-    /// Maximum distance between the two triangulated lines of sight [m] (21.4.2.3). Default 5.
+    /// Lines of sight missing each other by more than max(this, 3 σ) are rejected [m], σ the
+    /// predicted standard deviation of the miss from the stored poses' covariance and R
+    /// (21.4.2.3). Default 5.
     pub max_miss_distance: f64,
-    /// Number of range hypotheses of a new track (21.4.3.1). Default 12.
+    /// Number of range hypotheses of a new track (21.4.3.1). Default 24 (≈ 21 m apart).
     pub hypotheses: usize,
     /// Range of the nearest hypothesis [m]. Default 10 (the default sensor's minimum range).
     pub min_range: f64,
@@ -83,7 +87,7 @@ impl Default for BearingConfig {
         Self {
             min_parallax: 10f64.to_radians(),
             max_miss_distance: 5.0,
-            hypotheses: 12,
+            hypotheses: 24,
             min_range: 10.0,
             max_range: 500.0,
             max_stored_poses: 40,
@@ -374,13 +378,15 @@ impl SlamFilter {
         let los = cur.pose.line_of_sight(&dir);
         let n = cfg.hypotheses;
         let spacing = (cfg.max_range - cfg.min_range) / (n.max(2) - 1) as f64;
-        // Half the spacing as range σ: neighbouring hypotheses overlap at 1 σ, so the segment
-        // [min_range, max_range] is covered by the 95 % gates.
-        let sigma_r = if n == 1 {
-            0.5 * (cfg.max_range - cfg.min_range)
+        // Each hypothesis stands for the range bin of width Δ around it: the range σ of a
+        // uniform bin, Δ/√12 (moment matching), so together the hypotheses cover
+        // [min_range, max_range] without inflating the near ones' angular spread.
+        let width = if n == 1 {
+            cfg.max_range - cfg.min_range
         } else {
-            0.5 * spacing
+            spacing
         };
+        let sigma_r = width / 12f64.sqrt();
         let u = los.direction;
         let c_fs = DMatrix::from_fn(3, 3, |i, j| los.frame_from_sensor[(i, j)]);
         let du_dz = &c_fs * &d_dir;
@@ -832,33 +838,50 @@ impl SlamFilter {
             attitude: ab,
             z: &obs[ib].z,
         };
-        let init =
-            match initialize_from_pair(frame, &oa, &ob, cfg.min_parallax, cfg.max_miss_distance) {
-                Ok(init) => init,
-                Err(TriangulationError::NearParallel { .. }) => return Ok(None),
-                Err(_) => {
-                    // Discard the pair's observations (21.4.2.3); the track goes on.
-                    let track = &mut self.bearing.tracks[k];
-                    let pair = [
-                        track.observations[ib].clone(),
-                        track.observations[ia].clone(),
-                    ];
-                    track.observations.remove(ib);
-                    track.observations.remove(ia);
-                    self.release(&pair);
-                    self.bearing.stats.triangulations_rejected += 1;
-                    self.bearing.stats.observations_discarded += 2;
-                    // The frame's observation is the track's last one.
-                    if ib == obs.len() - 1 {
-                        report.outcomes[current_obs] =
-                            ObservationOutcome::Rejected(RejectReason::TriangulationFailed);
-                    }
-                    if self.bearing.tracks[k].observations.is_empty() {
-                        self.drop_track(k);
-                    }
-                    return Ok(None);
-                }
+        // The miss is judged against max(max_miss_distance, 3 σ_w) below, σ_w from the stored
+        // poses' joint covariance and R, so no distance limit here.
+        let init = match initialize_from_pair(frame, &oa, &ob, cfg.min_parallax, f64::INFINITY) {
+            Ok(init) => Some(init),
+            Err(TriangulationError::NearParallel { .. }) => return Ok(None),
+            Err(_) => None,
+        };
+        let init = init.filter(|g| {
+            let off = |o: &StoredObservation| self.layout.pose_offset(o.pose);
+            let (Some(oa), Some(ob)) = (off(&obs[ia]), off(&obs[ib])) else {
+                return false;
             };
+            let block = |r: usize, c: usize| Mat6::from_fn(|i, j| self.p[(r + i, c + j)]);
+            let var = (g.miss_d_pose_a * block(oa, oa) * g.miss_d_pose_a.transpose())[0]
+                + 2.0 * (g.miss_d_pose_a * block(oa, ob) * g.miss_d_pose_b.transpose())[0]
+                + (g.miss_d_pose_b * block(ob, ob) * g.miss_d_pose_b.transpose())[0]
+                + (&g.miss_d_z_a * ma.noise_covariance() * g.miss_d_z_a.transpose())[(0, 0)]
+                + (&g.miss_d_z_b * mb.noise_covariance() * g.miss_d_z_b.transpose())[(0, 0)];
+            // 3 σ: a correct pairing passes with 99.7 % (a misassociation typically misses by
+            // far more); never tighter than the configured distance.
+            g.miss <= cfg.max_miss_distance.max(3.0 * var.max(0.0).sqrt())
+        });
+        let Some(init) = init else {
+            // Discard the pair's observations (21.4.2.3); the track goes on.
+            let track = &mut self.bearing.tracks[k];
+            let pair = [
+                track.observations[ib].clone(),
+                track.observations[ia].clone(),
+            ];
+            track.observations.remove(ib);
+            track.observations.remove(ia);
+            self.release(&pair);
+            self.bearing.stats.triangulations_rejected += 1;
+            self.bearing.stats.observations_discarded += 2;
+            // The frame's observation is the track's last one.
+            if ib == obs.len() - 1 {
+                report.outcomes[current_obs] =
+                    ObservationOutcome::Rejected(RejectReason::TriangulationFailed { track: id });
+            }
+            if self.bearing.tracks[k].observations.is_empty() {
+                self.drop_track(k);
+            }
+            return Ok(None);
+        };
         // Eq. 21.76: P_m· = ∇G_p P_{poses,·}, P_mm = ∇G_p P_pp ∇G_pᵀ + ∇G_z R₂ ∇G_zᵀ (21.77).
         let off_a = self
             .layout

@@ -175,9 +175,13 @@ pub enum RejectReason {
     /// Bearing-only: no stored pose could be freed under `max_stored_poses` (every track was
     /// matched in this frame).
     PoseCapacity,
-    /// Bearing-only: the triangulation this observation took part in was rejected (lines
-    /// missing each other, or meeting behind a sensor); the observation was discarded.
-    TriangulationFailed,
+    /// Bearing-only: the observation matched a track, but the triangulation it took part in was
+    /// rejected (lines missing each other, or meeting behind a sensor: typically a
+    /// misassociation); the observation and its partner were discarded.
+    TriangulationFailed {
+        /// The track it had matched.
+        track: TrackId,
+    },
 }
 
 /// What happened to one observation of a frame.

@@ -69,6 +69,10 @@ pub struct ClosestPoint {
     pub d_origin_b: Matrix3<f64>,
     /// ∂m/∂u_b.
     pub d_direction_b: Matrix3<f64>,
+    /// Miss vector e = (y_a + s u_a) − (y_b + t u_b) (its norm is `miss`).
+    pub miss_vector: Vector3<f64>,
+    /// ∂e/∂(y_a, u_a, y_b, u_b) (3×12).
+    pub d_miss: SMatrix<f64, 3, 12>,
 }
 
 /// Angle between two directions [rad], robust near 0 and π.
@@ -135,6 +139,14 @@ pub fn closest_point(
         jac[(i, 9 + i)] += t;
     }
     jac *= 0.5;
+    // ∂e = ∂y_a + s ∂u_a + u_a ∂s − ∂y_b − t ∂u_b − u_b ∂t.
+    let mut d_miss = u_a * g_s - u_b * g_t;
+    for i in 0..3 {
+        d_miss[(i, i)] += 1.0;
+        d_miss[(i, 3 + i)] += s;
+        d_miss[(i, 6 + i)] -= 1.0;
+        d_miss[(i, 9 + i)] -= t;
+    }
     let block = |k: usize| -> Matrix3<f64> { jac.fixed_view::<3, 3>(0, 3 * k).into_owned() };
     Some(ClosestPoint {
         point: (q_a + q_b) * 0.5,
@@ -145,6 +157,8 @@ pub fn closest_point(
         d_direction_a: block(1),
         d_origin_b: block(2),
         d_direction_b: block(3),
+        miss_vector: q_a - q_b,
+        d_miss,
     })
 }
 
@@ -287,6 +301,16 @@ pub struct PairInitialization {
     pub d_z_b: DMatrix<f64>,
     /// Miss distance of the lines [m].
     pub miss: f64,
+    /// Unit direction of the miss vector in the filter frame (zero when the lines meet).
+    pub miss_direction: Vector3<f64>,
+    /// ∂w/∂(p^n_a, Ψ^n_a) of the signed miss w = ê·e along that direction (1×6).
+    pub miss_d_pose_a: SMatrix<f64, 1, 6>,
+    /// ∂w/∂(p^n_b, Ψ^n_b).
+    pub miss_d_pose_b: SMatrix<f64, 1, 6>,
+    /// ∂w/∂z_a (1 × d_a).
+    pub miss_d_z_a: DMatrix<f64>,
+    /// ∂w/∂z_b.
+    pub miss_d_z_b: DMatrix<f64>,
     /// Separation angle [rad].
     pub angle: f64,
 }
@@ -321,6 +345,20 @@ pub fn initialize_from_pair(
     let to_d = |m: &Matrix3<f64>| DMatrix::from_fn(3, 3, |i, j| m[(i, j)]);
     let d_z_a = to_d(&(r * cp.d_direction_a)) * &la.direction_d_z;
     let d_z_b = to_d(&(r * cp.d_direction_b)) * &lb.direction_d_z;
+    // The signed miss along its own direction, w = ê·e, and its derivatives (ê held fixed:
+    // ∂|e| = êᵀ ∂e).
+    let e_hat = if cp.miss > 0.0 {
+        cp.miss_vector / cp.miss
+    } else {
+        Vector3::zeros()
+    };
+    let w = e_hat.transpose() * cp.d_miss;
+    let blk = |k: usize| w.fixed_view::<1, 3>(0, 3 * k).into_owned();
+    let miss_d_pose_a = blk(0) * la.origin_d_pose + blk(1) * la.direction_d_pose;
+    let miss_d_pose_b = blk(2) * lb.origin_d_pose + blk(3) * lb.direction_d_pose;
+    let row = |v: SMatrix<f64, 1, 3>| DMatrix::from_fn(1, 3, |_, j| v[j]);
+    let miss_d_z_a = row(blk(1)) * &la.direction_d_z;
+    let miss_d_z_b = row(blk(3)) * &lb.direction_d_z;
     let feature = frame.to_filter(&cp.point);
     if !(feature.iter().all(|v| v.is_finite())
         && d_pose_a
@@ -338,6 +376,11 @@ pub fn initialize_from_pair(
         d_z_a,
         d_z_b,
         miss: cp.miss,
+        miss_direction: r * e_hat,
+        miss_d_pose_a,
+        miss_d_pose_b,
+        miss_d_z_a,
+        miss_d_z_b,
         angle,
     })
 }
@@ -419,6 +462,25 @@ mod tests {
                     (fd - jac[k]).norm() <= 1e-5 * jac[k].norm() + 1e-6,
                     "block {k}: {}",
                     (fd - jac[k]).norm()
+                );
+                // The miss vector's Jacobian, same steps and tolerance argument.
+                let mut fd_e = Matrix3::zeros();
+                for j in 0..3 {
+                    let mut plus = args;
+                    let mut minus = args;
+                    plus[k][j] += h;
+                    minus[k][j] -= h;
+                    let f = |a: &[Vector3<f64>; 4]| {
+                        closest_point(&a[0], &a[1], &a[2], &a[3])
+                            .unwrap()
+                            .miss_vector
+                    };
+                    fd_e.set_column(j, &((f(&plus) - f(&minus)) / (2.0 * h)));
+                }
+                let an = cp.d_miss.fixed_view::<3, 3>(0, 3 * k).into_owned();
+                assert!(
+                    (fd_e - an).norm() <= 1e-5 * an.norm() + 1e-6,
+                    "miss block {k}"
                 );
             }
         }
