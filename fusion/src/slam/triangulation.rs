@@ -627,6 +627,77 @@ mod tests {
     }
 
     #[test]
+    fn miss_jacobians_match_finite_differences() {
+        for (pf, poses, m) in pair_cases() {
+            let model = ObservationModel {
+                frame: pf.frame(),
+                sensor: camera(),
+                mount: mount(),
+            };
+            let mut z: Vec<DVector<f64>> = poses
+                .iter()
+                .map(|(p, a)| {
+                    let pose = model.sensor_pose(&pf.to_filter(p), a);
+                    model.predict(&pose, &m).unwrap().z
+                })
+                .collect();
+            // Offset the second pixel so the rays miss each other.
+            z[1][0] += 6.0;
+            z[1][1] -= 6.0;
+            let miss = |poses: &[(Vector3<f64>, Vector3<f64>); 2], z: &[DVector<f64>]| {
+                let o = |k: usize| PosedObservation {
+                    model: &model,
+                    position: poses[k].0,
+                    attitude: poses[k].1,
+                    z: &z[k],
+                };
+                initialize_from_pair(&pf, &o(0), &o(1), 0.05, f64::INFINITY).unwrap()
+            };
+            let g = miss(&poses, &z);
+            assert!(g.miss > 0.1, "{}", g.miss);
+            for k in 0..2 {
+                let an = if k == 0 {
+                    g.miss_d_pose_a
+                } else {
+                    g.miss_d_pose_b
+                };
+                for j in 0..6 {
+                    let h = if j < 3 { 1e-3 } else { 1e-6 };
+                    let (mut plus, mut minus) = (poses, poses);
+                    if j < 3 {
+                        plus[k].0[j] += h;
+                        minus[k].0[j] -= h;
+                    } else {
+                        plus[k].1[j - 3] += h;
+                        minus[k].1[j - 3] -= h;
+                    }
+                    let fd = (miss(&plus, &z).miss - miss(&minus, &z).miss) / (2.0 * h);
+                    // Rounding 1e-9 m / h (ECEF) plus 1e-5 relative truncation.
+                    assert!(
+                        (fd - an[j]).abs() <= 1e-5 * an[j].abs() + 2e-9 / h,
+                        "{:?} pose {k} col {j}: {fd} vs {}",
+                        pf.frame(),
+                        an[j]
+                    );
+                }
+                let an = if k == 0 { &g.miss_d_z_a } else { &g.miss_d_z_b };
+                for j in 0..2 {
+                    let h = 1e-3;
+                    let (mut zp, mut zm) = (z.clone(), z.clone());
+                    zp[k][j] += h;
+                    zm[k][j] -= h;
+                    let fd = (miss(&poses, &zp).miss - miss(&poses, &zm).miss) / (2.0 * h);
+                    assert!(
+                        (fd - an[(0, j)]).abs() <= 1e-5 * an[(0, j)].abs() + 2e-9 / h,
+                        "{:?} z {k} col {j}",
+                        pf.frame()
+                    );
+                }
+            }
+        }
+    }
+
+    #[test]
     fn pair_initialization_rejects_near_parallel_missing_and_behind_lines() {
         let (pf, _, _) = pair_cases()[0];
         let model = ObservationModel {
