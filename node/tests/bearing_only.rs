@@ -1,9 +1,11 @@
 //! Bearing-only inertial SLAM (§21.4) driven by the world simulator: association and hypothesis
-//! culling against the simulator's truth, and Monte Carlo consistency of a bearing-only vehicle
-//! next to a range-bearing vehicle flying the same trajectory, in the global and local frames.
+//! culling against the simulator's truth, Monte Carlo consistency of bearing-only vehicles next
+//! to a range-bearing vehicle flying the same trajectory in the global and local frames, and a
+//! mixed centralized team.
 //!
-//! Runtime: every run is a 60 s single-vehicle lawnmower over 150 features at 100 Hz IMU / 2 Hz
-//! camera; the Monte Carlo is 20 runs × 2 frames × 2 sensors (≈ 1–2 min in release on 2 cores).
+//! Runtime (release, one core): the scenario is a single-vehicle 3-leg lawnmower over 150
+//! features at 100 Hz IMU / 2 Hz camera; the Monte Carlo is 30 runs × 120 s × 3 sensors × 2
+//! frames (≈ 25 s), the association test 2 × 60 s, the team test 20 × 60 s (≈ 3 s).
 
 use canopy_fusion::consistency::{anees_band, nees, vehicle_error};
 use canopy_fusion::ins::VehicleState;
@@ -403,4 +405,126 @@ fn monte_carlo_bearing_only_is_consistent_or_close_to_range_bearing() {
             assert!(bo.max_poses <= 40);
         }
     }
+}
+
+/// Two vehicles in one centralized filter: (pose NEES summed over vehicles, map NEES sum, map
+/// features, features first initialized by each vehicle).
+fn run_team(scn: &Scenario, duration: f64) -> (f64, f64, usize, [usize; 2]) {
+    let (world, mut sims) = world::build(scn).unwrap();
+    let frame = world.frame();
+    let setups: Vec<VehicleSetup> = sims
+        .iter()
+        .zip(&scn.vehicles)
+        .map(|(sim, cfg)| {
+            let init = sim.initial_estimate().clone();
+            VehicleSetup {
+                state: VehicleState {
+                    position: init.position,
+                    velocity: init.velocity,
+                    attitude: init.attitude,
+                    accel_bias: init.accel_bias,
+                    gyro_bias: init.gyro_bias,
+                },
+                covariance: init.covariance,
+                imu_noise: cfg.imu.noise_model(),
+                sensor: sim.sensor_model(),
+                mount: sim.sensor_mount(),
+            }
+        })
+        .collect();
+    let mut filter = SlamFilter::new(
+        SlamConfig {
+            frame,
+            origin: world.map_origin(),
+            association: AssociationConfig::default(),
+            fresh_id_namespace: 0,
+        },
+        &setups,
+    )
+    .unwrap();
+    let mut by_vehicle = [0usize; 2];
+    let steps = (duration / sims[0].imu_dt()).round() as u64;
+    let mut truths = vec![*sims[0].truth(); sims.len()];
+    for _ in 0..steps {
+        for (v, sim) in sims.iter_mut().enumerate() {
+            let out = sim.step();
+            truths[v] = out.truth;
+            filter.predict(v, &out.imu).unwrap();
+            if let Some(sf) = out.frame {
+                let r = filter.process_frame(v, &sf.frame).unwrap();
+                by_vehicle[v] += r.initialized();
+            }
+        }
+    }
+    let mut pose_nees = 0.0;
+    for (v, truth) in truths.iter().enumerate() {
+        let err = vehicle_error(&filter.vehicle_state(v).unwrap(), &truth_state(truth));
+        let cov = filter.vehicle_covariance(v).unwrap();
+        let idx = [POS, POS + 1, POS + 2, ATT, ATT + 1, ATT + 2];
+        let e = DVector::from_fn(6, |i, _| err[idx[i]]);
+        let c = DMatrix::from_fn(6, 6, |i, j| cov[(idx[i], idx[j])]);
+        pose_nees += nees(&e, &c).unwrap();
+    }
+    let (mut map_nees, mut n) = (0.0, 0);
+    for (id, m) in filter.features() {
+        let e = m - world.feature(id).unwrap().position(frame);
+        let c = filter.feature_covariance(id).unwrap();
+        map_nees += nees(
+            &DVector::from_column_slice(e.as_slice()),
+            &DMatrix::from_fn(3, 3, |i, j| c[(i, j)]),
+        )
+        .unwrap();
+        n += 1;
+    }
+    (pose_nees, map_nees, n, by_vehicle)
+}
+
+/// A mixed team in one centralized filter — a range-bearing vehicle and a bearing-only vehicle
+/// on a second, overlapping lawnmower — picks each vehicle's pipeline from its sensor model
+/// (both initialize features; the bearing-only one through stored poses) and stays as
+/// consistent as an all-range-bearing team on the same seeds (10 runs, 60 s, local frame):
+/// 2×6-dof pose ANEES and map NEES per dof within 1.5× of the all-range-bearing team's.
+#[test]
+fn mixed_centralized_team_is_consistent() {
+    let team = |second: SensorModelConfig, seed: u64| {
+        let mut scn = scenario(EarthModel::Flat, range_bearing_sensor(), seed);
+        let mut v2 = scn.vehicles[0].clone();
+        v2.id = 2;
+        v2.sensor.model = second;
+        v2.trajectory.centre_ne_m = [0.0, 75.0];
+        v2.trajectory.altitude_m = 140.0;
+        v2.trajectory.phase = 0.1;
+        scn.vehicles.push(v2);
+        scn
+    };
+    let runs = 10;
+    let (mut mixed, mut pure) = ((0.0, 0.0, 0), (0.0, 0.0, 0));
+    for seed in 0..runs {
+        let (p, m, n, by) = run_team(&team(bearing_sensor(), 2000 + seed), 60.0);
+        assert!(
+            by[0] > 10 && by[1] > 5,
+            "both vehicles initialize features: {by:?}"
+        );
+        mixed = (mixed.0 + p, mixed.1 + m, mixed.2 + n);
+        let (p, m, n, _) = run_team(&team(range_bearing_sensor(), 2000 + seed), 60.0);
+        pure = (pure.0 + p, pure.1 + m, pure.2 + n);
+    }
+    let (lo, hi) = anees_band(runs as usize, 12, 0.95).unwrap();
+    let mixed_pose = mixed.0 / runs as f64;
+    let pure_pose = pure.0 / runs as f64;
+    let mixed_map = mixed.1 / (3 * mixed.2) as f64;
+    let pure_map = pure.1 / (3 * pure.2) as f64;
+    eprintln!(
+        "mixed team: pose ANEES {mixed_pose:.2} (band [{lo:.2}, {hi:.2}]), map NEES/dof \
+         {mixed_map:.3} over {} features; all range-bearing: {pure_pose:.2}, {pure_map:.3} over {}",
+        mixed.2, pure.2
+    );
+    assert!(
+        mixed_pose <= hi || mixed_pose <= 1.5 * pure_pose,
+        "{mixed_pose} vs {pure_pose}"
+    );
+    assert!(
+        mixed_map <= 1.5 * pure_map.max(1.0),
+        "{mixed_map} vs {pure_map}"
+    );
 }
