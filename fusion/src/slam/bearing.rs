@@ -103,7 +103,7 @@ impl BearingConfig {
         if !(self.min_parallax > 0.0 && self.min_parallax < std::f64::consts::PI) {
             return bad("min_parallax must be in (0, π)");
         }
-        if !(self.max_miss_distance > 0.0) {
+        if self.max_miss_distance.is_nan() || self.max_miss_distance <= 0.0 {
             return bad("max_miss_distance must be positive");
         }
         if self.hypotheses == 0 {
@@ -116,7 +116,7 @@ impl BearingConfig {
         if self.max_stored_poses < 2 {
             return bad("max_stored_poses must be at least 2");
         }
-        if !(self.max_track_age > 0.0) {
+        if self.max_track_age.is_nan() || self.max_track_age <= 0.0 {
             return bad("max_track_age must be positive");
         }
         if self.max_track_observations < 2 {

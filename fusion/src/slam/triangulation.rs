@@ -93,7 +93,7 @@ pub fn closest_point(
     let (e, f) = (d.dot(u_a), d.dot(u_b));
     let den = a * c - b * b;
     // D = |u_a|²|u_b|² sin²(angle): below 1e-14 (angle ≈ 1e-7 rad) the depth is pure round-off.
-    if !(den > 1e-14 * a * c) {
+    if den.is_nan() || den <= 1e-14 * a * c {
         return None;
     }
     let n_a = e * c - f * b;
@@ -328,12 +328,12 @@ pub fn initialize_from_pair(
     let la = pose_line_of_sight(frame, a)?;
     let lb = pose_line_of_sight(frame, b)?;
     let angle = separation_angle(&la.direction, &lb.direction);
-    if !(angle >= min_angle) {
+    if angle.is_nan() || angle < min_angle {
         return Err(TriangulationError::NearParallel { angle });
     }
     let cp = closest_point(&la.origin, &la.direction, &lb.origin, &lb.direction)
         .ok_or(TriangulationError::NearParallel { angle })?;
-    if !(cp.miss <= max_miss) {
+    if cp.miss.is_nan() || cp.miss > max_miss {
         return Err(TriangulationError::Miss { distance: cp.miss });
     }
     if cp.along.0 <= 0.0 || cp.along.1 <= 0.0 {
@@ -508,7 +508,9 @@ mod tests {
     }
 
     /// (pose frame, two stored poses (p^n, Ψ^n), feature in the filter frame).
-    fn pair_cases() -> Vec<(PoseFrame, [(Vector3<f64>, Vector3<f64>); 2], Vector3<f64>)> {
+    type PairCase = (PoseFrame, [(Vector3<f64>, Vector3<f64>); 2], Vector3<f64>);
+
+    fn pair_cases() -> Vec<PairCase> {
         let poses = [
             (
                 Vector3::new(0.0, 0.0, -150.0),
