@@ -2,8 +2,8 @@
 //!
 //! The same type is the per-vehicle filter (M = 1) and the centralized all-data reference EKF
 //! (M = all vehicles sharing one map). State layout (see [`layout`]): vehicle blocks, then
-//! features (3 each, keyed by [`FeatureId`]) and, later, stored poses, with all index bookkeeping
-//! in the [`Layout`] slot table. x is a faer `Col`, P a faer `Mat`; small blocks use nalgebra.
+//! features (3 each, keyed by [`FeatureId`]), then stored poses of bearing-only SLAM (6 each),
+//! with all index bookkeeping in the [`Layout`] slot table. x is a faer `Col`, P a faer `Mat`; small blocks use nalgebra.
 //!
 //! # Prediction (eqs. 21.46, 21.47) with a lazy transition
 //! An IMU sample changes only the vehicle's rows and columns of P. [`SlamFilter::predict`] updates
@@ -18,8 +18,11 @@
 //! and leaves the filter bit-for-bit unchanged), associates every observation against the prior
 //! (Mahalanobis gate of eq. 21.55 at `gate_probability`; descriptor, nearest-neighbour or JCBB),
 //! performs one stacked EKF update (eqs. 21.56–21.65) for the associated observations in Joseph
-//! form, then initializes the unassociated range-bearing observations as new features
-//! (eqs. 21.48–21.54) from the updated vehicle estimate.
+//! form, then initializes the unassociated observations from the updated vehicle estimate: a
+//! range-bearing vehicle directly (eqs. 21.48–21.54), a bearing or pixel vehicle through stored
+//! poses, multi-hypothesis tracks and delayed triangulation (§21.4, module `bearing`; the
+//! geometry is in [`triangulation`]). The pipeline follows each vehicle's `SensorModel`, so a
+//! centralized filter may mix both kinds.
 
 mod association;
 mod bearing;
