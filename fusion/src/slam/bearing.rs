@@ -38,7 +38,9 @@
 //!    dropped; before a pose is added at `max_stored_poses`, the oldest tracks not matched in the
 //!    frame are dropped until one frees a pose (all counted in [`BearingStats`]).
 
-use super::triangulation::{PoseFrame, PosedObservation, TriangulationError, initialize_from_pair};
+use super::triangulation::{
+    PoseFrame, PosedObservation, TriangulationError, initialize_from_pair, predict_from_pose,
+};
 use super::update::HBlock;
 use super::{
     AssociationMode, FrameReport, ObservationOutcome, PoseId, RejectReason, SlamError, SlamFilter,
@@ -937,7 +939,6 @@ impl SlamFilter {
             return;
         };
         let m = self.vec3_at(foff);
-        let r_from = frame.filter_from_pose();
         struct Row {
             poff: usize,
             h_pos: DMatrix<f64>,
@@ -954,19 +955,13 @@ impl SlamFilter {
             let model = self.stored_model(o);
             let p_n = self.vec3_at(poff + POSE_POS);
             let att = self.vec3_at(poff + POSE_ATT);
-            let pose = model.sensor_pose(&frame.to_filter(&p_n), &att);
-            let Ok(pred) = model.predict(&pose, &m) else {
+            let Ok(pred) = predict_from_pose(&frame, &model, &p_n, &att, &m) else {
                 self.bearing.stats.recovery_rejected += 1;
                 continue;
             };
             let d = pred.z.len();
             let nu = model.innovation(&o.z, &pred.z);
-            // ∂h/∂p^n = ∂h/∂p^frame · C_{n0}^frame.
-            let h_pos = DMatrix::from_fn(d, 3, |i, j| {
-                (0..3)
-                    .map(|c| pred.d_position[(i, c)] * r_from[(c, j)])
-                    .sum()
-            });
+            let h_pos = DMatrix::from_fn(d, 3, |i, j| pred.d_position[(i, j)]);
             let h_att = DMatrix::from_fn(d, 3, |i, j| pred.d_attitude[(i, j)]);
             let h_m = DMatrix::from_fn(d, 3, |i, j| pred.d_feature[(i, j)]);
             let r = model.noise_covariance();
