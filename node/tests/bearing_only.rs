@@ -268,7 +268,7 @@ fn run(scn: &Scenario, mode: AssociationMode, duration: f64, check_culling: bool
     result
 }
 
-/// Descriptors ignored (nearest-neighbour mode): every observation reaches its track or
+/// Descriptors ignored (nearest-neighbour and JCBB modes): every observation reaches its track or
 /// feature through the gates of eqs. 21.55 and 21.81–21.83 alone. At the default noise no
 /// observation is stored with, used on, or initializes a feature other than its own (an
 /// observation gated into another feature's one-observation track is caught by the triangulation
@@ -276,12 +276,16 @@ fn run(scn: &Scenario, mode: AssociationMode, duration: f64, check_culling: bool
 /// with three or more observations are culled to a contiguous window around its true range.
 #[test]
 fn association_without_descriptors_is_right_and_culls_to_the_true_range() {
-    for earth in [EarthModel::Flat, EarthModel::Wgs84] {
+    for (earth, mode) in [
+        (EarthModel::Flat, AssociationMode::NearestNeighbour),
+        (EarthModel::Wgs84, AssociationMode::NearestNeighbour),
+        (EarthModel::Flat, AssociationMode::Jcbb { max_nodes: 2000 }),
+    ] {
         let scn = scenario(earth, bearing_sensor(), 11);
-        let r = run(&scn, AssociationMode::NearestNeighbour, 60.0, true);
+        let r = run(&scn, mode, 60.0, true);
         let culled = r.culled_fraction_sum / r.culling_checked.max(1) as f64;
         eprintln!(
-            "{earth:?}: wrong stored {}, wrong in map {}, caught by triangulation {}, culling \
+            "{earth:?} {mode:?}: wrong stored {}, wrong in map {}, caught by triangulation {}, culling \
              failed {}/{} (mean fraction culled {culled:.2}), features {}, map RMSE {:.2} m, \
              stats {:?}",
             r.wrong_stored,
