@@ -58,6 +58,21 @@ pub type TrackId = u64;
 
 type Mat6 = SMatrix<f64, 6, 6>;
 
+/// How an observation is gated against a track's hypotheses.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum TrackGate {
+    /// Eq. 21.83 as printed: P_hyp = diag(P_pp, P_j), the current pose and the hypothesis
+    /// (frozen at the track's first observation) assumed uncorrelated. Both carry the absolute
+    /// pose uncertainty, so the gate is wide (≈ the absolute position σ over the range).
+    Chapter,
+    /// The hypotheses as functions of the track's first stored pose, which is in the state: the
+    /// means follow that pose's current estimate and S uses the exact linearized joint
+    /// covariance of (current pose, stored pose), so only their *relative* uncertainty widens
+    /// the gate. Same cost order (one 6×6 cross-covariance block per track).
+    Correlated,
+}
+
 /// Options of bearing-only SLAM.
 #[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct BearingConfig {
@@ -82,6 +97,8 @@ pub struct BearingConfig {
     /// A track with this many stored observations that still cannot initialize is dropped.
     /// Default 40.
     pub max_track_observations: usize,
+    /// Gate of observations against track hypotheses. Default [`TrackGate::Correlated`].
+    pub track_gate: TrackGate,
 }
 
 impl Default for BearingConfig {
@@ -95,6 +112,7 @@ impl Default for BearingConfig {
             max_stored_poses: 40,
             max_track_age: 30.0,
             max_track_observations: 40,
+            track_gate: TrackGate::Correlated,
         }
     }
 }
@@ -206,6 +224,22 @@ struct Track {
     created: f64,
     observations: Vec<StoredObservation>,
     hypotheses: Vec<Hypothesis>,
+    /// The first observation, which the hypotheses hang off (its pose stays in the state while
+    /// the observation is stored).
+    anchor: StoredObservation,
+    /// Range σ of every hypothesis [m].
+    sigma_range: f64,
+}
+
+/// The first observation's line of sight and covariance blocks, for the correlated gate.
+struct Anchor {
+    los: super::triangulation::PoseLineOfSight,
+    /// P of the current vehicle's (p, Ψ) with the anchor pose (6×6).
+    p_va: Mat6,
+    /// P of the anchor pose (6×6).
+    p_aa: Mat6,
+    /// R of the anchor observation.
+    r: DMatrix<f64>,
 }
 
 /// Bearing-only bookkeeping of a filter.
@@ -366,12 +400,102 @@ impl SlamFilter {
         nis(&nu, &s)
     }
 
+    /// The anchor geometry of a track for the correlated gate (`None`: its first observation's
+    /// pose is gone, or the gate is [`TrackGate::Chapter`]).
+    fn anchor(&self, frame: &PoseFrame, vehicle: usize, track: &Track) -> Option<Anchor> {
+        if self.bearing.config.track_gate != TrackGate::Correlated {
+            return None;
+        }
+        let a = &track.anchor;
+        let off = self.layout.pose_offset(a.pose)?;
+        let (p, att) = self.stored_pose(a.pose)?;
+        let model = self.stored_model(a);
+        let los = super::triangulation::pose_line_of_sight(
+            frame,
+            &PosedObservation {
+                model: &model,
+                position: p,
+                attitude: att,
+                z: &a.z,
+            },
+        )
+        .ok()?;
+        let voff = self.layout.vehicle_block(vehicle);
+        let vi = |k: usize| {
+            if k < 3 {
+                voff + POS + k
+            } else {
+                voff + ATT + k - 3
+            }
+        };
+        Some(Anchor {
+            los,
+            p_va: Mat6::from_fn(|i, j| self.p[(vi(i), off + j)]),
+            p_aa: Mat6::from_fn(|i, j| self.p[(off + i, off + j)]),
+            r: model.noise_covariance(),
+        })
+    }
+
+    /// γ against the hypothesis at `range` hanging off the anchor (eqs. 21.55, 21.79–21.82 with
+    /// the exact joint covariance of the current and the anchor pose instead of 21.83):
+    /// x_j = y + r u (n0, mapped to the filter frame), ∂x_j/∂x_a = C (∂y + r ∂u)/∂x_a,
+    /// S = H_v P_vv H_vᵀ + A P_aa Aᵀ + H_v P_va Aᵀ + A P_vaᵀ H_vᵀ + H_m N_j H_mᵀ + R with
+    /// A = H_m ∂x_j/∂x_a and N_j = (r C ∂u/∂z) R_a (·)ᵀ + σ_r² u uᵀ.
+    fn anchored_gamma(
+        frame: &PoseFrame,
+        cur: &Current<'_>,
+        z: &DVector<f64>,
+        a: &Anchor,
+        range: f64,
+        sigma_range: f64,
+    ) -> f64 {
+        let c = frame.filter_from_pose();
+        let mean = frame.to_filter(&(a.los.origin + a.los.direction * range));
+        let Ok(pred) = cur.model.predict(&cur.pose, &mean) else {
+            return f64::INFINITY;
+        };
+        let nu = cur.model.innovation(z, &pred.z);
+        let d = nu.len();
+        let g_a = c * (a.los.origin_d_pose + a.los.direction_d_pose * range);
+        let u = c * a.los.direction;
+        let c_d = DMatrix::from_fn(3, 3, |i, j| c[(i, j)]);
+        let g_z = &c_d * &a.los.direction_d_z * range;
+        let noise = &g_z * &a.r * g_z.transpose();
+        let noise =
+            Matrix3::from_fn(|i, j| noise[(i, j)]) + u * u.transpose() * sigma_range.powi(2);
+        let to = |m: &dyn Fn(usize, usize) -> f64, r: usize, c: usize| DMatrix::from_fn(r, c, m);
+        let hv = to(
+            &|i, j| {
+                if j < 3 {
+                    pred.d_position[(i, j)]
+                } else {
+                    pred.d_attitude[(i, j - 3)]
+                }
+            },
+            d,
+            6,
+        );
+        let hm = to(&|i, j| pred.d_feature[(i, j)], d, 3);
+        let a_m = &hm * to(&|i, j| g_a[(i, j)], 3, 6);
+        let p_vv = to(&|i, j| cur.p_pp[(i, j)], 6, 6);
+        let p_va = to(&|i, j| a.p_va[(i, j)], 6, 6);
+        let p_aa = to(&|i, j| a.p_aa[(i, j)], 6, 6);
+        let cross = &hv * p_va * a_m.transpose();
+        let s = &hv * p_vv * hv.transpose()
+            + &a_m * p_aa * a_m.transpose()
+            + &cross
+            + cross.transpose()
+            + &hm * to(&|i, j| noise[(i, j)], 3, 3) * hm.transpose()
+            + &cur.r;
+        nis(&nu, &s)
+    }
+
     /// Hypotheses along the line of sight of z from the current pose (eqs. 21.79, 21.80).
     fn make_hypotheses(
         &self,
         cur: &Current<'_>,
         z: &DVector<f64>,
-    ) -> Result<Vec<Hypothesis>, SlamError> {
+    ) -> Result<(Vec<Hypothesis>, f64), SlamError> {
         let cfg = &self.bearing.config;
         let (dir, d_dir) = cur
             .model
@@ -388,7 +512,7 @@ impl SlamFilter {
         } else {
             spacing
         };
-        let sigma_r = width / 12f64.sqrt();
+        let sigma_r = width / 2.0;
         let u = los.direction;
         let c_fs = DMatrix::from_fn(3, 3, |i, j| los.frame_from_sensor[(i, j)]);
         let du_dz = &c_fs * &d_dir;
@@ -419,7 +543,7 @@ impl SlamFilter {
                 covariance: (covariance + covariance.transpose()) * 0.5,
             });
         }
-        Ok(out)
+        Ok((out, sigma_r))
     }
 
     /// The bearing-only part of a frame (module docs, steps 1–6) for the observations `pending`
@@ -450,11 +574,24 @@ impl SlamFilter {
         // Step 2: association to tracks.
         let mut matches: Vec<TrackMatch> = Vec::new();
         let mut new_tracks: Vec<usize> = Vec::new();
-        let gate_track = |track: &Track, z: &DVector<f64>| -> (Vec<usize>, f64) {
+        let anchors: Vec<Option<Anchor>> = self
+            .bearing
+            .tracks
+            .iter()
+            .map(|t| self.anchor(&pose_frame, vehicle, t))
+            .collect();
+        let tracks = &self.bearing.tracks;
+        let gate_track = |t: usize, z: &DVector<f64>| -> (Vec<usize>, f64) {
+            let track = &tracks[t];
             let mut passed = Vec::new();
             let mut best = f64::INFINITY;
             for (k, h) in track.hypotheses.iter().enumerate() {
-                let g = Self::hypothesis_gamma(&cur, z, h);
+                let g = match &anchors[t] {
+                    Some(a) => {
+                        Self::anchored_gamma(&pose_frame, &cur, z, a, h.range, track.sigma_range)
+                    }
+                    None => Self::hypothesis_gamma(&cur, z, h),
+                };
                 best = best.min(g);
                 if g <= gate {
                     passed.push(k);
@@ -475,7 +612,7 @@ impl SlamFilter {
                     match by_descriptor.get(&descriptors[i]) {
                         None => new_tracks.push(i),
                         Some(&k) => {
-                            let (passed, gamma) = gate_track(&self.bearing.tracks[k], &zs[i]);
+                            let (passed, gamma) = gate_track(k, &zs[i]);
                             if passed.is_empty() {
                                 report.outcomes[i] =
                                     ObservationOutcome::Rejected(RejectReason::GateFailed {
@@ -497,8 +634,8 @@ impl SlamFilter {
             AssociationMode::NearestNeighbour | AssociationMode::Jcbb { .. } => {
                 for &i in pending {
                     let mut hits: Vec<TrackMatch> = Vec::new();
-                    for (k, t) in self.bearing.tracks.iter().enumerate() {
-                        let (passed, gamma) = gate_track(t, &zs[i]);
+                    for k in 0..self.bearing.tracks.len() {
+                        let (passed, gamma) = gate_track(k, &zs[i]);
                         if !passed.is_empty() {
                             hits.push(TrackMatch {
                                 obs: i,
@@ -588,7 +725,7 @@ impl SlamFilter {
             touched.push(*id);
         }
         for &i in &new_tracks {
-            let hypotheses = match self.make_hypotheses(&cur, &zs[i]) {
+            let (hypotheses, sigma_range) = match self.make_hypotheses(&cur, &zs[i]) {
                 Ok(h) => h,
                 Err(_) => {
                     report.outcomes[i] =
@@ -598,16 +735,19 @@ impl SlamFilter {
             };
             let id = self.bearing.next_track;
             self.bearing.next_track += 1;
+            let first = StoredObservation {
+                pose,
+                vehicle,
+                z: zs[i].clone(),
+            };
             self.bearing.tracks.push(Track {
                 id,
                 descriptor: descriptors[i],
                 created: time,
-                observations: vec![StoredObservation {
-                    pose,
-                    vehicle,
-                    z: zs[i].clone(),
-                }],
+                observations: vec![first.clone()],
                 hypotheses,
+                anchor: first,
+                sigma_range,
             });
             self.bearing.poses.get_mut(&pose).expect("just stored").refs += 1;
             self.bearing.stats.tracks_started += 1;

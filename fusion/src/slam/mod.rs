@@ -31,7 +31,7 @@ pub mod layout;
 pub mod triangulation;
 mod update;
 
-pub use bearing::{BearingConfig, BearingStats, TrackId, TrackInfo};
+pub use bearing::{BearingConfig, BearingStats, TrackGate, TrackId, TrackInfo};
 pub use fuse::{FuseMethod, FuseReport};
 pub use layout::{Layout, PoseId, Slot, SlotKind};
 
