@@ -203,10 +203,10 @@ struct StoredPose {
 }
 
 #[derive(Clone, Debug)]
-struct StoredObservation {
-    pose: PoseId,
-    vehicle: usize,
-    z: DVector<f64>,
+pub(super) struct StoredObservation {
+    pub(super) pose: PoseId,
+    pub(super) vehicle: usize,
+    pub(super) z: DVector<f64>,
 }
 
 /// One Gaussian hypothesis of a track (eqs. 21.79, 21.80), in the filter frame.
@@ -232,7 +232,7 @@ struct Track {
 }
 
 /// The first observation's line of sight and covariance blocks, for the correlated gate.
-struct Anchor {
+pub(super) struct Anchor {
     los: super::triangulation::PoseLineOfSight,
     /// P of the current vehicle's (p, Ψ) with the anchor pose (6×6).
     p_va: Mat6,
@@ -281,7 +281,7 @@ struct TrackMatch {
 }
 
 /// Per-frame geometry of the observing vehicle.
-struct Current<'a> {
+pub(super) struct Current<'a> {
     model: &'a ObservationModel,
     pose: crate::observation::SensorPose,
     /// Covariance of the vehicle's (p, Ψ) (the P_pp of eq. 21.83).
@@ -358,7 +358,11 @@ impl SlamFilter {
         })
     }
 
-    fn current_geometry<'a>(&self, vehicle: usize, model: &'a ObservationModel) -> Current<'a> {
+    pub(super) fn current_geometry<'a>(
+        &self,
+        vehicle: usize,
+        model: &'a ObservationModel,
+    ) -> Current<'a> {
         let voff = self.layout.vehicle_block(vehicle);
         let idx = |k: usize| {
             if k < 3 {
@@ -403,10 +407,19 @@ impl SlamFilter {
     /// The anchor geometry of a track for the correlated gate (`None`: its first observation's
     /// pose is gone, or the gate is [`TrackGate::Chapter`]).
     fn anchor(&self, frame: &PoseFrame, vehicle: usize, track: &Track) -> Option<Anchor> {
+        self.anchor_of(frame, vehicle, &track.anchor)
+    }
+
+    /// The anchor geometry of a first observation (see [`Self::anchored_gamma`]).
+    pub(super) fn anchor_of(
+        &self,
+        frame: &PoseFrame,
+        vehicle: usize,
+        a: &StoredObservation,
+    ) -> Option<Anchor> {
         if self.bearing.config.track_gate != TrackGate::Correlated {
             return None;
         }
-        let a = &track.anchor;
         let off = self.layout.pose_offset(a.pose)?;
         let (p, att) = self.stored_pose(a.pose)?;
         let model = self.stored_model(a);
@@ -441,7 +454,7 @@ impl SlamFilter {
     /// x_j = y + r u (n0, mapped to the filter frame), ∂x_j/∂x_a = C (∂y + r ∂u)/∂x_a,
     /// S = H_v P_vv H_vᵀ + A P_aa Aᵀ + H_v P_va Aᵀ + A P_vaᵀ H_vᵀ + H_m N_j H_mᵀ + R with
     /// A = H_m ∂x_j/∂x_a and N_j = (r C ∂u/∂z) R_a (·)ᵀ + σ_r² u uᵀ.
-    fn anchored_gamma(
+    pub(super) fn anchored_gamma(
         frame: &PoseFrame,
         cur: &Current<'_>,
         z: &DVector<f64>,
