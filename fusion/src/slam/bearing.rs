@@ -8,9 +8,12 @@
 //!    recovered onto that feature (gated batch update, eq. 21.78) and is closed.
 //! 2. *Association to uninitialized tracks* (21.4.3.2/21.4.3.3): every observation left over by
 //!    the association against initialized features is gated (χ² at `gate_probability`, 5.991 for
-//!    2 dof at 95 %) against every hypothesis of every track, with ν of eq. 21.81, S of eq. 21.82
-//!    and P_hyp of eq. 21.83 (current p, Ψ covariance and the hypothesis covariance, assumed
-//!    uncorrelated). Descriptor mode gates only the track with the observation's descriptor (a
+//!    2 dof at 95 %) against every hypothesis of every track, with ν of eq. 21.81 and S of
+//!    eq. 21.82. S uses either P_hyp of eq. 21.83 (current p, Ψ and hypothesis assumed
+//!    uncorrelated, [`TrackGate::Chapter`]) or, by default, the exact linearized joint
+//!    covariance of the current pose and the track's first stored pose, off which the
+//!    hypotheses hang ([`TrackGate::Correlated`]; `docs/arch/bearing.md` has the measured
+//!    difference). Descriptor mode gates only the track with the observation's descriptor (a
 //!    failed gate rejects); the gating modes match an observation to a track when at least one
 //!    hypothesis passes, reject an observation that matches several tracks (`Ambiguous`), and
 //!    give a track matched by several observations of one frame the lowest γ. Non-matching
@@ -20,7 +23,7 @@
 //!    one 6-state block) and every matched or new observation is stored outside the state with
 //!    a reference to it. A new track gets `hypotheses` hypotheses at equally spaced ranges in
 //!    [min_range, max_range] along the line of sight (eqs. 21.79, 21.80; the range itself gets
-//!    the σ of a uniform bin of one spacing, Δ/√12, so the hypotheses cover the segment).
+//!    a σ of half the spacing, so neighbouring hypotheses overlap and cover the segment).
 //! 4. *Initialization* (21.4.2.2/21.4.2.3): a track initializes once the largest separation
 //!    angle of any two of its stored lines of sight reaches `min_parallax`; that pair is
 //!    triangulated (eqs. 21.69–21.74) and the state augmented with ∇G_p, ∇G_z (21.75–21.77).
@@ -517,9 +520,9 @@ impl SlamFilter {
         let los = cur.pose.line_of_sight(&dir);
         let n = cfg.hypotheses;
         let spacing = (cfg.max_range - cfg.min_range) / (n.max(2) - 1) as f64;
-        // Each hypothesis stands for the range bin of width Δ around it: the range σ of a
-        // uniform bin, Δ/√12 (moment matching), so together the hypotheses cover
-        // [min_range, max_range] without inflating the near ones' angular spread.
+        // Each hypothesis stands for the range bin of width Δ around it, with a range σ of Δ/2:
+        // neighbours overlap at 1 σ, so a feature between two bins keeps matching one of them
+        // (the tighter uniform-bin σ, Δ/√12, let the true range be culled between two bins).
         let width = if n == 1 {
             cfg.max_range - cfg.min_range
         } else {
