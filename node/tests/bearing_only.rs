@@ -338,22 +338,26 @@ fn descriptor_mode_stops_wrong_descriptors() {
 /// bearing cannot tell apart; the measured rate is printed and bounded.
 #[test]
 fn association_without_descriptors_is_rarely_wrong() {
+    use canopy_fusion::slam::TrackGate;
+    let nn = AssociationMode::NearestNeighbour;
+    let jcbb = AssociationMode::Jcbb { max_nodes: 2000 };
     let cases = [
-        (EarthModel::Flat, AssociationMode::NearestNeighbour, 0..10),
-        (EarthModel::Wgs84, AssociationMode::NearestNeighbour, 0..4),
-        (
-            EarthModel::Flat,
-            AssociationMode::Jcbb { max_nodes: 2000 },
-            0..4,
-        ),
+        (EarthModel::Flat, nn, TrackGate::Correlated, 0..10),
+        (EarthModel::Wgs84, nn, TrackGate::Correlated, 0..4),
+        (EarthModel::Flat, jcbb, TrackGate::Correlated, 0..4),
+        (EarthModel::Flat, nn, TrackGate::Chapter, 0..10),
     ];
-    for (earth, mode, seeds) in cases {
+    for (earth, mode, track_gate, seeds) in cases {
         let (mut stored, mut in_map, mut caught, mut obs, mut feats) = (0, 0, 0, 0, 0);
         for seed in seeds {
-            let r = run(
-                &scenario(earth, bearing_sensor(), seed),
-                Options::new(mode, 60.0),
-            );
+            let opt = Options {
+                bearing: Some(BearingConfig {
+                    track_gate,
+                    ..BearingConfig::default()
+                }),
+                ..Options::new(mode, 60.0)
+            };
+            let r = run(&scenario(earth, bearing_sensor(), seed), opt);
             stored += r.wrong_stored;
             in_map += r.wrong_in_map;
             caught += r.caught_by_triangulation;
@@ -362,12 +366,13 @@ fn association_without_descriptors_is_rarely_wrong() {
         }
         let rate = (stored + in_map) as f64 / obs as f64;
         eprintln!(
-            "{earth:?} {mode:?}: {obs} observations, wrong stored {stored}, wrong in map \
-             {in_map} (rate {:.3} %), caught by the miss test {caught}, {feats} features",
+            "{earth:?} {mode:?} {track_gate:?}: {obs} observations, wrong stored {stored}, wrong \
+             in map {in_map} (rate {:.3} %), caught by the miss test {caught}, {feats} features",
             100.0 * rate
         );
-        // Measured 0.1–0.3 % (close feature pairs); 1 % flags a regression of the gates.
-        assert!(rate < 0.01, "{earth:?} {mode:?}: {rate}");
+        // Measured 0.15–0.18 % with the correlated gate and 0.33 % with 21.83 (close feature
+        // pairs); 1 % flags a regression of the gates.
+        assert!(rate < 0.01, "{earth:?} {mode:?} {track_gate:?}: {rate}");
         assert!(feats > 100, "{earth:?} {mode:?}: {feats}");
     }
 }
