@@ -251,6 +251,8 @@ impl VehicleAgent {
 #[derive(Debug, Default, Clone)]
 pub struct AssociationAudit {
     origin: std::collections::HashMap<u64, u64>,
+    /// Bearing-only tracks (per filter namespace) → the true feature of their first observation.
+    tracks: std::collections::HashMap<(u32, u64), u64>,
 }
 
 /// What an audited frame contained.
@@ -271,6 +273,7 @@ impl AssociationAudit {
         true_ids: &[u64],
     ) -> AuditCounts {
         let mut c = AuditCounts::default();
+        let ns = filter.config().fresh_id_namespace;
         for (o, &truth) in report.outcomes.iter().zip(true_ids) {
             match *o {
                 ObservationOutcome::Associated { feature, .. } => {
@@ -287,7 +290,26 @@ impl AssociationAudit {
                     }
                     self.origin.entry(feature).or_insert(truth);
                 }
+                ObservationOutcome::Stored { track } => {
+                    // A stored observation joins a track: wrong if the track follows another
+                    // true feature.
+                    let t = *self.tracks.entry((ns, track)).or_insert(truth);
+                    if t != truth {
+                        c.wrong += 1;
+                    }
+                }
                 ObservationOutcome::Rejected(_) => {}
+            }
+        }
+        for &(track, feature) in &report.initialized_tracks {
+            if let Some(&truth) = self.tracks.get(&(ns, track)) {
+                let already = filter.features().iter().any(|&(f, _)| {
+                    f != feature && self.origin.get(&f).copied().unwrap_or(f) == truth
+                });
+                if already {
+                    c.duplicates += 1;
+                }
+                self.origin.entry(feature).or_insert(truth);
             }
         }
         c
