@@ -70,7 +70,28 @@ fn gather(m: MatRef<'_, f64>, ri: &[usize], ci: &[usize]) -> Mat<f64> {
     match (contiguous(ri), contiguous(ci)) {
         // Contiguous index ranges (the common case: a delta in state order) copy whole columns.
         (Some(r0), Some(c0)) => m.submatrix(r0, c0, ri.len(), ci.len()).to_owned(),
-        _ => Mat::from_fn(ri.len(), ci.len(), |i, j| m[(ri[i], ci[j])]),
+        _ => {
+            // Copy contiguous runs of row indices (features are 3-blocks, often consecutive)
+            // column by column instead of element by element.
+            let mut runs: Vec<(usize, usize, usize)> = Vec::new(); // (src, dst, len)
+            for (d, &r) in ri.iter().enumerate() {
+                match runs.last_mut() {
+                    Some((s0, d0, len)) if *s0 + *len == r && *d0 + *len == d => *len += 1,
+                    _ => runs.push((r, d, 1)),
+                }
+            }
+            let mut out = Mat::zeros(ri.len(), ci.len());
+            for (jj, &j) in ci.iter().enumerate() {
+                let src = m.col(j);
+                let mut dst = out.as_mut().col_mut(jj);
+                for &(s0, d0, len) in &runs {
+                    dst.as_mut()
+                        .subrows_mut(d0, len)
+                        .copy_from(src.subrows(s0, len));
+                }
+            }
+            out
+        }
     }
 }
 
@@ -463,23 +484,55 @@ impl SlamFilter {
             .y
             .as_ref()
             .filter(|_| self.info_cache_current());
-        let y_aa = match cached {
-            // A whole-map delta: Y_aa is the cached map information, permuted to delta order.
-            Some(y) if y.nrows() == known_state.len() => {
-                let mut pos = vec![usize::MAX; self.dim()];
-                for (i, (_, off)) in self.layout.features().enumerate() {
-                    for c in 0..3 {
-                        pos[off + c] = 3 * i + c;
-                    }
-                }
-                let perm: Vec<usize> = known_state.iter().map(|s| pos[*s]).collect();
-                if perm.iter().enumerate().all(|(i, &p)| i == p) {
-                    y.clone()
-                } else {
-                    gather(y.as_ref(), &perm, &perm)
+        // Y_aa, the marginal information of the delta's known features: from the maintained
+        // map information when it is current (whole map: a permutation; a subset a of the
+        // features with the rest b: the Schur complement Y_aa − Y_ab Y_bb⁻¹ Y_ba, an inversion
+        // of the small b block only), else by inverting P_aa.
+        let from_cache = cached.and_then(|y| {
+            let mut pos = vec![usize::MAX; self.dim()];
+            for (i, (_, off)) in self.layout.features().enumerate() {
+                for c in 0..3 {
+                    pos[off + c] = 3 * i + c;
                 }
             }
-            _ => p_aa
+            let a: Vec<usize> = known_state.iter().map(|s| pos[*s]).collect();
+            if a.contains(&usize::MAX) || y.nrows() < a.len() {
+                return None;
+            }
+            if a.len() == y.nrows() {
+                return Some(if a.iter().enumerate().all(|(i, &p)| i == p) {
+                    y.clone()
+                } else {
+                    gather(y.as_ref(), &a, &a)
+                });
+            }
+            let mut in_a = vec![false; y.nrows()];
+            for &i in &a {
+                in_a[i] = true;
+            }
+            let b: Vec<usize> = (0..y.nrows()).filter(|i| !in_a[*i]).collect();
+            // Only worth it while the complement is small next to the delta.
+            if 2 * b.len() > a.len() {
+                return None;
+            }
+            let y_bb = gather_sym(y.as_ref(), &b, &b);
+            let y_ba = gather(y.as_ref(), &b, &a);
+            let llt = y_bb.llt(Side::Lower).ok()?;
+            let sol = llt.solve(&y_ba); // Y_bb⁻¹ Y_ba
+            let mut y_aa = gather(y.as_ref(), &a, &a);
+            matmul(
+                y_aa.as_mut(),
+                Accum::Add,
+                y_ba.transpose(),
+                sol.as_ref(),
+                -1.0,
+                Par::Seq,
+            );
+            Some(y_aa)
+        });
+        let y_aa = match from_cache {
+            Some(y) => y,
+            None => p_aa
                 .llt(Side::Lower)
                 .map_err(|_| SlamError::NotPositiveDefinite("filter map covariance"))?
                 .inverse(),

@@ -1232,5 +1232,19 @@ fn map_information_is_maintained_without_reinversion() {
         // map_information serves the maintained inverse (probe passes, no re-inversion).
         f.map_information().unwrap();
         assert_eq!(f.info_cache.steps, steps);
+        // A delta on all features but one takes the map-information route with Y_aa from the
+        // cache's Schur complement; the fused filter must agree with its maintained inverse.
+        let ids: Vec<FeatureId> = f.features().iter().map(|(id, _)| *id).skip(1).collect();
+        let k = 3 * ids.len();
+        let d = delta(
+            ids,
+            random_spd(k, 0.2, &mut rng),
+            &DVector::zeros(k),
+            Vector3::zeros(),
+        );
+        let rep = f.fuse_map_information(&d).unwrap();
+        assert_eq!(rep.method, FuseMethod::MapInformation, "round {round}");
+        steps = f.info_cache.steps;
+        cached_matches_dense(&f, "map route on a subset");
     }
 }

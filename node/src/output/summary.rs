@@ -63,6 +63,9 @@ pub struct LinkSummary {
     pub rejections: u64,
     /// Whether the link fell back to covariance intersection.
     pub ci: bool,
+    /// Bytes sent (both directions) / bytes of the naive dense f64 (Y, y) of the whole map per
+    /// round per direction (0 when not measured).
+    pub bandwidth_ratio: f64,
 }
 
 /// The whole summary.
@@ -197,6 +200,11 @@ fn summarize_link(l: &LinkRecord) -> LinkSummary {
         drops: last.map_or(0, |s| s.drops),
         rejections: last.map_or(0, |s| s.rejections),
         ci: l.ci,
+        bandwidth_ratio: if l.naive_bytes > 0 {
+            last.map_or(0, |s| s.bytes_ab + s.bytes_ba) as f64 / l.naive_bytes as f64
+        } else {
+            0.0
+        },
     }
 }
 
@@ -278,6 +286,19 @@ pub fn table(summaries: &[(&str, &Summary)]) -> String {
             .map(|l| l.bytes_ab + l.bytes_ba)
             .sum::<u64>()
             .to_string()
+    });
+    push("link bytes / naive dense", &|s| {
+        let naive: Vec<f64> = s
+            .links
+            .iter()
+            .filter(|l| l.bandwidth_ratio > 0.0)
+            .map(|l| l.bandwidth_ratio)
+            .collect();
+        if naive.is_empty() {
+            "-".into()
+        } else {
+            format!("{:.3}", naive.iter().sum::<f64>() / naive.len() as f64)
+        }
     });
     push("link drops", &|s| {
         s.links.iter().map(|l| l.drops).sum::<u64>().to_string()
