@@ -66,7 +66,7 @@ pub struct FuseReport {
 }
 
 /// Gathers the rows/cols `ri`×`ci` of a matrix.
-fn gather(m: MatRef<'_, f64>, ri: &[usize], ci: &[usize]) -> Mat<f64> {
+pub(super) fn gather(m: MatRef<'_, f64>, ri: &[usize], ci: &[usize]) -> Mat<f64> {
     match (contiguous(ri), contiguous(ci)) {
         // Contiguous index ranges (the common case: a delta in state order) copy whole columns.
         (Some(r0), Some(c0)) => m.submatrix(r0, c0, ri.len(), ci.len()).to_owned(),
@@ -261,7 +261,7 @@ impl SlamFilter {
         } else {
             let g = &schur_vec - &schur * &xk_minus_o;
             if 2 * nk >= self.dim() + nu {
-                Some(self.prepare_map_route(&known_state, &schur, g)?)
+                Some(self.prepare_map_route(&known_state, schur, g)?)
             } else {
                 Some(self.prepare_pseudo_route(&known_state, &schur, g)?)
             }
@@ -270,11 +270,9 @@ impl SlamFilter {
         // Mutation starts here. Flushing changes only the representation of P.
         self.flush();
         // The map information after the fusion is exactly Y + ΔY (aligned): keep the cache.
-        let info_before = self
-            .info_cache
-            .y
-            .clone()
-            .filter(|_| self.info_cache_current());
+        // Taken, not cloned (k² copy): the cache is rebuilt below or dropped on error.
+        let current = self.info_cache_current();
+        let info_before = self.info_cache.y.take().filter(|_| current);
         self.bump_map_generation(false);
         let n0 = self.dim();
         if let Some((b, y_uu_inv, x_u)) = &new_block {
@@ -323,14 +321,13 @@ impl SlamFilter {
                 self.apply_pseudo_route(&known_state, &h_k, &signs, &nu)
             }
             Some(Route::Map {
-                p_aa,
                 p_aa_post,
                 y_aa,
                 dx_a,
                 post,
             }) => {
                 report.method = FuseMethod::MapInformation;
-                let r = self.apply_map_route(&known_state, &p_aa, &p_aa_post, &y_aa, &dx_a);
+                let r = self.apply_map_route(&known_state, &p_aa_post, &y_aa, &dx_a);
                 // Y_aa⁺ in delta order: the whole map's new information when the delta covers
                 // every feature in map order (no permutation needed).
                 map_route_post = Some(post);
@@ -475,10 +472,9 @@ impl SlamFilter {
     fn prepare_map_route(
         &self,
         known_state: &[usize],
-        schur: &Mat<f64>,
+        schur: Mat<f64>,
         g: Col<f64>,
     ) -> Result<Route, SlamError> {
-        let p_aa = gather(self.p.as_ref(), known_state, known_state);
         let cached = self
             .info_cache
             .y
@@ -532,12 +528,14 @@ impl SlamFilter {
         });
         let y_aa = match from_cache {
             Some(y) => y,
-            None => p_aa
+            None => gather(self.p.as_ref(), known_state, known_state)
                 .llt(Side::Lower)
                 .map_err(|_| SlamError::NotPositiveDefinite("filter map covariance"))?
                 .inverse(),
         };
-        let post = &y_aa + schur;
+        // In place: a fresh k×k allocation per round costs page faults comparable to the sum.
+        let mut post = schur;
+        post += &y_aa;
         let p_aa_post = post
             .llt(Side::Lower)
             .map_err(|_| SlamError::NotPositiveDefinite("fused information"))?
@@ -550,7 +548,6 @@ impl SlamFilter {
             return Err(SlamError::NumericalFailure("map-information fusion"));
         }
         Ok(Route::Map {
-            p_aa,
             p_aa_post,
             y_aa,
             dx_a,
@@ -561,7 +558,6 @@ impl SlamFilter {
     fn apply_map_route(
         &mut self,
         known_state: &[usize],
-        _p_aa: &Mat<f64>,
         p_aa_post: &Mat<f64>,
         y_aa: &Mat<f64>,
         dx_a: &Col<f64>,
@@ -640,7 +636,6 @@ enum Route {
     },
     /// Map-information route quantities.
     Map {
-        p_aa: Mat<f64>,
         p_aa_post: Mat<f64>,
         y_aa: Mat<f64>,
         dx_a: Col<f64>,

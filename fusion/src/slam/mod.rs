@@ -499,7 +499,8 @@ impl SlamFilter {
         MapMarginal {
             ids: feats.iter().map(|&(id, _)| id).collect(),
             mean: Col::from_fn(k, |i| self.x[idx[i]]),
-            covariance: Mat::from_fn(k, k, |i, j| self.p[(idx[i], idx[j])]),
+            // Runs of consecutive state indices copy column slices (features are contiguous).
+            covariance: fuse::gather(self.p.as_ref(), &idx, &idx),
         }
     }
 
