@@ -11,6 +11,7 @@
 //!
 //! Run: `cargo bench -p canopy-fusion --bench slam`. Times are medians of repeated runs.
 
+use canopy_fusion::ddf::{DdfConfig, DdfNode, FuseTarget, Outgoing};
 use canopy_fusion::imu::ImuGrade;
 use canopy_fusion::info::MapInformation;
 use canopy_fusion::ins::{self, VehicleCovariance, VehicleState};
@@ -21,11 +22,46 @@ use canopy_fusion::slam::{
     AssociationConfig, AssociationMode, SlamConfig, SlamFilter, VehicleSetup,
 };
 use canopy_fusion::state::{NavFrame, VEHICLE_DIM};
+use canopy_fusion::topology::NodeId;
 use faer::linalg::solvers::DenseSolveCore;
 use faer::{Col, Mat, Side};
 use nalgebra::Vector3;
 use std::hint::black_box;
 use std::time::Instant;
+
+/// A DDF node of the vehicle with one neighbour, the channel synchronised, so that every
+/// `on_round` computes and encodes the delta Y − C for the neighbour (the round's DDF step).
+fn synced_channel(origin: Vector3<f64>) -> DdfNode {
+    let (a_id, b_id) = (NodeId(1), NodeId(2));
+    let mut a = DdfNode::new(a_id, 11, [b_id], origin, DdfConfig::default());
+    let mut b = DdfNode::new(b_id, 22, [a_id], origin, DdfConfig::default());
+    let mut ya = MapInformation::zero(origin);
+    let mut yb = MapInformation::zero(origin);
+    let mut queue: Vec<(NodeId, Outgoing)> = Vec::new();
+    queue.extend(
+        a.on_link_up(0.0, b_id)
+            .unwrap()
+            .into_iter()
+            .map(|o| (a_id, o)),
+    );
+    queue.extend(
+        b.on_link_up(0.0, a_id)
+            .unwrap()
+            .into_iter()
+            .map(|o| (b_id, o)),
+    );
+    while let Some((from, o)) = queue.pop() {
+        let (node, est): (&mut DdfNode, &mut dyn FuseTarget) = if o.to == a_id {
+            (&mut a, &mut ya)
+        } else {
+            (&mut b, &mut yb)
+        };
+        let replies = node.on_message(0.0, from, o.message, est).unwrap();
+        queue.extend(replies.into_iter().map(|r| (o.to, r)));
+    }
+    assert!(a.channel(b_id).unwrap().synced);
+    a
+}
 
 fn median_time(reps: usize, mut f: impl FnMut()) -> f64 {
     let mut t: Vec<f64> = (0..reps)
@@ -264,7 +300,8 @@ fn main() {
     );
     println!(
         "Between rounds the vehicle processes 2 frames of 8 observations (untimed); a round is \
-         `map_information()` (Y_mm for the deltas) + fusing a neighbour's delta back. `maintained`: Y_mm \
+         `map_information()` (Y_mm) + the DDF channel's delta Y − C for one neighbour + fusing a \
+         neighbour's delta back. `maintained`: Y_mm \
          kept current through the updates (Woodbury, bordered inverse, Y + ΔY); `re-inverted`: the \
          cache dropped before the round (two inversions per round)."
     );
@@ -322,6 +359,7 @@ fn main() {
         // Interleaved rep by rep on the shared machine; medians per column.
         let mut t = vec![Vec::new(); 6];
         f.map_information().unwrap();
+        let mut node = synced_channel(f.config().origin);
         for rep in 0..reps {
             let mm = f.map_marginal();
             t[0].push(time(&mut || {
@@ -343,8 +381,10 @@ fn main() {
                     t[if forget { 5 } else { 4 }].push(dt);
                 }
                 let d = make_delta(&f, ids.clone());
+                let now = (3 * rep + col) as f64;
                 t[col].push(time(&mut || {
-                    black_box(f.map_information().unwrap());
+                    let y = f.map_information().unwrap();
+                    black_box(node.on_round(now, &y).unwrap());
                     f.fuse_map_information(&d).unwrap();
                 }));
             }

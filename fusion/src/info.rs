@@ -891,7 +891,12 @@ impl MapInformation {
             keep[b] = true;
         }
         let kept: Vec<usize> = (0..nf).filter(|&b| keep[b]).collect();
-        let pos: HashMap<usize, usize> = kept.iter().enumerate().map(|(k, &b)| (b, k)).collect();
+        // Which (row block, column block) pairs are copied, both triangles.
+        let mut copy = vec![false; nf * nf];
+        for &(br, bc) in &sparsity.matrix_blocks {
+            copy[br + nf * bc] = true;
+            copy[bc + nf * br] = true;
+        }
         let n = FEATURE_DIM * kept.len();
         let mut out = MapInformation {
             ids: kept.iter().map(|&b| self.ids[b]).collect(),
@@ -899,20 +904,28 @@ impl MapInformation {
             matrix: Mat::zeros(n, n),
             vector: Col::zeros(n),
         };
-        for &(br, bc) in &sparsity.matrix_blocks {
-            let (tr, tc) = (pos[&br], pos[&bc]);
+        // Column by column, 3-entry runs: contiguous reads and writes (column-major).
+        for (tc, &bc) in kept.iter().enumerate() {
             for c in 0..FEATURE_DIM {
-                for r in 0..FEATURE_DIM {
-                    let v = self.matrix[(FEATURE_DIM * br + r, FEATURE_DIM * bc + c)];
-                    out.matrix[(FEATURE_DIM * tr + r, FEATURE_DIM * tc + c)] = v;
-                    let w = self.matrix[(FEATURE_DIM * bc + c, FEATURE_DIM * br + r)];
-                    out.matrix[(FEATURE_DIM * tc + c, FEATURE_DIM * tr + r)] = w;
+                let src = self.matrix.col_as_slice(FEATURE_DIM * bc + c);
+                let dst = out.matrix.col_as_slice_mut(FEATURE_DIM * tc + c);
+                for (tr, &br) in kept.iter().enumerate() {
+                    if copy[br + nf * bc] {
+                        dst[FEATURE_DIM * tr..FEATURE_DIM * (tr + 1)]
+                            .copy_from_slice(&src[FEATURE_DIM * br..FEATURE_DIM * (br + 1)]);
+                    }
                 }
             }
         }
+        let mut is_vector_block = vec![false; nf];
         for &b in &sparsity.vector_blocks {
-            for a in 0..FEATURE_DIM {
-                out.vector[FEATURE_DIM * pos[&b] + a] = self.vector[FEATURE_DIM * b + a];
+            is_vector_block[b] = true;
+        }
+        for (t, &b) in kept.iter().enumerate() {
+            if is_vector_block[b] {
+                for a in 0..FEATURE_DIM {
+                    out.vector[FEATURE_DIM * t + a] = self.vector[FEATURE_DIM * b + a];
+                }
             }
         }
         out
