@@ -133,6 +133,19 @@ pub struct VehicleCheck {
     pub initialisations: usize,
 }
 
+/// One end of a fusion link at the end of the run.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct LinkEndCheck {
+    /// This end's node name.
+    pub node: String,
+    /// The other end's node name.
+    pub peer: String,
+    /// Incarnation of this end's last report.
+    pub incarnation: u32,
+    /// Counters.
+    pub report: LinkReport,
+}
+
 /// What `checks.json` holds: process exits, consistency checks against the reference, counters.
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct RunChecks {
@@ -146,6 +159,9 @@ pub struct RunChecks {
     pub lead_s: f64,
     /// Per vehicle.
     pub vehicles: Vec<VehicleCheck>,
+    /// The last report of each end of each fusion link (counters summed over incarnations,
+    /// channel statistics of the current one).
+    pub link_ends: Vec<LinkEndCheck>,
     /// Hub: DDF messages it rejected.
     pub hub_rejected: u64,
     /// The run was interrupted (Ctrl-C).
@@ -1105,12 +1121,25 @@ fn assemble(
         })
         .collect();
     let max_confidence_ratio = confidence.iter().map(|c| c.ratio).reduce(f64::max);
+    let link_ends = m
+        .link_streams
+        .iter()
+        .filter_map(|((node, peer), st)| {
+            Some(LinkEndCheck {
+                node: m.names.get(node)?.clone(),
+                peer: m.names.get(peer)?.clone(),
+                incarnation: st.incarnation,
+                report: st.samples.last()?.1,
+            })
+        })
+        .collect();
     let checks = RunChecks {
         processes,
         confidence,
         max_confidence_ratio,
         lead_s: lead,
         vehicles: vchecks,
+        link_ends,
         hub_rejected: m.hub_rejected,
         interrupted,
         failure: m.failure.clone(),
