@@ -13,7 +13,8 @@
 //! - [`ins`]: INS mechanization in both frames with ∇F, ∇G and Q (21.19–21.38).
 //! - [`observation`]: terrain observation models, J_1 initialization and their Jacobians (21.41–21.50).
 //! - [`slam`]: the EKF-SLAM filter with M ≥ 1 vehicles: lazy INS prediction, association
-//!   (descriptor, NN, JCBB), Joseph updates, feature initialization, fuse-back of map information.
+//!   (descriptor, NN, JCBB), Joseph updates, feature initialization (range-bearing, and
+//!   bearing-only with stored poses and delayed triangulation), fuse-back of map information.
 //! - [`info`]: map information keyed by feature id (21.86, 21.87), its algebra, (21.98, 21.99).
 //! - [`ci`]: covariance intersection for bandwidth-limited links (full and submap forms).
 //! - [`ddf`]: the channel-filter protocol as a sans-IO state machine (decentralized, central).

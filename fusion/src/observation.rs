@@ -17,7 +17,7 @@ use crate::geodesy;
 use crate::rotation::{nav_from_body, nav_from_body_partials, wrap_angle};
 use crate::sensor::{CameraIntrinsics, Measurement, SensorModel, SensorMount};
 use crate::state::NavFrame;
-use nalgebra::{DMatrix, DVector, Matrix3, MatrixXx3, Vector2, Vector3};
+use nalgebra::{DMatrix, DVector, Matrix2, Matrix3, Matrix3x2, MatrixXx3, Vector2, Vector3};
 
 /// Why an observation could not be used.
 #[derive(Clone, Debug, PartialEq, thiserror::Error)]
@@ -43,6 +43,17 @@ pub enum ObservationError {
     /// Initialization from a single observation needs a range (bearing-only needs delayed init).
     #[error("a single {0} observation cannot initialize a 3-D feature")]
     NotInitializable(&'static str),
+    /// A pixel lies outside the camera image [0, width) × [0, height).
+    #[error("pixel ({u}, {v}) lies outside the image")]
+    OutsideImage {
+        /// Column u [px].
+        u: f64,
+        /// Row v [px].
+        v: f64,
+    },
+    /// An elevation angle outside [−π/2, π/2].
+    #[error("elevation {0} rad is outside [-pi/2, pi/2]")]
+    ElevationOutOfRange(f64),
 }
 
 fn kind_name(z: &Measurement) -> &'static str {
@@ -115,6 +126,36 @@ impl SensorPose {
         self.ecef_from_ned * self.nav_from_body * self.sensor_from_body.transpose()
     }
 
+    /// The line of sight of the sensor-frame direction `direction_sensor` (p̄^s of eq. 21.71)
+    /// from this pose (eqs. 21.69, 21.70), with its Jacobians w.r.t. p and Ψ.
+    pub fn line_of_sight(&self, direction_sensor: &Vector3<f64>) -> LineOfSight {
+        let body_from_sensor = self.sensor_from_body.transpose();
+        let d_body = body_from_sensor * direction_sensor;
+        let c_fb = self.ecef_from_ned * self.nav_from_body;
+        let mut origin_d_position = Matrix3::identity();
+        let mut origin_d_attitude = Matrix3::zeros();
+        let mut direction_d_position = Matrix3::zeros();
+        let mut direction_d_attitude = Matrix3::zeros();
+        for j in 0..3 {
+            let dp = self.ecef_from_ned_dp[j] * self.nav_from_body;
+            let da = self.ecef_from_ned * self.nav_from_body_datt[j];
+            origin_d_position
+                .set_column(j, &(origin_d_position.column(j) + dp * self.lever_arm_body));
+            origin_d_attitude.set_column(j, &(da * self.lever_arm_body));
+            direction_d_position.set_column(j, &(dp * d_body));
+            direction_d_attitude.set_column(j, &(da * d_body));
+        }
+        LineOfSight {
+            origin: self.position + c_fb * self.lever_arm_body,
+            origin_d_position,
+            origin_d_attitude,
+            direction: c_fb * d_body,
+            direction_d_position,
+            direction_d_attitude,
+            frame_from_sensor: c_fb * body_from_sensor,
+        }
+    }
+
     /// p_ms^s of eq. 21.45 and its Jacobians w.r.t. p, Ψ and m.
     pub fn relative_position(&self, feature: &Vector3<f64>) -> RelativePosition {
         let d = feature - self.position;
@@ -141,6 +182,25 @@ impl SensorPose {
             d_feature,
         }
     }
+}
+
+/// A line of sight in the filter frame (eqs. 21.69, 21.70) with its Jacobians w.r.t. the pose.
+#[derive(Clone, Copy, Debug)]
+pub struct LineOfSight {
+    /// y = p + C_n^e C_b^n p_sb^b: the sensor origin (eq. 21.69) [m].
+    pub origin: Vector3<f64>,
+    /// ∂y/∂p.
+    pub origin_d_position: Matrix3<f64>,
+    /// ∂y/∂Ψ.
+    pub origin_d_attitude: Matrix3<f64>,
+    /// u = C_n^e C_b^n C_s^b p̄^s: the direction (eq. 21.70; unit when p̄^s is).
+    pub direction: Vector3<f64>,
+    /// ∂u/∂p (non-zero in global SLAM only, through C_n^e(p)).
+    pub direction_d_position: Matrix3<f64>,
+    /// ∂u/∂Ψ.
+    pub direction_d_attitude: Matrix3<f64>,
+    /// C_s^frame = C_n^e C_b^n C_s^b (∂u/∂p̄^s).
+    pub frame_from_sensor: Matrix3<f64>,
 }
 
 /// p_ms^s and its Jacobians.
@@ -225,6 +285,27 @@ pub fn angles_from_pixel(camera: &CameraIntrinsics, uv: &Vector2<f64>) -> Vector
     Vector2::new(az, el)
 }
 
+/// ∂(φ, ϑ)/∂(u, v) of eq. 21.44 (2×2, row-major [∂φ/∂u, ∂φ/∂v; ∂ϑ/∂u, ∂ϑ/∂v]).
+pub fn angles_from_pixel_jacobian(camera: &CameraIntrinsics, uv: &Vector2<f64>) -> Matrix2<f64> {
+    let a = (uv.x - camera.u0) / camera.fu;
+    let b = (uv.y - camera.v0) / camera.fv;
+    let az = a.atan();
+    let (s, c) = az.sin_cos();
+    let daz_du = 1.0 / ((1.0 + a * a) * camera.fu);
+    let g = 1.0 / (1.0 + (b * c).powi(2));
+    Matrix2::new(daz_du, 0.0, -g * b * s * daz_du, g * c / camera.fv)
+}
+
+/// The sensor-frame unit vector of azimuth φ and elevation ϑ (eq. 21.71) and its 3×2 Jacobian.
+pub fn unit_from_angles(angles: &Vector2<f64>) -> (Vector3<f64>, Matrix3x2<f64>) {
+    let (sa, ca) = angles.x.sin_cos();
+    let (se, ce) = angles.y.sin_cos();
+    (
+        Vector3::new(ca * ce, sa * ce, se),
+        Matrix3x2::new(-sa * ce, -ca * se, ca * ce, -sa * se, 0.0, ce),
+    )
+}
+
 /// J_2 of eq. 21.50: the sensor-frame point of a range-bearing measurement, with ∂/∂z.
 pub fn sensor_point_from_range_bearing(z: &Vector3<f64>) -> (Vector3<f64>, Matrix3<f64>) {
     let (rho, az, el) = (z.x, z.y, z.z);
@@ -303,7 +384,8 @@ impl ObservationModel {
         SensorPose::new(self.frame, &self.mount, position, attitude)
     }
 
-    /// Checks a measurement (kind, finiteness, positive range) and returns it as a vector.
+    /// Checks a measurement (kind, finiteness, positive range, elevation within ±π/2, pixel
+    /// inside the image) and returns it as a vector.
     pub fn measurement_vector(&self, z: &Measurement) -> Result<DVector<f64>, ObservationError> {
         let v = match (self.sensor, z) {
             (SensorModel::RangeBearing { .. }, Measurement::RangeBearing(v)) => {
@@ -329,6 +411,21 @@ impl ObservationModel {
             && rb.x <= 0.0
         {
             return Err(ObservationError::NonPositiveRange(rb.x));
+        }
+        let elevation = match z {
+            Measurement::RangeBearing(rb) => Some(rb.z),
+            Measurement::Bearing(b) => Some(b.y),
+            Measurement::Pixel(_) => None,
+        };
+        if let Some(el) = elevation
+            && el.abs() > std::f64::consts::FRAC_PI_2
+        {
+            return Err(ObservationError::ElevationOutOfRange(el));
+        }
+        if let (SensorModel::Pixel { camera, .. }, Measurement::Pixel(uv)) = (&self.sensor, z)
+            && !(uv.x >= 0.0 && uv.x < camera.width && uv.y >= 0.0 && uv.y < camera.height)
+        {
+            return Err(ObservationError::OutsideImage { u: uv.x, v: uv.y });
         }
         Ok(v)
     }
@@ -393,6 +490,36 @@ impl ObservationModel {
             d_attitude: chain(&rel.d_attitude),
             d_feature: chain(&rel.d_feature),
         })
+    }
+
+    /// The line-of-sight direction p̄^s of a measurement in the sensor frame (eq. 21.44 for pixels,
+    /// then eq. 21.71) with its Jacobian ∂p̄^s/∂z (3 × measurement dimension; the range column of
+    /// a range-bearing measurement is zero).
+    pub fn sensor_direction(
+        &self,
+        z: &DVector<f64>,
+    ) -> Result<(Vector3<f64>, DMatrix<f64>), ObservationError> {
+        let (angles, d_angles): (Vector2<f64>, DMatrix<f64>) = match &self.sensor {
+            SensorModel::RangeBearing { .. } => (
+                Vector2::new(z[1], z[2]),
+                DMatrix::from_row_slice(2, 3, &[0.0, 1.0, 0.0, 0.0, 0.0, 1.0]),
+            ),
+            SensorModel::Bearing { .. } => (Vector2::new(z[0], z[1]), DMatrix::identity(2, 2)),
+            SensorModel::Pixel { camera, .. } => {
+                let uv = Vector2::new(z[0], z[1]);
+                let j = angles_from_pixel_jacobian(camera, &uv);
+                (
+                    angles_from_pixel(camera, &uv),
+                    DMatrix::from_fn(2, 2, |r, c| j[(r, c)]),
+                )
+            }
+        };
+        if !angles.iter().all(|a| a.is_finite()) {
+            return Err(ObservationError::NonFinite);
+        }
+        let (unit, d_unit) = unit_from_angles(&angles);
+        let d_unit = DMatrix::from_fn(3, 2, |r, c| d_unit[(r, c)]);
+        Ok((unit, d_unit * d_angles))
     }
 
     /// Feature initialization J_1(x, J_2(z)) (eqs. 21.48–21.50) with ∇J_x and ∇J_z.
@@ -699,6 +826,107 @@ mod tests {
         let nu = model.innovation(&z, &h);
         // Exact wrap arithmetic on O(1) angles: round-off only.
         assert!((nu[1] - (6.2 - std::f64::consts::TAU)).abs() < 1e-12);
+    }
+
+    #[test]
+    fn line_of_sight_and_sensor_direction_jacobians_match_finite_differences() {
+        for (frame, p, att, m) in cases() {
+            for sensor in sensors() {
+                let model = ObservationModel {
+                    frame,
+                    sensor,
+                    mount: mount(),
+                };
+                let pose = model.sensor_pose(&p, &att);
+                let z = model.predict(&pose, &m).unwrap().z;
+                let (dir, d_dir) = model.sensor_direction(&z).unwrap();
+                let los = pose.line_of_sight(&dir);
+                // The line of sight of a noise-free measurement passes through the feature: the
+                // distance of m from the line is round-off only (ECEF ≈ 6e6 m: 1e-9 m per op).
+                let off = m - los.origin;
+                let miss = (off - los.direction * off.dot(&los.direction)).norm();
+                assert!(miss < 1e-6, "{frame} {sensor:?}: miss {miss}");
+                assert!((los.direction.norm() - 1.0).abs() < 1e-12);
+                // Central differences: 0.1 m on positions (the functions are smooth on the
+                // Earth-radius scale: truncation ≈ h²/R² ≈ 1e-16), 1e-5 rad on angles (truncation
+                // ≈ 1e-10), 1e-4 px / 1e-6 rad on measurements; ECEF rounding ≈ 1e-9 m / 0.2 m
+                // ≈ 5e-9 dominates the origin's position derivative.
+                let eval = |p: &Vector3<f64>, a: &Vector3<f64>| {
+                    let l = model.sensor_pose(p, a).line_of_sight(&dir);
+                    (l.origin, l.direction)
+                };
+                for j in 0..3 {
+                    let mut e = Vector3::zeros();
+                    e[j] = 0.1;
+                    let (yp, up) = eval(&(p + e), &att);
+                    let (ym, um) = eval(&(p - e), &att);
+                    let fd_y = (yp - ym) / 0.2;
+                    let fd_u = (up - um) / 0.2;
+                    assert!((fd_y - los.origin_d_position.column(j)).norm() < 1e-7);
+                    assert!((fd_u - los.direction_d_position.column(j)).norm() < 1e-12);
+                    let mut e = Vector3::zeros();
+                    e[j] = 1e-5;
+                    let (yp, up) = eval(&p, &(att + e));
+                    let (ym, um) = eval(&p, &(att - e));
+                    let fd_y = (yp - ym) / 2e-5;
+                    let fd_u = (up - um) / 2e-5;
+                    // y: ECEF rounding 1e-9 m / 2e-5 rad ≈ 5e-5 absolute (lever arm ≈ 0.5 m).
+                    assert!((fd_y - los.origin_d_attitude.column(j)).norm() < 2e-4);
+                    assert!((fd_u - los.direction_d_attitude.column(j)).norm() < 1e-9);
+                }
+                let h = if matches!(sensor, SensorModel::Pixel { .. }) {
+                    1e-4
+                } else {
+                    1e-6
+                };
+                for j in 0..z.len() {
+                    let mut zp = z.clone();
+                    let mut zm = z.clone();
+                    zp[j] += h;
+                    zm[j] -= h;
+                    let fd = (model.sensor_direction(&zp).unwrap().0
+                        - model.sensor_direction(&zm).unwrap().0)
+                        / (2.0 * h);
+                    // Unit-vector entries O(1), curvature O(1/f²) per px²: truncation ≤ 1e-12.
+                    assert!(
+                        (fd - d_dir.column(j)).norm() < 1e-8,
+                        "∂p̄/∂z {sensor:?} column {j}"
+                    );
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn pixels_outside_the_image_and_impossible_elevations_are_typed_errors() {
+        let cam = ObservationModel {
+            frame: NavFrame::Local,
+            sensor: sensors()[2],
+            mount: mount(),
+        };
+        for (u, v) in [(-0.5, 10.0), (640.0, 10.0), (10.0, -1e-9), (10.0, 480.0)] {
+            assert_eq!(
+                cam.measurement_vector(&Measurement::Pixel(Vector2::new(u, v))),
+                Err(ObservationError::OutsideImage { u, v })
+            );
+        }
+        assert!(
+            cam.measurement_vector(&Measurement::Pixel(Vector2::new(0.0, 479.9)))
+                .is_ok()
+        );
+        assert_eq!(
+            cam.measurement_vector(&Measurement::Pixel(Vector2::new(f64::NAN, 1.0))),
+            Err(ObservationError::NonFinite)
+        );
+        let brg = ObservationModel {
+            frame: NavFrame::Local,
+            sensor: sensors()[1],
+            mount: mount(),
+        };
+        assert_eq!(
+            brg.measurement_vector(&Measurement::Bearing(Vector2::new(0.1, 1.6))),
+            Err(ObservationError::ElevationOutOfRange(1.6))
+        );
     }
 
     #[test]

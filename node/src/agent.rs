@@ -240,18 +240,80 @@ impl VehicleAgent {
     }
 }
 
-/// Counts wrong associations of a frame against the true feature ids (harness only: the
-/// estimator never sees them). An observation associated to a feature whose id is not the
-/// observed feature's true id is wrong.
-pub fn wrong_associations(report: &FrameReport, true_ids: &[u64]) -> u64 {
-    report
-        .outcomes
-        .iter()
-        .zip(true_ids)
-        .filter(
-            |(o, t)| matches!(o, ObservationOutcome::Associated { feature, .. } if feature != *t),
-        )
-        .count() as u64
+/// Audits data association against the truth (harness only: the estimator never sees it).
+///
+/// Every feature a filter creates is mapped to the true feature of the observation that created
+/// it. An observation is *wrongly associated* when the feature it was associated to represents
+/// another true feature. A feature created from a true feature that the same filter already
+/// represents is a *duplicate* (a missed re-observation, e.g. a loop closure outside the new-feature
+/// gate): later observations associated to it are not wrong, but the map holds the feature twice.
+/// Feature ids are unique per filter namespace, so one audit can serve a whole team.
+#[derive(Debug, Default, Clone)]
+pub struct AssociationAudit {
+    origin: std::collections::HashMap<u64, u64>,
+    /// Bearing-only tracks (per filter namespace) → the true feature of their first observation.
+    tracks: std::collections::HashMap<(u32, u64), u64>,
+}
+
+/// What an audited frame contained.
+#[derive(Debug, Default, Clone, Copy, PartialEq, Eq)]
+pub struct AuditCounts {
+    /// Observations associated to a feature representing another true feature.
+    pub wrong: u64,
+    /// Features initialized for a true feature the filter already represented.
+    pub duplicates: u64,
+}
+
+impl AssociationAudit {
+    /// Audits one frame's report of `filter` (after it was processed) against the true ids.
+    pub fn audit(
+        &mut self,
+        filter: &SlamFilter,
+        report: &FrameReport,
+        true_ids: &[u64],
+    ) -> AuditCounts {
+        let mut c = AuditCounts::default();
+        let ns = filter.config().fresh_id_namespace;
+        for (o, &truth) in report.outcomes.iter().zip(true_ids) {
+            match *o {
+                ObservationOutcome::Associated { feature, .. } => {
+                    if self.origin.get(&feature).copied().unwrap_or(feature) != truth {
+                        c.wrong += 1;
+                    }
+                }
+                ObservationOutcome::Initialized { feature } => {
+                    let already = filter.features().iter().any(|&(f, _)| {
+                        f != feature && self.origin.get(&f).copied().unwrap_or(f) == truth
+                    });
+                    if already {
+                        c.duplicates += 1;
+                    }
+                    self.origin.entry(feature).or_insert(truth);
+                }
+                ObservationOutcome::Stored { track } => {
+                    // A stored observation joins a track: wrong if the track follows another
+                    // true feature.
+                    let t = *self.tracks.entry((ns, track)).or_insert(truth);
+                    if t != truth {
+                        c.wrong += 1;
+                    }
+                }
+                ObservationOutcome::Rejected(_) => {}
+            }
+        }
+        for &(track, feature) in &report.initialized_tracks {
+            if let Some(&truth) = self.tracks.get(&(ns, track)) {
+                let already = filter.features().iter().any(|&(f, _)| {
+                    f != feature && self.origin.get(&f).copied().unwrap_or(f) == truth
+                });
+                if already {
+                    c.duplicates += 1;
+                }
+                self.origin.entry(feature).or_insert(truth);
+            }
+        }
+        c
+    }
 }
 
 /// The hub of central mode: no observations; its estimate is the sum of what it received

@@ -100,10 +100,11 @@ impl std::fmt::Display for FusionMode {
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, Default)]
 #[serde(rename_all = "snake_case")]
 pub enum AssociationKind {
-    /// Descriptor candidate verified by the χ² gate.
-    Descriptor,
-    /// Descriptors ignored: greedy nearest neighbour over gated pairs (default).
+    /// Descriptor candidate verified by the χ² gate (default: like a real feature descriptor
+    /// with geometric verification).
     #[default]
+    Descriptor,
+    /// Descriptors ignored: greedy nearest neighbour over gated pairs.
     NearestNeighbour,
     /// Descriptors ignored: joint compatibility branch and bound.
     Jcbb,
@@ -128,7 +129,7 @@ pub struct FusionConfig {
     pub mode: FusionMode,
     /// Fusion rounds per simulated second (default 1).
     pub rate_hz: f64,
-    /// Data association inside each vehicle (default `nearest_neighbour`).
+    /// Data association inside each vehicle (default `descriptor`).
     pub association: AssociationKind,
     /// χ² gate probability (default 0.95, eq. 21.55).
     pub gate_probability: f64,
@@ -152,7 +153,7 @@ impl Default for FusionConfig {
         Self {
             mode: FusionMode::Decentralized,
             rate_hz: 1.0,
-            association: AssociationKind::NearestNeighbour,
+            association: AssociationKind::Descriptor,
             gate_probability: 0.95,
             jcbb_max_nodes: 2000,
             byte_budget: None,

@@ -69,6 +69,10 @@ pub struct VehicleRecord {
     /// Observations associated to a feature other than the one observed (truth known to the
     /// harness only).
     pub wrong_associations: u64,
+    /// Features initialized for a true feature the vehicle's map already held (missed
+    /// re-observations; the map holds that feature twice).
+    #[serde(default)]
+    pub duplicate_features: u64,
     /// Observations processed.
     pub observations: u64,
     /// Received fusion messages rejected (malformed, non-neighbour, non-PD result, …).

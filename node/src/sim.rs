@@ -21,7 +21,7 @@ use canopy_transport::fault::{Clock, FaultyLink, ManualClock};
 use canopy_transport::link::{Link, LinkEvent, PeerState};
 use canopy_transport::memory::{InMemoryHub, InMemoryLink};
 
-use crate::agent::{AgentError, HubAgent, VehicleAgent, wrong_associations};
+use crate::agent::{AgentError, AssociationAudit, HubAgent, VehicleAgent};
 use crate::metrics::{confidence_ratio, map_records, pose_sample};
 use crate::network::{EventKind, FusionMode, effective_links, node_names, topology};
 use crate::record::{EventRecord, LinkRecord, LinkSample, RunRecord, VehicleRecord};
@@ -198,6 +198,8 @@ struct Sim<'s> {
     baseline_records: Vec<VehicleRecord>,
     links: Vec<(NodeId, NodeId, LinkRecord)>,
     checks: SimChecks,
+    audit: AssociationAudit,
+    baseline_audit: AssociationAudit,
 }
 
 impl<'s> Sim<'s> {
@@ -435,6 +437,8 @@ pub fn simulate(s: &Scenario, mut opts: SimOptions<'_>) -> Result<SimOutcome, Si
             .collect(),
         links: Vec::new(),
         checks: SimChecks::default(),
+        audit: AssociationAudit::default(),
+        baseline_audit: AssociationAudit::default(),
     };
 
     // Agents.
@@ -685,8 +689,9 @@ pub fn simulate(s: &Scenario, mut opts: SimOptions<'_>) -> Result<SimOutcome, Si
             if let Some(sensed) = &out.frame {
                 match a.on_frame(&sensed.frame) {
                     Ok(report) => {
-                        sim.records[vi].wrong_associations +=
-                            wrong_associations(&report, &sensed.true_ids);
+                        let c = sim.audit.audit(a.filter(), &report, &sensed.true_ids);
+                        sim.records[vi].wrong_associations += c.wrong;
+                        sim.records[vi].duplicate_features += c.duplicates;
                         sim.records[vi].observations += sensed.frame.observations.len() as u64;
                     }
                     Err(_) => sim.checks.inputs_rejected += 1,
@@ -698,8 +703,9 @@ pub fn simulate(s: &Scenario, mut opts: SimOptions<'_>) -> Result<SimOutcome, Si
             if let Some(sensed) = &out.frame
                 && let Ok(report) = b.process_frame(vi, &sensed.frame)
             {
-                sim.baseline_records[vi].wrong_associations +=
-                    wrong_associations(&report, &sensed.true_ids);
+                let c = sim.baseline_audit.audit(b, &report, &sensed.true_ids);
+                sim.baseline_records[vi].wrong_associations += c.wrong;
+                sim.baseline_records[vi].duplicate_features += c.duplicates;
                 sim.baseline_records[vi].observations += sensed.frame.observations.len() as u64;
             }
         }

@@ -4,7 +4,7 @@
 use super::{AssociationMode, ObservationOutcome, RejectReason, SlamFilter};
 use crate::consistency::chi2_quantile;
 use crate::observation::{ObservationError, ObservationModel, SensorPose};
-use crate::sensor::{FeatureId, SensorModel};
+use crate::sensor::FeatureId;
 use crate::state::{ATT, POS};
 use nalgebra::{DMatrix, DVector, SMatrix, Vector3};
 use std::collections::HashSet;
@@ -168,17 +168,14 @@ impl SlamFilter {
         let new_gate = chi2_quantile(d as f64, self.config.association.new_feature_probability)
             .unwrap_or(f64::INFINITY)
             .max(gate);
-        let can_init = matches!(model.sensor, SensorModel::RangeBearing { .. });
         let mut plan = AssociationPlan {
             outcomes: vec![ObservationOutcome::Rejected(RejectReason::NotInitializable); zs.len()],
             ..Default::default()
         };
+        // Unmatched observations initialize features: directly for range-bearing sensors,
+        // through the bearing-only tracks otherwise (the filter routes them).
         let unmatched = |plan: &mut AssociationPlan, i: usize| {
-            if can_init {
-                plan.initializations.push(i);
-            } else {
-                plan.outcomes[i] = ObservationOutcome::Rejected(RejectReason::NotInitializable);
-            }
+            plan.initializations.push(i);
         };
         match self.config.association.mode {
             AssociationMode::Descriptor => {

@@ -274,6 +274,8 @@ impl SlamFilter {
             self.truncate_to(n0);
             return Err(e);
         }
+        // New features were appended behind any stored poses: restore vehicles, features, poses.
+        self.settle_poses_last();
         Ok(report)
     }
 

@@ -1,9 +1,11 @@
 //! The slot table: the single place that knows where each block lives in x and P.
 //!
 //! Vehicle blocks come first (15 states each, in vehicle order), then features (3 each, keyed by
-//! [`FeatureId`]) and stored poses (6 each, bearing-only SLAM) in the order they were added.
-//! Nothing outside this module computes an offset from a count ("15 + 3i"); everything asks the
-//! layout.
+//! [`FeatureId`]) in the order they were added, then stored poses (6 each, bearing-only SLAM,
+//! eq. 21.67) in the order they were added. [`Layout::push`] appends; a feature appended while
+//! poses exist is moved in front of them by [`Layout::poses_last`], which returns the state
+//! permutation the filter applies to x and P. Nothing outside this module computes an offset
+//! from a count ("15 + 3i"); everything asks the layout.
 
 use crate::sensor::FeatureId;
 use crate::state::{FEATURE_DIM, POSE_DIM, VEHICLE_DIM};
@@ -117,6 +119,58 @@ impl Layout {
         self.features().count()
     }
 
+    /// Offset of a stored pose, if the filter holds it.
+    pub fn pose_offset(&self, id: PoseId) -> Option<usize> {
+        self.offset(SlotKind::Pose(id))
+    }
+
+    /// Stored poses (id, offset) in state order.
+    pub fn poses(&self) -> impl Iterator<Item = (PoseId, usize)> + '_ {
+        self.slots.iter().filter_map(|s| match s.kind {
+            SlotKind::Pose(id) => Some((id, s.offset)),
+            _ => None,
+        })
+    }
+
+    /// Number of stored poses.
+    pub fn num_poses(&self) -> usize {
+        self.poses().count()
+    }
+
+    /// Restores the order vehicles, features, poses after blocks were appended behind poses:
+    /// moves every pose slot behind all other slots (relative orders kept). Returns `None` when
+    /// nothing moves, else `(start, order)`: the states before `start` keep their indices and new
+    /// state `start + k` is old state `order[k]`.
+    pub fn poses_last(&mut self) -> Option<(usize, Vec<usize>)> {
+        let first_pose = self
+            .slots
+            .iter()
+            .position(|s| matches!(s.kind, SlotKind::Pose(_)))?;
+        // In order iff no non-pose slot follows the first pose.
+        let misplaced = self.slots[first_pose..]
+            .iter()
+            .any(|s| !matches!(s.kind, SlotKind::Pose(_)));
+        if !misplaced {
+            return None;
+        }
+        let start = self.slots[first_pose].offset;
+        let (mut moved, poses): (Vec<Slot>, Vec<Slot>) = self.slots[first_pose..]
+            .iter()
+            .partition(|s| !matches!(s.kind, SlotKind::Pose(_)));
+        moved.extend(poses);
+        let mut order = Vec::with_capacity(self.dim - start);
+        let mut offset = start;
+        for (k, slot) in moved.iter_mut().enumerate() {
+            order.extend(slot.offset..slot.offset + slot.kind.dim());
+            slot.offset = offset;
+            offset += slot.kind.dim();
+            self.index.insert(slot.kind, first_pose + k);
+        }
+        self.slots.truncate(first_pose);
+        self.slots.extend(moved);
+        Some((start, order))
+    }
+
     /// Appends a block at the end of the state and returns its offset. Panics if the block is
     /// already present (callers check ids first).
     pub fn push(&mut self, kind: SlotKind) -> usize {
@@ -173,5 +227,31 @@ mod tests {
         assert_eq!(l.features().collect::<Vec<_>>(), vec![(7, a), (3, p)]);
         assert_eq!(l.dim(), 2 * VEHICLE_DIM + 2 * FEATURE_DIM);
         assert!(l.remove(SlotKind::Vehicle(0)).is_none());
+    }
+
+    #[test]
+    fn poses_last_moves_features_in_front_of_poses() {
+        let mut l = Layout::new(1);
+        let v = VEHICLE_DIM;
+        l.push(SlotKind::Feature(1));
+        assert_eq!(l.poses_last(), None);
+        l.push(SlotKind::Pose(10));
+        l.push(SlotKind::Pose(11));
+        assert_eq!(l.poses_last(), None);
+        l.push(SlotKind::Feature(2));
+        let (start, order) = l.poses_last().unwrap();
+        // Old layout: f1 [v, v+3), p10 [v+3, v+9), p11 [v+9, v+15), f2 [v+15, v+18).
+        assert_eq!(start, v + 3);
+        let expect: Vec<usize> = (v + 15..v + 18).chain(v + 3..v + 15).collect();
+        assert_eq!(order, expect);
+        assert_eq!(l.feature_offset(2), Some(v + 3));
+        assert_eq!(l.pose_offset(10), Some(v + 6));
+        assert_eq!(l.pose_offset(11), Some(v + 12));
+        assert_eq!(
+            l.poses().map(|(id, _)| id).collect::<Vec<_>>(),
+            vec![10, 11]
+        );
+        assert_eq!(l.poses_last(), None);
+        assert_eq!(l.dim(), v + 18);
     }
 }

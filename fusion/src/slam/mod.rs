@@ -2,8 +2,8 @@
 //!
 //! The same type is the per-vehicle filter (M = 1) and the centralized all-data reference EKF
 //! (M = all vehicles sharing one map). State layout (see [`layout`]): vehicle blocks, then
-//! features (3 each, keyed by [`FeatureId`]) and, later, stored poses, with all index bookkeeping
-//! in the [`Layout`] slot table. x is a faer `Col`, P a faer `Mat`; small blocks use nalgebra.
+//! features (3 each, keyed by [`FeatureId`]), then stored poses of bearing-only SLAM (6 each),
+//! with all index bookkeeping in the [`Layout`] slot table. x is a faer `Col`, P a faer `Mat`; small blocks use nalgebra.
 //!
 //! # Prediction (eqs. 21.46, 21.47) with a lazy transition
 //! An IMU sample changes only the vehicle's rows and columns of P. [`SlamFilter::predict`] updates
@@ -18,14 +18,20 @@
 //! and leaves the filter bit-for-bit unchanged), associates every observation against the prior
 //! (Mahalanobis gate of eq. 21.55 at `gate_probability`; descriptor, nearest-neighbour or JCBB),
 //! performs one stacked EKF update (eqs. 21.56–21.65) for the associated observations in Joseph
-//! form, then initializes the unassociated range-bearing observations as new features
-//! (eqs. 21.48–21.54) from the updated vehicle estimate.
+//! form, then initializes the unassociated observations from the updated vehicle estimate: a
+//! range-bearing vehicle directly (eqs. 21.48–21.54), a bearing or pixel vehicle through stored
+//! poses, multi-hypothesis tracks and delayed triangulation (§21.4, module `bearing`; the
+//! geometry is in [`triangulation`]). The pipeline follows each vehicle's `SensorModel`, so a
+//! centralized filter may mix both kinds.
 
 mod association;
+mod bearing;
 mod fuse;
 pub mod layout;
+pub mod triangulation;
 mod update;
 
+pub use bearing::{BearingConfig, BearingStats, TrackGate, TrackId, TrackInfo};
 pub use fuse::{FuseMethod, FuseReport};
 pub use layout::{Layout, PoseId, Slot, SlotKind};
 
@@ -178,6 +184,16 @@ pub enum RejectReason {
     NumericalFailure,
     /// A finite but physically invalid measurement (range ≤ 0).
     InvalidMeasurement,
+    /// Bearing-only: no stored pose could be freed under `max_stored_poses` (every track was
+    /// matched in this frame).
+    PoseCapacity,
+    /// Bearing-only: the observation matched a track, but the triangulation it took part in was
+    /// rejected (lines missing each other, or meeting behind a sensor: typically a
+    /// misassociation); the observation and its partner were discarded.
+    TriangulationFailed {
+        /// The track it had matched.
+        track: TrackId,
+    },
 }
 
 /// What happened to one observation of a frame.
@@ -190,10 +206,15 @@ pub enum ObservationOutcome {
         /// NIS of the individual innovation against the prior.
         nis: f64,
     },
-    /// Initialized a new feature.
+    /// Initialized a new feature (bearing-only: completed the initialization of a track).
     Initialized {
         /// The new feature's id.
         feature: FeatureId,
+    },
+    /// Bearing-only: stored with an uninitialized feature track (delayed initialization).
+    Stored {
+        /// The track.
+        track: TrackId,
     },
     /// Not used.
     Rejected(RejectReason),
@@ -210,6 +231,8 @@ pub struct FrameReport {
     pub jcbb_truncated: bool,
     /// Joint NIS of the hypothesis JCBB accepted (None for the other modes or no pairing).
     pub jcbb_joint_nis: Option<f64>,
+    /// Bearing-only: tracks that initialized a feature in this frame (track, feature).
+    pub initialized_tracks: Vec<(TrackId, FeatureId)>,
 }
 
 impl FrameReport {
@@ -225,6 +248,13 @@ impl FrameReport {
         self.outcomes
             .iter()
             .filter(|o| matches!(o, ObservationOutcome::Initialized { .. }))
+            .count()
+    }
+    /// Number of observations stored with uninitialized tracks (bearing-only).
+    pub fn stored(&self) -> usize {
+        self.outcomes
+            .iter()
+            .filter(|o| matches!(o, ObservationOutcome::Stored { .. }))
             .count()
     }
     /// Number of rejected observations.
@@ -263,6 +293,8 @@ pub struct SlamFilter {
     info_cache: Option<(u64, Mat<f64>)>,
     /// Reserved row/column capacity of P (see `grow`).
     capacity: usize,
+    /// Bearing-only tracks, stored observations and stored-pose bookkeeping.
+    bearing: bearing::BearingState,
 }
 
 fn is_symmetric_pd(m: &SMatrix<f64, VEHICLE_DIM, VEHICLE_DIM>) -> bool {
@@ -330,7 +362,19 @@ impl SlamFilter {
                     .map_err(|e| SlamError::InvalidConfig(e.to_string()))?,
             );
         }
+        let pose_frame = triangulation::PoseFrame::new(config.frame, &config.origin);
+        let bearing_only = vehicles
+            .iter()
+            .any(|v| !matches!(v.sensor, SensorModel::RangeBearing { .. }));
+        if bearing_only && pose_frame.is_none() {
+            return Err(SlamError::InvalidConfig(
+                "bearing-only vehicles in global SLAM need the team origin (ECEF launch site) \
+                 near the Earth's surface"
+                    .into(),
+            ));
+        }
         Ok(Self {
+            bearing: bearing::BearingState::new(pose_frame),
             capacity: n,
             map_generation: 0,
             info_cache: None,
@@ -636,9 +680,26 @@ impl SlamFilter {
             jcbb_nodes: plan.jcbb_nodes,
             jcbb_truncated: plan.jcbb_truncated,
             jcbb_joint_nis: plan.jcbb_joint_nis,
+            initialized_tracks: Vec::new(),
         };
         self.apply_updates(vehicle, &model, &plan.updates, &mut report);
-        for &i in &plan.initializations {
+        if !matches!(model.sensor, SensorModel::RangeBearing { .. }) {
+            // Bearing-only: delayed initialization through stored poses and tracks (§21.4).
+            self.process_bearing_observations(
+                vehicle,
+                &model,
+                frame.time,
+                &zs,
+                &descriptors,
+                &plan.initializations,
+                &mut report,
+            );
+        }
+        for &i in plan
+            .initializations
+            .iter()
+            .filter(|_| matches!(model.sensor, SensorModel::RangeBearing { .. }))
+        {
             match self.initialize_feature(vehicle, &model, &zs[i], descriptors[i]) {
                 Ok(id) => report.outcomes[i] = ObservationOutcome::Initialized { feature: id },
                 Err(_) => {
@@ -660,5 +721,7 @@ impl SlamFilter {
     }
 }
 
+#[cfg(test)]
+mod bearing_tests;
 #[cfg(test)]
 mod tests;

@@ -464,7 +464,7 @@ fn feature_initialization_matches_eq_21_52() {
 
 /// Builds a delta over `ids` whose information is `y` (3k×3k) and whose vector is y·(t − o) for
 /// a target t (so fusing it pulls the features toward t).
-fn delta(
+pub(super) fn delta(
     ids: Vec<FeatureId>,
     y: DMatrix<f64>,
     target: &DVector<f64>,
@@ -483,7 +483,10 @@ fn delta(
 
 /// Independent reference: dense joint information, add the delta, invert back. Returns the
 /// expected (x, P) with new features appended in delta order.
-fn dense_fusion_reference(f: &SlamFilter, d: &MapInformation) -> (DVector<f64>, DMatrix<f64>) {
+pub(super) fn dense_fusion_reference(
+    f: &SlamFilter,
+    d: &MapInformation,
+) -> (DVector<f64>, DMatrix<f64>) {
     let n = f.dim();
     let new: Vec<FeatureId> = d
         .ids
@@ -540,7 +543,7 @@ fn marginal_information(f: &SlamFilter) -> (Vec<FeatureId>, DMatrix<f64>, DVecto
     (mm.ids, y, v)
 }
 
-fn random_spd(k: usize, scale: f64, rng: &mut ChaCha8Rng) -> DMatrix<f64> {
+pub(super) fn random_spd(k: usize, scale: f64, rng: &mut ChaCha8Rng) -> DMatrix<f64> {
     let a = DMatrix::from_fn(k, k, |_, _| rng.random::<f64>() - 0.5);
     (&a * a.transpose() + DMatrix::identity(k, k) * 0.2) * scale
 }

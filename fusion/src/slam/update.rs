@@ -187,10 +187,22 @@ impl SlamFilter {
             }
             r.as_mut().submatrix_mut(row, row, d, d).copy_from(&r_one);
         }
-        let mm = self.p_times_ht(&blocks, m);
+        self.blocks_update(&blocks, &nu, r)
+    }
+
+    /// Stacked EKF update (eqs. 21.56–21.65) with a sparse H given by its dense blocks, innovation
+    /// ν and noise R (m × m): M = P Hᵀ from the touched columns, S = H M + R, Joseph form.
+    pub(super) fn blocks_update(
+        &mut self,
+        blocks: &[HBlock],
+        nu: &Col<f64>,
+        r: Mat<f64>,
+    ) -> Result<(), SlamError> {
+        let m = nu.nrows();
+        let mm = self.p_times_ht(blocks, m);
         // S = H M + R, reading only the rows of M that H touches.
         let mut s = r;
-        for b in &blocks {
+        for b in blocks {
             let (h, w) = (b.mat.nrows(), b.mat.ncols());
             matmul(
                 s.as_mut().submatrix_mut(b.row, 0, h, m),
@@ -201,7 +213,123 @@ impl SlamFilter {
                 Par::Seq,
             );
         }
-        self.kalman_apply(mm, s, &nu, UpdateForm::Joseph)
+        self.kalman_apply(mm, s, nu, UpdateForm::Joseph)
+    }
+
+    /// Augments the state with a block that is a linear function of existing states plus
+    /// independent noise (eqs. 21.52, 21.68, 21.76): x_new = `mean`,
+    /// P_new,· = Σ_b J_b P_{b,·}, P_new,new = Σ_b Σ_c J_b P_{b,c} J_cᵀ + `noise`, where each
+    /// `(col, J_b)` names the first state of a block b and its k × w Jacobian. Checks finiteness
+    /// and (when `require_pd`) positive definiteness of P_new,new before anything changes; then
+    /// appends the slot and restores the pose-last order. Returns the new block's offset.
+    pub(super) fn augment_linear(
+        &mut self,
+        kind: SlotKind,
+        mean: &[f64],
+        jacobians: &[(usize, Mat<f64>)],
+        noise: &Mat<f64>,
+        require_pd: bool,
+    ) -> Result<usize, SlamError> {
+        let k = mean.len();
+        debug_assert_eq!(kind.dim(), k);
+        let n = self.dim();
+        let mut cross = Mat::zeros(k, n);
+        for (col, j) in jacobians {
+            matmul(
+                cross.as_mut(),
+                Accum::Add,
+                j.as_ref(),
+                self.p.as_ref().submatrix(*col, 0, j.ncols(), n),
+                1.0,
+                Par::Seq,
+            );
+        }
+        let mut block = noise.clone();
+        for (col, j) in jacobians {
+            matmul(
+                block.as_mut(),
+                Accum::Add,
+                cross.as_ref().submatrix(0, *col, k, j.ncols()),
+                j.transpose(),
+                1.0,
+                Par::Seq,
+            );
+        }
+        let block = Mat::from_fn(k, k, |i, j| 0.5 * (block[(i, j)] + block[(j, i)]));
+        if !all_finite(cross.as_ref())
+            || !all_finite(block.as_ref())
+            || !mean.iter().all(|v| v.is_finite())
+        {
+            return Err(SlamError::NumericalFailure("state augmentation"));
+        }
+        if require_pd && block.llt(Side::Lower).is_err() {
+            return Err(SlamError::NotPositiveDefinite("augmented block covariance"));
+        }
+        self.grow(k);
+        let off = self.layout.push(kind);
+        debug_assert_eq!(off, n);
+        for i in 0..k {
+            self.x[off + i] = mean[i];
+            for c in 0..n {
+                self.p[(off + i, c)] = cross[(i, c)];
+                self.p[(c, off + i)] = cross[(i, c)];
+            }
+            for j in 0..k {
+                self.p[(off + i, off + j)] = block[(i, j)];
+            }
+        }
+        self.settle_poses_last();
+        Ok(self.layout.offset(kind).unwrap_or(off))
+    }
+
+    /// Restores the layout order vehicles, features, poses (a feature appended behind stored
+    /// poses moves in front of them) by permuting the tail of x and P: O(n · tail).
+    pub(super) fn settle_poses_last(&mut self) {
+        let Some((start, order)) = self.layout.poses_last() else {
+            return;
+        };
+        let n = self.dim();
+        let t = order.len();
+        debug_assert_eq!(start + t, n);
+        // Old rows, new tail columns.
+        let cols = Mat::from_fn(n, t, |i, k| self.p[(i, order[k])]);
+        let old_row = |i: usize| if i < start { i } else { order[i - start] };
+        for k in 0..t {
+            for i in 0..n {
+                self.p[(i, start + k)] = cols[(old_row(i), k)];
+            }
+            for j in 0..start {
+                self.p[(start + k, j)] = cols[(j, k)];
+            }
+        }
+        let xt: Vec<f64> = order.iter().map(|&i| self.x[i]).collect();
+        for (k, v) in xt.into_iter().enumerate() {
+            self.x[start + k] = v;
+        }
+    }
+
+    /// Removes a non-vehicle block from the layout, x and P (later blocks move up): O(n · tail).
+    pub(super) fn remove_block(&mut self, kind: SlotKind) -> bool {
+        let n = self.dim();
+        let Some(slot) = self.layout.remove(kind) else {
+            return false;
+        };
+        let (off, k) = (slot.offset, kind.dim());
+        for j in off + k..n {
+            for i in 0..n {
+                self.p[(i, j - k)] = self.p[(i, j)];
+            }
+        }
+        for j in 0..n - k {
+            for i in off + k..n {
+                self.p[(i - k, j)] = self.p[(i, j)];
+            }
+        }
+        for i in off + k..n {
+            self.x[i - k] = self.x[i];
+        }
+        self.truncate_to(n - k);
+        true
     }
 
     /// Applies the associated observations: one stacked update; if that fails numerically, one
@@ -330,6 +458,8 @@ impl SlamFilter {
                 self.p[(off + i, off + j)] = pmm[(i, j)];
             }
         }
+        // Stored poses of bearing-only vehicles (mixed teams) stay behind the features.
+        self.settle_poses_last();
         Ok(id)
     }
 }

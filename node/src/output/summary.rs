@@ -34,6 +34,8 @@ pub struct VehicleSummary {
     pub map_anees: f64,
     /// Wrong associations (observation associated to another feature).
     pub wrong_associations: u64,
+    /// Features initialized twice for the same true feature.
+    pub duplicate_features: u64,
     /// Observations processed.
     pub observations: u64,
     /// Received fusion messages rejected.
@@ -159,6 +161,7 @@ pub fn summarize_vehicle(v: &VehicleRecord) -> VehicleSummary {
         map_rmse_m,
         map_anees,
         wrong_associations: v.wrong_associations,
+        duplicate_features: v.duplicate_features,
         observations: v.observations,
         rejected_messages: v.rejected_messages,
         restarts: v.restarts,
@@ -259,6 +262,13 @@ pub fn table(summaries: &[(&str, &Summary)]) -> String {
         s.vehicles
             .iter()
             .map(|v| v.wrong_associations)
+            .sum::<u64>()
+            .to_string()
+    });
+    push("duplicate features", &|s| {
+        s.vehicles
+            .iter()
+            .map(|v| v.duplicate_features)
             .sum::<u64>()
             .to_string()
     });
