@@ -47,6 +47,9 @@ pub struct AgentCounters {
     pub messages_rejected: u64,
     /// CI changes fused (bandwidth-limited links).
     pub ci_fused: u64,
+    /// Features removed because fused information left them with none (a neighbour's restart
+    /// took back what only its lost process had observed).
+    pub features_forgotten: u64,
 }
 
 /// Adapter: the EKF as the DDF's fuse target.
@@ -54,13 +57,17 @@ struct EkfTarget<'a> {
     filter: &'a mut SlamFilter,
     fused: &'a mut u64,
     refused: &'a mut u64,
+    forgotten: &'a mut u64,
 }
 
 impl FuseTarget for EkfTarget<'_> {
     fn fuse(&mut self, delta: &MapInformation) -> Result<(), FuseRejected> {
-        match self.filter.fuse_map_information(delta) {
-            Ok(_) => {
+        // Features whose information the delta cancels exactly are removed, not refused
+        // (`SlamFilter::fuse_map_information_forgetting`).
+        match self.filter.fuse_map_information_forgetting(delta) {
+            Ok(r) => {
                 *self.fused += 1;
+                *self.forgotten += r.forgotten.len() as u64;
                 Ok(())
             }
             Err(e) => {
@@ -214,6 +221,7 @@ impl VehicleAgent {
             filter: &mut self.filter,
             fused: &mut self.counters.fused,
             refused: &mut self.counters.fuse_refused,
+            forgotten: &mut self.counters.features_forgotten,
         };
         ddf.on_message(now, from, msg, &mut target).map_err(|e| {
             if !matches!(e, DdfError::FuseRejected { .. }) {

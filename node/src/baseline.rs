@@ -17,7 +17,7 @@ use canopy_fusion::slam::{
 };
 use nalgebra::{Matrix3, Vector3};
 
-use crate::agent::wrong_associations;
+use crate::agent::AssociationAudit;
 use crate::metrics::{estimate_sample, map_records, pose_sample};
 use crate::record::VehicleRecord;
 use crate::replay::{ReplayError, SensorSource};
@@ -69,6 +69,51 @@ pub fn reference_filter(
     setups: &[VehicleSetup],
 ) -> Result<SlamFilter, SlamError> {
     SlamFilter::new(reference_config(s, world), setups)
+}
+
+/// The restarts of a scenario in time order: (time, vehicle index, incarnation). A vehicle
+/// crashed by an `[[event]]` with `restart_after_s` is re-initialised at exactly
+/// `at_s + restart_after_s`, before any sample at or after that time (in `canopy sim` and, by
+/// the world's pacing, in `canopy run`), with incarnation 1, 2, … per vehicle.
+pub fn restarts(s: &Scenario) -> Vec<(f64, usize, u32)> {
+    let mut r: Vec<(f64, usize)> = s
+        .events
+        .iter()
+        .filter_map(|e| {
+            let v = e.vehicle?;
+            let at = e.at_s + e.restart_after_s?;
+            let i = s.vehicles.iter().position(|x| x.id == v)?;
+            Some((at, i))
+        })
+        .collect();
+    r.sort_by(|a, b| a.0.total_cmp(&b.0));
+    let mut count = vec![0u32; s.vehicles.len()];
+    r.into_iter()
+        .map(|(t, i)| {
+            count[i] += 1;
+            (t, i, count[i])
+        })
+        .collect()
+}
+
+/// Applies the external fix a restarted vehicle re-initialises from (its position, velocity and
+/// attitude with their covariance; the bias part restates the turn-on prior the reference
+/// already holds, so it is not used) to the reference, which then still holds every piece of
+/// information any vehicle has.
+pub fn apply_restart_fix(
+    filter: &mut SlamFilter,
+    vehicle: usize,
+    estimate: &InitialEstimate,
+) -> Result<(), SlamError> {
+    let mut fix = [0.0; 9];
+    for k in 0..3 {
+        fix[k] = estimate.position[k];
+        fix[3 + k] = estimate.velocity[k];
+        fix[6 + k] = estimate.attitude[k];
+    }
+    use canopy_fusion::state::POS;
+    let cov: nalgebra::SMatrix<f64, 9, 9> = estimate.covariance.fixed_view::<9, 9>(POS, POS).into();
+    filter.vehicle_fix(vehicle, &fix, &cov)
 }
 
 /// Errors of the reference run.
@@ -147,6 +192,8 @@ pub fn run_reference(
     let eps = 1e-9;
     let mut next_record = 0.0;
     let mut next_progress = 1.0;
+    let mut audit = AssociationAudit::default();
+    let mut fixes = restarts(s).into_iter().peekable();
     let record = |run: &mut BaselineRun, filter: &SlamFilter, sources: &[SensorSource], t: f64| {
         for (i, src) in sources.iter().enumerate() {
             if let (Ok(est), Ok(cov)) = (filter.vehicle_state(i), filter.vehicle_covariance(i)) {
@@ -188,6 +235,15 @@ pub fn run_reference(
         if t > duration + eps {
             break;
         }
+        while let Some(&(tf, fi, inc)) = fixes.peek()
+            && t + eps >= tf
+        {
+            fixes.next();
+            if let Some(est) = sources[fi].restart_estimate(u64::from(inc)) {
+                // A refused fix leaves the reference as it was (it then lacks that fix).
+                let _ = apply_restart_fix(&mut filter, fi, &est);
+            }
+        }
         let Some(step) = sources[vi].step() else {
             break;
         };
@@ -196,7 +252,9 @@ pub fn run_reference(
             && let Ok(report) = filter.process_frame(vi, frame)
         {
             if let Some(ids) = true_ids {
-                run.vehicles[vi].wrong_associations += wrong_associations(&report, ids);
+                let c = audit.audit(&filter, &report, ids);
+                run.vehicles[vi].wrong_associations += c.wrong;
+                run.vehicles[vi].duplicate_features += c.duplicates;
             }
             run.vehicles[vi].observations += frame.observations.len() as u64;
         }

@@ -637,6 +637,10 @@ pub fn simulate(s: &Scenario, mut opts: SimOptions<'_>) -> Result<SimOutcome, Si
                 node.restarts += 1;
                 let inc = node.restarts;
                 let est = sim.vehicles[idx].restart_estimate(u64::from(inc));
+                // The reference gets the same external fix, so it still holds all the data.
+                if let Some(b) = sim.baseline.as_mut() {
+                    let _ = crate::baseline::apply_restart_fix(b, idx, &est);
+                }
                 let agent = sim.vehicle_agent(idx, &est, inc)?;
                 sim.nodes.get_mut(&target).expect("exists").agent =
                     Some(Agent::Vehicle(Box::new(agent)));

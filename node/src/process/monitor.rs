@@ -35,7 +35,8 @@ use nalgebra::{Matrix3, Vector3};
 use serde::{Deserialize, Serialize};
 
 use super::protocol::{
-    Control, EstimateReport, FeatureReport, FrameAssociations, LinkReport, MONITOR_ID, Report,
+    Control, EstimateReport, FeatureReport, FrameAssociations, LinkReport, MONITOR_ID, Outcome,
+    Report,
     TruthReport, VehicleCounters, WORLD_ID,
 };
 use super::{ENV_ZENOH_PASSWORD, ENV_ZENOH_USER, control_link, decode_body, send_body};
@@ -272,6 +273,8 @@ struct Monitor {
     world_finished: bool,
     hub_rejected: u64,
     hub_alive: bool,
+    /// Vehicles the world holds its streams for (a scheduled restart).
+    restart_requests: BTreeMap<u32, f64>,
     failure: Option<String>,
     last_activity: Instant,
 }
@@ -421,6 +424,10 @@ impl Monitor {
                 Report::Finished { t } => {
                     self.world_t = self.world_t.max(t);
                     self.world_finished = true;
+                }
+                Report::Waiting { vehicle, t, .. } => {
+                    self.world_t = self.world_t.max(t);
+                    self.restart_requests.insert(vehicle, t);
                 }
                 Report::Failed { reason } => {
                     self.failure.get_or_insert(format!("world: {reason}"));
@@ -687,6 +694,7 @@ pub fn launch(s: Scenario, opts: &LaunchOptions) -> Result<LaunchOutcome> {
         world_finished: false,
         hub_rejected: 0,
         hub_alive: s.fusion.mode == FusionMode::Central,
+        restart_requests: Default::default(),
         failure: None,
         last_activity: Instant::now(),
     };
@@ -751,6 +759,14 @@ pub fn launch(s: Scenario, opts: &LaunchOptions) -> Result<LaunchOutcome> {
         crate::cli::progress_bar(duration, false)
     };
     let plain_progress = !opts.quiet && !std::io::stderr().is_terminal();
+    // Event lines: above the progress bar, or plain lines when stderr is not a terminal.
+    let say = |pb: &indicatif::ProgressBar, line: String| {
+        if plain_progress {
+            eprintln!("{line}");
+        } else if !opts.quiet {
+            pb.println(line);
+        }
+    };
     let mut next_plain = 10.0;
     let mut interrupted = false;
     let stall = Duration::from_secs(300);
@@ -778,11 +794,17 @@ pub fn launch(s: Scenario, opts: &LaunchOptions) -> Result<LaunchOutcome> {
                     m.vehicles
                         .get(&id)
                         .is_some_and(|v| v.alive && v.last_t >= e.at_s)
+                        || m.restart_requests.contains_key(&id)
                 }
                 (EventKind::HubLoss, _) => team >= e.at_s,
                 (_, _) => {
+                    // Restart once crashed, when the team reaches the restart time or the world
+                    // holds its streams for it (which it does at exactly that time).
+                    let id = e.vehicle.expect("validated");
                     let crashed = !pending.iter().any(|&(j, st)| j == i && st == 0);
-                    crashed && team >= e.at_s + e.restart_after_s.unwrap_or(0.0)
+                    crashed
+                        && (team >= e.at_s + e.restart_after_s.unwrap_or(0.0)
+                            || m.restart_requests.contains_key(&id))
                 }
             };
             if due {
@@ -797,15 +819,12 @@ pub fn launch(s: Scenario, opts: &LaunchOptions) -> Result<LaunchOutcome> {
                 (EventKind::Crash, 0) => {
                     let id = e.vehicle.expect("validated");
                     let name = names[&id].clone();
+                    let t = m.vehicles.get(&id).map_or(t, |v| v.last_t);
                     m.kill(&name, nix::sys::signal::Signal::SIGKILL, true);
                     if let Some(v) = m.vehicles.get_mut(&id) {
                         v.alive = false;
                     }
-                    if !opts.quiet {
-                        pb.println(format!(
-                            "t = {t:.1} s: {name} killed with SIGKILL (scheduled crash)"
-                        ));
-                    }
+                    say(&pb, format!("t = {t:.1} s: {name} killed with SIGKILL (scheduled crash)"));
                     m.events.push(EventRecord {
                         t,
                         until: e.restart_after_s.map(|r| e.at_s + r),
@@ -816,6 +835,9 @@ pub fn launch(s: Scenario, opts: &LaunchOptions) -> Result<LaunchOutcome> {
                 (EventKind::Crash, _) => {
                     let id = e.vehicle.expect("validated");
                     let name = names[&id].clone();
+                    // The world restarts it at exactly the scheduled time when it holds the
+                    // streams for it.
+                    let t = m.restart_requests.get(&id).copied().unwrap_or(t);
                     let inc = {
                         let v = m.vehicles.get_mut(&id).expect("validated");
                         v.restarts += 1;
@@ -824,14 +846,11 @@ pub fn launch(s: Scenario, opts: &LaunchOptions) -> Result<LaunchOutcome> {
                         v.restarts
                     };
                     m.vehicles.get_mut(&id).expect("validated").incarnation = inc;
+                    m.restart_requests.remove(&id);
                     if let Err(err) = m.spawn(&name, Some(id), inc, &secrets) {
                         m.failure = Some(format!("restarting {name}: {err:#}"));
                     }
-                    if !opts.quiet {
-                        pb.println(format!(
-                            "t = {t:.1} s: {name} restarted (incarnation {inc})"
-                        ));
-                    }
+                    say(&pb, format!("t = {t:.1} s: {name} restarted (incarnation {inc})"));
                     m.events.push(EventRecord {
                         t,
                         until: None,
@@ -842,9 +861,7 @@ pub fn launch(s: Scenario, opts: &LaunchOptions) -> Result<LaunchOutcome> {
                 (EventKind::HubLoss, _) => {
                     m.kill("hub", nix::sys::signal::Signal::SIGKILL, true);
                     m.hub_alive = false;
-                    if !opts.quiet {
-                        pb.println(format!("t = {t:.1} s: hub killed with SIGKILL (hub loss)"));
-                    }
+                    say(&pb, format!("t = {t:.1} s: hub killed with SIGKILL (hub loss)"));
                     m.events.push(EventRecord {
                         t,
                         until: None,
@@ -919,6 +936,7 @@ fn assemble(
 ) -> (RunRecord, RunChecks) {
     let s = &m.s;
     let lead = s.run.max_lead_s;
+    let audits = audit(m);
     let mut vehicles = Vec::new();
     let mut vchecks = Vec::new();
     let mut confidence = Vec::new();
@@ -950,17 +968,10 @@ fn assemble(
                 .map(|f| feature_record(world, f.id, &Vector3::from(f.mean), &f.covariance()))
                 .collect();
         }
-        for a in &v.associations {
-            rec.observations += a.features.len() as u64;
-            if let Some(ids) = m.true_ids.get(&(cfg.id, ms(a.t))) {
-                rec.wrong_associations += a
-                    .features
-                    .iter()
-                    .zip(ids)
-                    .filter(|(f, t)| f.is_some_and(|f| f != **t))
-                    .count() as u64;
-            }
-        }
+        let a = audits.get(&cfg.id).copied().unwrap_or_default();
+        rec.observations = a.observations;
+        rec.wrong_associations = a.wrong;
+        rec.duplicate_features = a.duplicates;
         rec.rejected_messages = v.counters.values().map(|c| c.messages_rejected).sum();
         vehicles.push(rec);
         if let Some(b) = &baseline {
@@ -1146,6 +1157,92 @@ fn assemble(
         prefix: m.prefix.clone(),
     };
     (record, checks)
+}
+
+/// Association counts of one vehicle.
+#[derive(Clone, Copy, Debug, Default)]
+struct AuditCounts {
+    observations: u64,
+    wrong: u64,
+    duplicates: u64,
+}
+
+/// Audits every vehicle's association outcomes against the world's true ids, in time order
+/// over the whole team (the same rules as [`crate::agent::AssociationAudit`]: a feature stands
+/// for the true feature of the observation that created it; an observation associated to a
+/// feature standing for another true feature is wrong; a feature created for a true feature
+/// the vehicle already represents is a duplicate). What a vehicle "already represents" is its
+/// last map report before the frame plus the features it created since.
+fn audit(m: &Monitor) -> BTreeMap<u32, AuditCounts> {
+    use std::collections::{HashMap, HashSet};
+    let mut origin: HashMap<FeatureId, FeatureId> = HashMap::new();
+    let mut tracks: HashMap<(u32, u64), FeatureId> = HashMap::new();
+    let mut frames: Vec<(f64, u32, &FrameAssociations)> = m
+        .vehicles
+        .iter()
+        .flat_map(|(&id, v)| v.associations.iter().map(move |a| (a.t, id, a)))
+        .collect();
+    frames.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
+    let mut maps: BTreeMap<u32, (usize, HashSet<FeatureId>, HashSet<FeatureId>)> = m
+        .vehicles
+        .keys()
+        .map(|&id| (id, (0, HashSet::new(), HashSet::new())))
+        .collect();
+    let mut out: BTreeMap<u32, AuditCounts> = BTreeMap::new();
+    for (t, id, fa) in frames {
+        let v = &m.vehicles[&id];
+        let (next, current, created) = maps.get_mut(&id).expect("every vehicle has an entry");
+        while *next < v.maps.len() && v.maps[*next].0 <= t + 1e-9 {
+            *current = v.maps[*next].1.iter().map(|f| f.id).collect();
+            created.clear();
+            *next += 1;
+        }
+        let c = out.entry(id).or_default();
+        c.observations += fa.outcomes.len() as u64;
+        let Some(ids) = m.true_ids.get(&(id, ms(t))) else {
+            continue;
+        };
+        let stands_for = |origin: &HashMap<FeatureId, FeatureId>, f: FeatureId| {
+            origin.get(&f).copied().unwrap_or(f)
+        };
+        let initialized = |c: &mut AuditCounts,
+                               origin: &mut HashMap<FeatureId, FeatureId>,
+                               created: &mut HashSet<FeatureId>,
+                               feature: FeatureId,
+                               truth: FeatureId| {
+            let already = current
+                .iter()
+                .chain(created.iter())
+                .any(|&g| g != feature && stands_for(origin, g) == truth);
+            if already {
+                c.duplicates += 1;
+            }
+            origin.entry(feature).or_insert(truth);
+            created.insert(feature);
+        };
+        for (o, &truth) in fa.outcomes.iter().zip(ids) {
+            match *o {
+                Outcome::Associated(f) => {
+                    if stands_for(&origin, f) != truth {
+                        c.wrong += 1;
+                    }
+                }
+                Outcome::Initialized(f) => initialized(c, &mut origin, created, f, truth),
+                Outcome::Stored(track) => {
+                    if *tracks.entry((id, track)).or_insert(truth) != truth {
+                        c.wrong += 1;
+                    }
+                }
+                Outcome::Rejected => {}
+            }
+        }
+        for &(track, feature) in &fa.initialized_tracks {
+            if let Some(&truth) = tracks.get(&(id, track)) {
+                initialized(c, &mut origin, created, feature, truth);
+            }
+        }
+    }
+    out
 }
 
 fn truth_sample(world: &World, r: &TruthReport) -> TruthSample {

@@ -225,14 +225,29 @@ pub struct VehicleCounters {
     pub stream_gaps: u64,
 }
 
-/// Associations of one frame: per observation the feature it was associated to (`None` for a
-/// new feature or a rejected observation). The monitor compares them with the true ids.
+/// What the estimator did with one observation (the monitor audits it against the truth).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub enum Outcome {
+    /// Associated to this feature.
+    Associated(FeatureId),
+    /// Initialized this feature.
+    Initialized(FeatureId),
+    /// Stored with this bearing-only track.
+    Stored(u64),
+    /// Not used.
+    Rejected,
+}
+
+/// The outcomes of one frame, in the frame's order, and the bearing-only tracks that
+/// initialized a feature in it.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct FrameAssociations {
     /// Frame time [s].
     pub t: f64,
     /// Per observation.
-    pub features: Vec<Option<FeatureId>>,
+    pub outcomes: Vec<Outcome>,
+    /// (track, feature) pairs.
+    pub initialized_tracks: Vec<(u64, FeatureId)>,
 }
 
 /// A vehicle's estimate at a record time.
@@ -351,6 +366,16 @@ pub enum Report {
         /// Time [s].
         t: f64,
     },
+    /// The world holds the stream at the restart time `t` of `vehicle` until its new process
+    /// asks for initialisation (world only).
+    Waiting {
+        /// Vehicle.
+        vehicle: NodeId,
+        /// Incarnation it waits for.
+        incarnation: u32,
+        /// Restart time [s].
+        t: f64,
+    },
     /// The sender's work is done (vehicle: end of stream processed; world: end reached).
     Finished {
         /// Simulation time [s].
@@ -420,7 +445,9 @@ impl Validate for Report {
                 )?;
                 finite("truth.frames", frames.iter().map(|f| f.t))
             }
-            Report::Initialized { t, .. } | Report::Finished { t } => finite("t", [*t]),
+            Report::Initialized { t, .. } | Report::Waiting { t, .. } | Report::Finished { t } => {
+                finite("t", [*t])
+            }
         }
     }
 }

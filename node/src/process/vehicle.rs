@@ -27,7 +27,7 @@ use canopy_transport::{MessageKind, NodeId as WireId};
 use nalgebra::{SMatrix, Vector3};
 
 use super::protocol::{
-    Control, EstimateReport, FeatureReport, FrameAssociations, InitMsg, MONITOR_ID, MapReport,
+    Control, EstimateReport, FeatureReport, FrameAssociations, InitMsg, MONITOR_ID, MapReport, Outcome,
     Progress, Report, SensorItem, VehicleCounters, WORLD_ID, WorldMsg,
 };
 use super::world::stream_buffer;
@@ -258,14 +258,17 @@ impl Vehicle<'_> {
         match self.agent.on_frame(frame) {
             Ok(rep) => self.associations.push(FrameAssociations {
                 t: frame.time,
-                features: rep
+                outcomes: rep
                     .outcomes
                     .iter()
-                    .map(|o| match o {
-                        ObservationOutcome::Associated { feature, .. } => Some(*feature),
-                        _ => None,
+                    .map(|o| match *o {
+                        ObservationOutcome::Associated { feature, .. } => Outcome::Associated(feature),
+                        ObservationOutcome::Initialized { feature } => Outcome::Initialized(feature),
+                        ObservationOutcome::Stored { track } => Outcome::Stored(track),
+                        ObservationOutcome::Rejected(_) => Outcome::Rejected,
                     })
                     .collect(),
+                initialized_tracks: rep.initialized_tracks.clone(),
             }),
             Err(_) => self.counters.inputs_rejected += 1,
         }

@@ -42,6 +42,9 @@ pub const BATCH_S: f64 = 0.1;
 /// How long the world waits for every vehicle (and the hub) to come up.
 const STARTUP_TIMEOUT: Duration = Duration::from_secs(120);
 
+/// How long the world holds the streams for a scheduled restart.
+const RESTART_TIMEOUT: Duration = Duration::from_secs(60);
+
 /// Without any live vehicle the world runs at this many simulated seconds per wall second, so
 /// the monitor can restart crashed vehicles close to their scheduled time.
 const IDLE_PACE: f64 = 50.0;
@@ -160,6 +163,11 @@ pub fn run(c: &RoleCommon) -> Result<()> {
     let mut next_batch = BATCH_S;
     let mut finished_sent = false;
     let mut hub_time_sent = f64::NEG_INFINITY;
+    // Scheduled restarts: the world holds every stream at the restart time until the new
+    // process asks for initialisation, so the restart happens at exactly that time (as in
+    // `canopy sim`, and as the reference assumes).
+    let mut restarts: Vec<(f64, usize, u32)> = crate::baseline::restarts(&s);
+    let mut waiting_since: Option<Instant> = None;
     let mut end_reached = false;
     let mut shutdown = false;
 
@@ -208,6 +216,7 @@ pub fn run(c: &RoleCommon) -> Result<()> {
                         covariance: est.covariance.transpose().as_slice().to_vec(),
                     });
                     send_body(&mut slot.link, MessageKind::IMU_BATCH, 0, t_world, &init)?;
+                    tracing::info!(vehicle = slot.id, incarnation = p.incarnation, t = t_world, "initialised");
                     slot.incarnation = Some(p.incarnation);
                     slot.active = true;
                     slot.acked = t_world;
@@ -296,6 +305,36 @@ pub fn run(c: &RoleCommon) -> Result<()> {
                 break;
             }
             if t > pass_end + eps {
+                break;
+            }
+            if let Some(&(tr, idx, inc)) = restarts.first()
+                && t + eps >= tr
+            {
+                if slots[idx].incarnation == Some(inc) {
+                    restarts.remove(0);
+                    waiting_since = None;
+                    continue;
+                }
+                let since = *waiting_since.get_or_insert_with(|| {
+                    tracing::info!(vehicle = slots[idx].id, t = tr, "holding the streams for a restart");
+                    report(
+                        &mut monitor,
+                        &Report::Waiting {
+                            vehicle: slots[idx].id,
+                            incarnation: inc,
+                            t: tr,
+                        },
+                        t_world,
+                    );
+                    Instant::now()
+                });
+                if since.elapsed() > RESTART_TIMEOUT {
+                    tracing::warn!(vehicle = slots[idx].id, "restart did not come; going on");
+                    restarts.remove(0);
+                    waiting_since = None;
+                    continue;
+                }
+                blocked = true;
                 break;
             }
             let Some(step) = sources[vi].step() else {
