@@ -655,7 +655,7 @@ impl SlamFilter {
             return Err(SlamError::NotPositiveDefinite("vehicle fix covariance"));
         }
         use crate::state::{ATT, POS, VEL};
-        debug_assert!(POS + 3 == VEL && VEL + 3 == ATT);
+        const { assert!(POS + 3 == VEL && VEL + 3 == ATT) };
         self.flush();
         let off = self.layout.vehicle_block(vehicle) + POS;
         let mut nu = Col::zeros(9);

@@ -36,8 +36,7 @@ use serde::{Deserialize, Serialize};
 
 use super::protocol::{
     Control, EstimateReport, FeatureReport, FrameAssociations, LinkReport, MONITOR_ID, Outcome,
-    Report,
-    TruthReport, VehicleCounters, WORLD_ID,
+    Report, TruthReport, VehicleCounters, WORLD_ID,
 };
 use super::{ENV_ZENOH_PASSWORD, ENV_ZENOH_USER, control_link, decode_body, send_body};
 use crate::baseline::{BaselineRun, run_reference};
@@ -824,7 +823,10 @@ pub fn launch(s: Scenario, opts: &LaunchOptions) -> Result<LaunchOutcome> {
                     if let Some(v) = m.vehicles.get_mut(&id) {
                         v.alive = false;
                     }
-                    say(&pb, format!("t = {t:.1} s: {name} killed with SIGKILL (scheduled crash)"));
+                    say(
+                        &pb,
+                        format!("t = {t:.1} s: {name} killed with SIGKILL (scheduled crash)"),
+                    );
                     m.events.push(EventRecord {
                         t,
                         until: e.restart_after_s.map(|r| e.at_s + r),
@@ -850,7 +852,10 @@ pub fn launch(s: Scenario, opts: &LaunchOptions) -> Result<LaunchOutcome> {
                     if let Err(err) = m.spawn(&name, Some(id), inc, &secrets) {
                         m.failure = Some(format!("restarting {name}: {err:#}"));
                     }
-                    say(&pb, format!("t = {t:.1} s: {name} restarted (incarnation {inc})"));
+                    say(
+                        &pb,
+                        format!("t = {t:.1} s: {name} restarted (incarnation {inc})"),
+                    );
                     m.events.push(EventRecord {
                         t,
                         until: None,
@@ -861,7 +866,10 @@ pub fn launch(s: Scenario, opts: &LaunchOptions) -> Result<LaunchOutcome> {
                 (EventKind::HubLoss, _) => {
                     m.kill("hub", nix::sys::signal::Signal::SIGKILL, true);
                     m.hub_alive = false;
-                    say(&pb, format!("t = {t:.1} s: hub killed with SIGKILL (hub loss)"));
+                    say(
+                        &pb,
+                        format!("t = {t:.1} s: hub killed with SIGKILL (hub loss)"),
+                    );
                     m.events.push(EventRecord {
                         t,
                         until: None,
@@ -1206,10 +1214,10 @@ fn audit(m: &Monitor) -> BTreeMap<u32, AuditCounts> {
             origin.get(&f).copied().unwrap_or(f)
         };
         let initialized = |c: &mut AuditCounts,
-                               origin: &mut HashMap<FeatureId, FeatureId>,
-                               created: &mut HashSet<FeatureId>,
-                               feature: FeatureId,
-                               truth: FeatureId| {
+                           origin: &mut HashMap<FeatureId, FeatureId>,
+                           created: &mut HashSet<FeatureId>,
+                           feature: FeatureId,
+                           truth: FeatureId| {
             let already = current
                 .iter()
                 .chain(created.iter())

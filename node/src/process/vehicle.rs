@@ -27,8 +27,8 @@ use canopy_transport::{MessageKind, NodeId as WireId};
 use nalgebra::{SMatrix, Vector3};
 
 use super::protocol::{
-    Control, EstimateReport, FeatureReport, FrameAssociations, InitMsg, MONITOR_ID, MapReport, Outcome,
-    Progress, Report, SensorItem, VehicleCounters, WORLD_ID, WorldMsg,
+    Control, EstimateReport, FeatureReport, FrameAssociations, InitMsg, MONITOR_ID, MapReport,
+    Outcome, Progress, Report, SensorItem, VehicleCounters, WORLD_ID, WorldMsg,
 };
 use super::world::stream_buffer;
 use super::{
@@ -262,8 +262,12 @@ impl Vehicle<'_> {
                     .outcomes
                     .iter()
                     .map(|o| match *o {
-                        ObservationOutcome::Associated { feature, .. } => Outcome::Associated(feature),
-                        ObservationOutcome::Initialized { feature } => Outcome::Initialized(feature),
+                        ObservationOutcome::Associated { feature, .. } => {
+                            Outcome::Associated(feature)
+                        }
+                        ObservationOutcome::Initialized { feature } => {
+                            Outcome::Initialized(feature)
+                        }
                         ObservationOutcome::Stored { track } => Outcome::Stored(track),
                         ObservationOutcome::Rejected(_) => Outcome::Rejected,
                     })

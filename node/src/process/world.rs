@@ -216,7 +216,12 @@ pub fn run(c: &RoleCommon) -> Result<()> {
                         covariance: est.covariance.transpose().as_slice().to_vec(),
                     });
                     send_body(&mut slot.link, MessageKind::IMU_BATCH, 0, t_world, &init)?;
-                    tracing::info!(vehicle = slot.id, incarnation = p.incarnation, t = t_world, "initialised");
+                    tracing::info!(
+                        vehicle = slot.id,
+                        incarnation = p.incarnation,
+                        t = t_world,
+                        "initialised"
+                    );
                     slot.incarnation = Some(p.incarnation);
                     slot.active = true;
                     slot.acked = t_world;
@@ -316,7 +321,11 @@ pub fn run(c: &RoleCommon) -> Result<()> {
                     continue;
                 }
                 let since = *waiting_since.get_or_insert_with(|| {
-                    tracing::info!(vehicle = slots[idx].id, t = tr, "holding the streams for a restart");
+                    tracing::info!(
+                        vehicle = slots[idx].id,
+                        t = tr,
+                        "holding the streams for a restart"
+                    );
                     report(
                         &mut monitor,
                         &Report::Waiting {
