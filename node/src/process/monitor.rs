@@ -129,6 +129,8 @@ pub struct VehicleCheck {
     pub last_report_t: f64,
     /// Features in the last map.
     pub final_map_features: usize,
+    /// Map size at every map report: (t, features).
+    pub map_sizes: Vec<(f64, usize)>,
     /// Times it was initialised (1 + restarts).
     pub initialisations: usize,
 }
@@ -1021,6 +1023,7 @@ fn assemble(
             map_reports: v.maps.len(),
             last_report_t: v.estimates.iter().map(|e| e.0).fold(f64::NAN, f64::max),
             final_map_features: v.last_map.as_ref().map_or(0, |m| m.1.len()),
+            map_sizes: v.maps.iter().map(|(t, f)| (*t, f.len())).collect(),
             initialisations: v.initialisations,
         });
     }
