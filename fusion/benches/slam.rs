@@ -260,23 +260,28 @@ fn main() {
     }
 
     println!(
-        "\n## Fuse-back of map information vs a faer Cholesky inverse of the 3N×3N map covariance"
+        "\n## One fusion round with the EKF vs a raw faer Cholesky inverse of the 3N×3N map covariance"
     );
     println!(
-        "| N | Cholesky inverse [ms] | fuse 10-feature delta [ms] | fuse whole-map delta [ms] | round, 10-feature delta [ms] | round / inverse | round, whole-map delta [ms] | round / inverse |"
+        "Between rounds the vehicle processes 2 frames of 8 observations (untimed); a round is \
+         `map_information()` (Y_mm for the deltas) + fusing a neighbour's delta back. `maintained`: Y_mm \
+         kept current through the updates (Woodbury, bordered inverse, Y + ΔY); `re-inverted`: the \
+         cache dropped before the round (two inversions per round)."
     );
-    println!("|---|---|---|---|---|---|---|---|");
+    println!(
+        "| N | Cholesky inverse [ms] | round, 10-feature delta, maintained [ms] | / inverse | round, whole-map delta, maintained [ms] | / inverse | round, whole-map, re-inverted [ms] | / inverse | frame with Y maintained [ms] | frame without [ms] |"
+    );
+    println!("|---|---|---|---|---|---|---|---|---|---|");
     for &n_feat in &[100usize, 300] {
         let mut f = filter(n_feat);
-        let mm = f.map_marginal();
-        let k = mm.covariance.nrows();
+        let model = *f.observation_model(0).unwrap();
         let make_delta = |f: &SlamFilter, ids: Vec<FeatureId>| {
             let r = 3 * ids.len();
             let y = Mat::from_fn(r, r, |i, j| {
                 if i == j {
-                    0.5
+                    0.05
                 } else {
-                    0.05 / (1.0 + (i as f64 - j as f64).abs())
+                    0.005 / (1.0 + (i as f64 - j as f64).abs())
                 }
             });
             let x = Col::from_fn(r, |i| f.feature(ids[i / 3]).unwrap()[i % 3]);
@@ -288,41 +293,61 @@ fn main() {
                 vector,
             }
         };
+        let frame_for = |f: &SlamFilter, k: usize| {
+            let s = f.vehicle_state(0).unwrap();
+            let pose = model.sensor_pose(&s.position, &s.attitude);
+            let observations = (0..8)
+                .map(|i| {
+                    let id = ((k * 8 + i) * 7 % n_feat) as FeatureId;
+                    let z = model.predict(&pose, &f.feature(id).unwrap()).unwrap().z;
+                    Observation {
+                        descriptor: id,
+                        z: Measurement::RangeBearing(Vector3::new(z[0] + 0.05, z[1], z[2])),
+                    }
+                })
+                .collect();
+            ObservationFrame {
+                time: 0.0,
+                observations,
+            }
+        };
         let small_ids: Vec<FeatureId> = (0..10).map(|i| (i * 13 % n_feat) as FeatureId).collect();
         let all_ids: Vec<FeatureId> = (0..n_feat as FeatureId).collect();
-        // The machine is shared: the five measurements are interleaved rep by rep so that load
-        // changes affect them alike, and medians are taken per column.
-        let reps = 7;
-        let mut t = vec![Vec::new(); 5];
-        let time = |f: &mut dyn FnMut()| {
+        let time = |g: &mut dyn FnMut()| {
             let s = Instant::now();
-            f();
+            g();
             s.elapsed().as_secs_f64()
         };
-        for _ in 0..reps {
+        let reps = 7;
+        // Interleaved rep by rep on the shared machine; medians per column.
+        let mut t = vec![Vec::new(); 6];
+        f.map_information().unwrap();
+        for rep in 0..reps {
+            let mm = f.map_marginal();
             t[0].push(time(&mut || {
                 black_box(mm.covariance.llt(Side::Lower).unwrap().inverse());
             }));
-            let d = make_delta(&f, small_ids.clone());
-            t[1].push(time(&mut || {
-                f.fuse_map_information(&d).unwrap();
-            }));
-            let d = make_delta(&f, all_ids.clone());
-            t[2].push(time(&mut || {
-                f.fuse_map_information(&d).unwrap();
-            }));
-            // A round: the DDF takes the map information from the filter (marginal → Cholesky
-            // inverse, cached), forms a delta, and fuses the neighbour's delta back.
-            t[3].push(time(&mut || {
-                black_box(f.map_information().unwrap());
-                let d = make_delta(&f, small_ids.clone());
-                f.fuse_map_information(&d).unwrap();
-            }));
-            t[4].push(time(&mut || {
-                black_box(f.map_information().unwrap());
-                let d = make_delta(&f, all_ids.clone());
-                f.fuse_map_information(&d).unwrap();
-            }));
+            for (col, ids, forget) in [
+                (1, &small_ids, false),
+                (2, &all_ids, false),
+                (3, &all_ids, true),
+            ] {
+                if forget {
+                    f.forget_map_information();
+                }
+                for k in 0..2 {
+                    let fr = frame_for(&f, rep * 2 + k);
+                    let dt = time(&mut || {
+                        f.process_frame(0, &fr).unwrap();
+                    });
+                    t[if forget { 5 } else { 4 }].push(dt);
+                }
+                let d = make_delta(&f, ids.clone());
+                t[col].push(time(&mut || {
+                    black_box(f.map_information().unwrap());
+                    f.fuse_map_information(&d).unwrap();
+                }));
+            }
         }
         let med: Vec<f64> = t
             .into_iter()
@@ -331,16 +356,18 @@ fn main() {
                 v[v.len() / 2]
             })
             .collect();
-        let (inv, small, full, round, round_full) = (med[0], med[1], med[2], med[3], med[4]);
         println!(
-            "| {n_feat} (3N = {k}) | {:.2} | {:.2} | {:.2} | {:.2} | {:.2} | {:.2} | {:.2} |",
-            inv * 1e3,
-            small * 1e3,
-            full * 1e3,
-            round * 1e3,
-            round / inv,
-            round_full * 1e3,
-            round_full / inv
+            "| {n_feat} (3N = {}) | {:.2} | {:.2} | {:.2} | {:.2} | {:.2} | {:.2} | {:.2} | {:.3} | {:.3} |",
+            3 * n_feat,
+            med[0] * 1e3,
+            med[1] * 1e3,
+            med[1] / med[0],
+            med[2] * 1e3,
+            med[2] / med[0],
+            med[3] * 1e3,
+            med[3] / med[0],
+            med[4] * 1e3,
+            med[5] * 1e3,
         );
     }
 }

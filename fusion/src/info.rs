@@ -50,6 +50,8 @@ pub const SYMMETRY_RTOL: f64 = 1e-9;
 
 /// Size in bytes of one f64 on the wire.
 const F64_BYTES: usize = std::mem::size_of::<f64>();
+/// Bytes of an f32 entry on the wire.
+const F32_BYTES: usize = std::mem::size_of::<f32>();
 /// Size in bytes of one feature id on the wire (upper bound: bincode varint ≤ 9 bytes for u64;
 /// we count the fixed 8 of a plain u64 plus one for the varint tag).
 const ID_BYTES: usize = 9;
@@ -927,12 +929,59 @@ impl MapInformation {
     /// this type (ids, origin, y, and the non-zero upper-triangle 3 × 3 blocks of Y with their
     /// block indices), as produced by bincode's standard configuration.
     pub fn block_sparse_wire_bytes(&self) -> usize {
-        let blocks = self.block_sparsity(0.0).matrix_blocks.len();
+        let blocks = self.block_sparsity(0.0).matrix_blocks;
+        let f32_blocks = blocks
+            .iter()
+            .filter(|&&(br, bc)| self.block_is_f32(br, bc))
+            .count();
         let n = FEATURE_DIM * self.ids.len();
-        3 * LEN_BYTES
+        4 * LEN_BYTES
             + ID_BYTES * self.ids.len()
             + F64_BYTES * (3 + n)
-            + blocks * (2 * BLOCK_INDEX_BYTES + F64_BYTES * FEATURE_DIM * FEATURE_DIM)
+            + (blocks.len() - f32_blocks)
+                * (2 * BLOCK_INDEX_BYTES + F64_BYTES * FEATURE_DIM * FEATURE_DIM)
+            + f32_blocks * (2 * BLOCK_INDEX_BYTES + F32_BYTES * FEATURE_DIM * FEATURE_DIM)
+    }
+
+    /// Whether every entry of the 3 × 3 block (br, bc) of Y is exactly representable as f32
+    /// (the wire form then carries it in 4 bytes per entry, losslessly).
+    fn block_is_f32(&self, br: usize, bc: usize) -> bool {
+        (0..FEATURE_DIM).all(|c| {
+            (0..FEATURE_DIM).all(|r| {
+                let v = self.matrix[(FEATURE_DIM * br + r, FEATURE_DIM * bc + c)];
+                f64::from(v as f32) == v
+            })
+        })
+    }
+
+    /// A conservative single-precision version of this (symmetric) information: every entry of
+    /// Y exactly representable as f32, and Y_q ⪯ Y in PSD order, so a receiver fusing it never
+    /// gains more information than was sent; y is kept in f64.
+    ///
+    /// Y' = Y − Λ with Λ_ii = 2⁻²² Σ_j |Y_ij|, then Y_q = fl32(Y'). Each rounding error is at most
+    /// 2⁻²⁴ |Y'_ij|, so row i of Y' − Y_q sums to at most 2⁻²⁴ (Σ_j |Y_ij| + Λ_ii) < Λ_ii: the
+    /// difference Y − Y_q = Λ + (Y' − Y_q) is diagonally dominant with a positive diagonal, hence
+    /// positive semi-definite (Gershgorin). The information held back (≈ 2⁻²² relative) stays in
+    /// the sender's channel difference Y − C and is sent with later deltas. The implied mean
+    /// moves by O(2⁻²²) relative, far below any estimate's σ (consistency is checked by NEES).
+    pub fn quantized_f32_conservative(&self) -> MapInformation {
+        let n = self.matrix.nrows();
+        let mut m = self.matrix.clone();
+        for i in 0..n {
+            let row: f64 = (0..n).map(|j| self.matrix[(i, j)].abs()).sum();
+            m[(i, i)] -= row * 2f64.powi(-22);
+        }
+        for j in 0..n {
+            for i in 0..n {
+                m[(i, j)] = f64::from(m[(i, j)] as f32);
+            }
+        }
+        MapInformation {
+            ids: self.ids.clone(),
+            origin: self.origin,
+            matrix: m,
+            vector: self.vector.clone(),
+        }
     }
 }
 
@@ -944,13 +993,24 @@ struct WireBlock {
     entries: [f64; FEATURE_DIM * FEATURE_DIM],
 }
 
-/// Block-sparse wire form of [`MapInformation`]: lossless for exactly symmetric Y.
+/// A block whose entries are all exactly representable as f32 (half the bytes, lossless).
+#[derive(serde::Serialize, serde::Deserialize)]
+struct WireBlock32 {
+    row: u32,
+    col: u32,
+    entries: [f32; FEATURE_DIM * FEATURE_DIM],
+}
+
+/// Block-sparse wire form of [`MapInformation`]: lossless for exactly symmetric Y. Blocks whose
+/// entries are all exact in f32 (e.g. after [`MapInformation::quantized_f32_conservative`]) go in
+/// `blocks32`.
 #[derive(serde::Serialize, serde::Deserialize)]
 struct WireInformation {
     ids: Vec<FeatureId>,
     origin: [f64; 3],
     vector: Vec<f64>,
     blocks: Vec<WireBlock>,
+    blocks32: Vec<WireBlock32>,
 }
 
 impl serde::Serialize for MapInformation {
@@ -958,9 +1018,29 @@ impl serde::Serialize for MapInformation {
     /// (Y is symmetric by construction; the lower triangle is restored by symmetry), y, ids and
     /// the origin.
     fn serialize<S: serde::Serializer>(&self, serializer: S) -> Result<S::Ok, S::Error> {
-        let blocks = self
+        let (narrow, wide): (Vec<_>, Vec<_>) = self
             .block_sparsity(0.0)
             .matrix_blocks
+            .into_iter()
+            .partition(|&(br, bc)| self.block_is_f32(br, bc));
+        let blocks32 = narrow
+            .into_iter()
+            .map(|(br, bc)| {
+                let mut entries = [0.0f32; FEATURE_DIM * FEATURE_DIM];
+                for c in 0..FEATURE_DIM {
+                    for r in 0..FEATURE_DIM {
+                        entries[FEATURE_DIM * c + r] =
+                            self.matrix[(FEATURE_DIM * br + r, FEATURE_DIM * bc + c)] as f32;
+                    }
+                }
+                WireBlock32 {
+                    row: br as u32,
+                    col: bc as u32,
+                    entries,
+                }
+            })
+            .collect();
+        let blocks = wide
             .into_iter()
             .map(|(br, bc)| {
                 let mut entries = [0.0; FEATURE_DIM * FEATURE_DIM];
@@ -982,6 +1062,7 @@ impl serde::Serialize for MapInformation {
             origin: self.origin.into(),
             vector: col_slice(&self.vector).to_vec(),
             blocks,
+            blocks32,
         }
         .serialize(serializer)
     }
@@ -1005,8 +1086,14 @@ impl<'de> serde::Deserialize<'de> for MapInformation {
             }));
         }
         let mut matrix = Mat::zeros(n, n);
-        let mut seen = HashSet::with_capacity(wire.blocks.len());
-        for b in &wire.blocks {
+        let mut seen = HashSet::with_capacity(wire.blocks.len() + wire.blocks32.len());
+        let widened = wire.blocks32.iter().map(|b| WireBlock {
+            row: b.row,
+            col: b.col,
+            entries: b.entries.map(f64::from),
+        });
+        let all: Vec<WireBlock> = widened.collect();
+        for b in wire.blocks.iter().chain(&all) {
             let (br, bc) = (b.row as usize, b.col as usize);
             if br > bc || bc >= nf || !seen.insert((br, bc)) {
                 return Err(D::Error::custom(format!(
@@ -1482,6 +1569,7 @@ mod tests {
                         entries: [v; 9],
                     })
                     .collect(),
+                blocks32: Vec::new(),
             };
             bincode::serde::encode_to_vec(&w, bincode::config::standard()).unwrap()
         };
@@ -1507,5 +1595,56 @@ mod tests {
             ))
             .is_err()
         );
+    }
+
+    /// The conservative f32 form is exactly single precision, never more informative than the
+    /// original (Y − Y_q ⪰ 0, checked by its smallest eigenvalue from an independent nalgebra
+    /// decomposition), within 2⁻²⁰ of it, and the wire form carries it losslessly in about
+    /// half the bytes.
+    #[test]
+    fn f32_quantization_is_conservative_and_lossless_on_the_wire() {
+        let mut rng = ChaCha8Rng::seed_from_u64(32);
+        for case in 0..20 {
+            let nf = 2 + case % 7;
+            let ids: Vec<FeatureId> = (0..nf as u64).map(|i| 10 + i).collect();
+            let mut m = random_spd(&mut rng, nf);
+            if case % 3 == 0 {
+                // Indefinite deltas (after CI upstream) must be handled too.
+                for i in 0..FEATURE_DIM * nf {
+                    m[(i, i)] -= FEATURE_DIM as f64 * nf as f64 * 1.5;
+                }
+            }
+            let scale = 10f64.powi(rng.random_range(-4..6));
+            let info = MapInformation {
+                ids,
+                origin: Vector3::new(1.0, 2.0, 3.0),
+                matrix: Mat::from_fn(m.nrows(), m.ncols(), |i, j| m[(i, j)] * scale),
+                vector: Col::from_fn(m.nrows(), |_| rng.random_range(-1.0..1.0)),
+            };
+            let q = info.quantized_f32_conservative();
+            let n = q.matrix.nrows();
+            for j in 0..n {
+                for i in 0..n {
+                    assert_eq!(f64::from(q.matrix[(i, j)] as f32), q.matrix[(i, j)]);
+                    assert_eq!(q.matrix[(i, j)], q.matrix[(j, i)], "symmetric");
+                }
+            }
+            let diff = DMatrix::from_fn(n, n, |i, j| info.matrix[(i, j)] - q.matrix[(i, j)]);
+            let min_eig = diff.clone().symmetric_eigenvalues().min();
+            let max_abs = info.matrix_norm_max();
+            // Eigenvalues of the difference are ≥ 0 up to the decomposition's round-off.
+            assert!(
+                min_eig >= -1e-13 * max_abs,
+                "case {case}: λ_min {min_eig:e}"
+            );
+            assert!(
+                diff.abs().max() <= 2f64.powi(-20) * max_abs * n as f64,
+                "case {case}: too lossy"
+            );
+            let bytes = encode(&q);
+            let back = decode(&bytes).unwrap();
+            assert_eq!(back.matrix, q.matrix, "lossless");
+            assert!(bytes.len() < encode(&info).len(), "smaller on the wire");
+        }
     }
 }

@@ -53,30 +53,27 @@ pub struct AgentCounters {
 }
 
 /// Adapter: the EKF as the DDF's fuse target.
+///
+/// Received deltas are batched: they are summed (information adds, aligned by id) and fused into
+/// the EKF in one go before the next round reads the map information, so a round costs one
+/// fusion whatever the number of neighbours. The DDF validated each delta (finite, symmetric,
+/// right origin) before handing it over; a batch the EKF then refuses (a non positive definite
+/// result) is dropped and counted: information lost, never counted twice.
 struct EkfTarget<'a> {
-    filter: &'a mut SlamFilter,
-    fused: &'a mut u64,
-    refused: &'a mut u64,
-    forgotten: &'a mut u64,
+    pending: &'a mut Option<MapInformation>,
+    pending_count: &'a mut u64,
 }
 
 impl FuseTarget for EkfTarget<'_> {
     fn fuse(&mut self, delta: &MapInformation) -> Result<(), FuseRejected> {
-        // Features whose information the delta cancels exactly are removed, not refused
-        // (`SlamFilter::fuse_map_information_forgetting`).
-        match self.filter.fuse_map_information_forgetting(delta) {
-            Ok(r) => {
-                *self.fused += 1;
-                *self.forgotten += r.forgotten.len() as u64;
-                Ok(())
-            }
-            Err(e) => {
-                *self.refused += 1;
-                Err(FuseRejected {
-                    reason: e.to_string(),
-                })
-            }
+        match self.pending.as_mut() {
+            None => *self.pending = Some(delta.clone()),
+            Some(sum) => sum.add_assign(delta).map_err(|e| FuseRejected {
+                reason: e.to_string(),
+            })?,
         }
+        *self.pending_count += 1;
+        Ok(())
     }
 }
 
@@ -98,6 +95,9 @@ pub struct VehicleAgent {
     filter: SlamFilter,
     ddf: Option<DdfNode>,
     counters: AgentCounters,
+    /// Received information not yet fused into the EKF (see [`EkfTarget`]).
+    pending: Option<MapInformation>,
+    pending_count: u64,
 }
 
 impl VehicleAgent {
@@ -131,7 +131,27 @@ impl VehicleAgent {
             filter,
             ddf,
             counters: AgentCounters::default(),
+            pending: None,
+            pending_count: 0,
         })
+    }
+
+    /// Fuses the received information batched since the last call into the EKF (done at the
+    /// start of every round; call it before reading a final map).
+    pub fn flush_fusion(&mut self) {
+        if let Some(sum) = self.pending.take() {
+            let n = std::mem::take(&mut self.pending_count);
+            // Features whose information the batch cancels exactly (a resynchronisation after a
+            // neighbour restarted) are removed, not refused
+            // (`SlamFilter::fuse_map_information_forgetting`).
+            match self.filter.fuse_map_information_forgetting(&sum) {
+                Ok(r) => {
+                    self.counters.fused += n;
+                    self.counters.features_forgotten += r.forgotten.len() as u64;
+                }
+                Err(_) => self.counters.fuse_refused += n,
+            }
+        }
     }
 
     /// This node's id.
@@ -188,12 +208,17 @@ impl VehicleAgent {
 
     /// A fusion round at time `now`: the messages to send.
     pub fn on_round(&mut self, now: f64) -> Result<Vec<Outgoing>, AgentError> {
-        let Some(ddf) = self.ddf.as_mut() else {
+        if self.ddf.is_none() {
             return Ok(Vec::new());
-        };
+        }
         self.counters.rounds += 1;
+        self.flush_fusion();
         let info = self.filter.map_information().map_err(AgentError::Slam)?;
-        let out = ddf.on_round(now, &info)?;
+        let out = self
+            .ddf
+            .as_mut()
+            .expect("checked above")
+            .on_round(now, &info)?;
         if let Some(ci) = out.ci_delta {
             // The CI change of the map (possibly indefinite); a refusal leaves the map as it was
             // (conservative: the CI information is not used).
@@ -218,10 +243,8 @@ impl VehicleAgent {
             return Err(AgentError::Ddf(DdfError::UnknownSender(from)));
         };
         let mut target = EkfTarget {
-            filter: &mut self.filter,
-            fused: &mut self.counters.fused,
-            refused: &mut self.counters.fuse_refused,
-            forgotten: &mut self.counters.features_forgotten,
+            pending: &mut self.pending,
+            pending_count: &mut self.pending_count,
         };
         ddf.on_message(now, from, msg, &mut target).map_err(|e| {
             if !matches!(e, DdfError::FuseRejected { .. }) {

@@ -32,6 +32,7 @@
 use std::collections::{BTreeMap, BTreeSet};
 
 use canopy_fusion::ci::{CiCriterion, Submap};
+pub use canopy_fusion::ddf::DeltaPrecision;
 use canopy_fusion::ddf::{DdfConfig, Mode};
 use canopy_fusion::slam::{AssociationConfig, AssociationMode, DEFAULT_NEW_FEATURE_PROBABILITY};
 use canopy_fusion::topology::{NodeId, Topology, TopologyError};
@@ -140,6 +141,9 @@ pub struct FusionConfig {
     pub byte_budget: Option<usize>,
     /// What CI's ω minimises (default `trace`).
     pub ci_criterion: CiCriterionConfig,
+    /// Precision of delta information blocks on the wire: `f64` (exact, default) or `f32`
+    /// (half the bytes per block, deflated so it never carries more information than exact).
+    pub delta_precision: DeltaPrecision,
     /// Node id of the hub in central mode (default 0; must differ from every vehicle id).
     pub hub_id: u32,
     /// Interval between DDF Hellos on each link [s] (default 1).
@@ -158,6 +162,7 @@ impl Default for FusionConfig {
             jcbb_max_nodes: 2000,
             byte_budget: None,
             ci_criterion: CiCriterionConfig::Trace,
+            delta_precision: DeltaPrecision::F64,
             hub_id: 0,
             hello_interval_s: 1.0,
             gap_timeout_s: 2.0,
@@ -188,6 +193,7 @@ impl FusionConfig {
             gap_timeout: self.gap_timeout_s,
             sync_resend_interval: self.hello_interval_s,
             byte_budget: self.byte_budget,
+            delta_precision: self.delta_precision,
             ci_criterion: match self.ci_criterion {
                 CiCriterionConfig::Trace => CiCriterion::Trace,
                 CiCriterionConfig::Determinant => CiCriterion::Determinant,

@@ -111,6 +111,11 @@ pub struct LinkRecord {
     pub transport: String,
     /// Whether the link has fallen back to covariance intersection.
     pub ci: bool,
+    /// What the naive scheme would have sent on this link: each round, both ends' whole map
+    /// information (Y, y) as dense f64 (8·(9n² + 3n) bytes for n features), the reference of
+    /// the bandwidth ratio.
+    #[serde(default)]
+    pub naive_bytes: u64,
     /// Cumulative statistics over time.
     pub samples: Vec<LinkSample>,
 }

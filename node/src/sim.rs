@@ -293,6 +293,17 @@ impl<'s> Sim<'s> {
     }
 
     fn round(&mut self, now: f64) {
+        // The naive scheme's bytes: each end's whole map information, dense f64, per round.
+        for (a, b, rec) in &mut self.links {
+            for x in [*a, *b] {
+                let n = match self.nodes.get(&x).and_then(|n| n.agent.as_ref()) {
+                    Some(Agent::Vehicle(v)) => v.filter().num_features() as u64,
+                    Some(Agent::Hub(h)) => h.store().ids.len() as u64,
+                    None => 0,
+                };
+                rec.naive_bytes += 8 * (9 * n * n + 3 * n);
+            }
+        }
         let ids: Vec<NodeId> = self.nodes.keys().copied().collect();
         for id in ids {
             let node = self.nodes.get_mut(&id).expect("node exists");
@@ -515,6 +526,7 @@ pub fn simulate(s: &Scenario, mut opts: SimOptions<'_>) -> Result<SimOutcome, Si
                 a: names[&l.a].clone(),
                 b: names[&l.b].clone(),
                 transport: "sim".into(),
+                naive_bytes: 0,
                 ci: false,
                 samples: Vec::new(),
             },
@@ -735,6 +747,11 @@ pub fn simulate(s: &Scenario, mut opts: SimOptions<'_>) -> Result<SimOutcome, Si
     }
 
     // Final maps and counters.
+    for node in sim.nodes.values_mut() {
+        if let Some(Agent::Vehicle(a)) = node.agent.as_mut() {
+            a.flush_fusion();
+        }
+    }
     let end = sim
         .vehicles
         .iter()

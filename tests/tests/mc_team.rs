@@ -116,3 +116,71 @@ fn decentralized_matches_central_and_beats_isolated() {
         "isolated position RMSE {pos_iso} not clearly worse than {pos_dec}"
     );
 }
+
+/// Lossy mode: f32 deltas (deflated so they never carry more information than exact) keep the
+/// team consistent — pose ANEES of 5 seeds × 4 UAVs in the χ² band for that many runs, map
+/// ANEES no higher than the exact mode's by more than 10 % — and accurate (map RMSE within 5 %
+/// of the exact mode on the same seeds), at fewer bytes.
+#[test]
+fn f32_deltas_stay_consistent() {
+    use canopy_fusion::ddf::DeltaPrecision;
+    let run_with = |seed: u64, precision: DeltaPrecision| {
+        let mut s = Scenario::builtin_default();
+        s.world.seed = seed;
+        s.run.duration_s = DURATION;
+        s.run.baseline = false;
+        s.fusion.delta_precision = precision;
+        simulate(&s, SimOptions::default()).expect("simulation runs")
+    };
+    let seeds = 1..=5u64;
+    let exact: Vec<SimOutcome> = seeds
+        .clone()
+        .map(|s| run_with(s, DeltaPrecision::F64))
+        .collect();
+    let lossy: Vec<SimOutcome> = seeds.map(|s| run_with(s, DeltaPrecision::F32)).collect();
+    let bytes = |o: &[SimOutcome]| -> u64 {
+        o.iter()
+            .flat_map(|o| o.record.links.iter())
+            .map(|l| l.samples.last().map_or(0, |s| s.bytes_ab + s.bytes_ba))
+            .sum()
+    };
+    fn recs(o: &[SimOutcome]) -> Vec<&VehicleRecord> {
+        o.iter().flat_map(|o| o.record.vehicles.iter()).collect()
+    }
+    let (re, rl) = (recs(&exact), recs(&lossy));
+    let pose = pose_consistency(&rl, 0.0);
+    let (me, ml) = (map_consistency(&re), map_consistency(&rl));
+    println!(
+        "f32 vs f64 deltas, 5 seeds × {DURATION} s: pose ANEES/6 {:.3} (band [{:.3}, {:.3}]); map ANEES/3 {:.3} vs {:.3}; \
+         map RMSE {:.3} vs {:.3} m; link bytes {} vs {} ({:.2}×)",
+        pose.time_mean,
+        pose.band.0,
+        pose.band.1,
+        ml.anees,
+        me.anees,
+        ml.rmse,
+        me.rmse,
+        bytes(&lossy),
+        bytes(&exact),
+        bytes(&lossy) as f64 / bytes(&exact) as f64
+    );
+    assert!(
+        pose.time_mean >= pose.band.0 && pose.time_mean <= pose.band.1,
+        "pose ANEES {:.3} outside {:?}",
+        pose.time_mean,
+        pose.band
+    );
+    assert!(
+        ml.anees <= 1.1 * me.anees,
+        "map ANEES {:.3} vs exact {:.3}",
+        ml.anees,
+        me.anees
+    );
+    assert!(
+        ml.rmse <= 1.05 * me.rmse,
+        "map RMSE {:.3} vs exact {:.3}",
+        ml.rmse,
+        me.rmse
+    );
+    assert!(bytes(&lossy) < bytes(&exact));
+}

@@ -88,15 +88,25 @@ fn assert_down_between(r: &Run, link: &str, from: f64, to: f64, settle: f64) {
     assert!(!ups.is_empty(), "no samples of link {link}");
     for (t, up) in &ups {
         if *t > from + 1.0 && *t < to - 1.0 {
-            assert!(!up, "{link} is up at {t} s, inside its outage ({from}–{to} s)");
+            assert!(
+                !up,
+                "{link} is up at {t} s, inside its outage ({from}–{to} s)"
+            );
         }
         if *t >= to + settle {
-            assert!(*up, "{link} is still down at {t} s (outage ended at {to} s)");
+            assert!(
+                *up,
+                "{link} is still down at {t} s (outage ended at {to} s)"
+            );
         }
     }
 }
 
-fn channel<'a>(r: &'a Run, node: &str, peer: &str) -> &'a canopy_node::process::monitor::LinkEndCheck {
+fn channel<'a>(
+    r: &'a Run,
+    node: &str,
+    peer: &str,
+) -> &'a canopy_node::process::monitor::LinkEndCheck {
     r.checks
         .link_ends
         .iter()
@@ -160,7 +170,13 @@ fn outage_flapping() {
     let _g = serial();
     let r = run(&topology("outage-flapping.toml"), &["--quiet"]);
     assert_sound(&r);
-    for (a, b) in [(15.0, 20.0), (25.0, 30.0), (35.0, 40.0), (45.0, 50.0), (55.0, 60.0)] {
+    for (a, b) in [
+        (15.0, 20.0),
+        (25.0, 30.0),
+        (35.0, 40.0),
+        (45.0, 50.0),
+        (55.0, 60.0),
+    ] {
         let ups = r.link_up("uav2-uav3");
         for (t, up) in ups {
             if t > a + 1.0 && t < b - 1.0 {
@@ -184,7 +200,10 @@ fn partition_heal() {
     assert_down_between(&r, "uav2-uav3", 20.0, 55.0, 2.0);
     assert_down_between(&r, "uav3-uav4", 20.0, 55.0, 2.0);
     assert!(
-        r.link_up("uav1-uav3").iter().filter(|x| x.0 > 1.0).all(|x| x.1),
+        r.link_up("uav1-uav3")
+            .iter()
+            .filter(|x| x.0 > 1.0)
+            .all(|x| x.1),
         "uav1-uav3 is inside one side of the partition and must stay up"
     );
     assert_converged(&r, 0.05, 0.05);
@@ -199,9 +218,17 @@ fn lossy() {
     let r = run(&topology("lossy.toml"), &["--quiet"]);
     assert_sound(&r);
     let c = &channel(&r, "uav3", "uav4").report.channel;
-    assert!(c.nacks_sent + c.nacks_received > 0, "no Nack on a 30 % lossy link");
+    assert!(
+        c.nacks_sent + c.nacks_received > 0,
+        "no Nack on a 30 % lossy link"
+    );
     assert!(c.cumulatives_applied > 0, "no cumulative resync applied");
-    let dup: u64 = r.checks.link_ends.iter().map(|l| l.report.channel.duplicates).sum();
+    let dup: u64 = r
+        .checks
+        .link_ends
+        .iter()
+        .map(|l| l.report.channel.duplicates)
+        .sum();
     assert!(dup > 0, "duplicated deltas should be seen and dropped");
     // Coverage: with 30 % loss each way a delta needs ~2 rounds on average and a lost one
     // waits for the 2 s gap timeout, so features first seen in the last seconds may still be
@@ -223,7 +250,10 @@ fn bandwidth_ci() {
     }
     for (a, b) in [("uav3", "uav4"), ("uav4", "uav3")] {
         let c = &channel(&r, a, b).report.channel;
-        assert!(c.submaps_sent > 0 && c.submaps_fused > 0, "{a}->{b}: no submaps");
+        assert!(
+            c.submaps_sent > 0 && c.submaps_fused > 0,
+            "{a}->{b}: no submaps"
+        );
     }
     // CI trades information for consistency: the shares drop (measured 0.17–0.41 against
     // 1.00), but the features reach every vehicle (coverage as fault-free, measured within
@@ -245,18 +275,34 @@ fn crash_restart() {
     let _g = serial();
     let r = run(&topology("crash-restart.toml"), &["--quiet"]);
     assert_sound(&r);
-    let uav3: Vec<_> = r.checks.processes.iter().filter(|p| p.name == "uav3").collect();
+    let uav3: Vec<_> = r
+        .checks
+        .processes
+        .iter()
+        .filter(|p| p.name == "uav3")
+        .collect();
     assert_eq!(uav3.len(), 2, "uav3 should run twice");
     assert!(uav3[0].killed_by_monitor && uav3[0].signal == Some(9));
     assert!(uav3[1].clean_exit() && uav3[1].incarnation == 1);
-    let v3 = r.checks.vehicles.iter().find(|v| v.name == "uav3").expect("uav3");
+    let v3 = r
+        .checks
+        .vehicles
+        .iter()
+        .find(|v| v.name == "uav3")
+        .expect("uav3");
     assert_eq!(v3.initialisations, 2);
     assert!(v3.counters[1].fused > 0, "the restarted uav3 never fused");
-    assert!(v3.last_report_t >= 89.0, "the restarted uav3 stopped reporting");
+    assert!(
+        v3.last_report_t >= 89.0,
+        "the restarted uav3 stopped reporting"
+    );
     for n in ["uav1", "uav2", "uav4"] {
         let c = &channel(&r, n, "uav3").report.channel;
         assert!(c.peer_restarts >= 1, "{n} did not see uav3 restart");
-        assert!(c.syncs_initiated >= 2, "{n} did not resynchronise with the new uav3");
+        assert!(
+            c.syncs_initiated >= 2,
+            "{n} did not resynchronise with the new uav3"
+        );
     }
     assert!(r.text().contains("uav3 killed with SIGKILL") || r.summary.events > 0);
     // The team converged on one map: the vehicles' information shares agree within 0.05 of
@@ -265,8 +311,13 @@ fn crash_restart() {
     let shares: Vec<f64> = st.values().map(|s| s.share).collect();
     let (lo, hi) = shares
         .iter()
-        .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &x| (a.min(x), b.max(x)));
-    assert!(hi - lo <= 0.05, "vehicles disagree after the restart: shares {shares:?}");
+        .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &x| {
+            (a.min(x), b.max(x))
+        });
+    assert!(
+        hi - lo <= 0.05,
+        "vehicles disagree after the restart: shares {shares:?}"
+    );
     // … and stand within tolerance of the fault-free run: the old uav3's own observations are
     // lost (measured coverage 0.83, share 0.77 against 0.94–0.99 and 1.00), the restart's
     // external fix makes the maps more accurate rather than less.
@@ -282,12 +333,21 @@ fn hub_loss() {
     let _g = serial();
     let r = run(&topology("hub-loss.toml"), &["--quiet"]);
     assert_sound(&r);
-    let hub: Vec<_> = r.checks.processes.iter().filter(|p| p.name == "hub").collect();
+    let hub: Vec<_> = r
+        .checks
+        .processes
+        .iter()
+        .filter(|p| p.name == "hub")
+        .collect();
     assert_eq!(hub.len(), 1);
     assert!(hub[0].killed_by_monitor && hub[0].signal == Some(9));
     for v in &r.checks.vehicles {
         assert!(v.last_report_t >= 89.0, "{} stopped before the end", v.name);
-        assert!(v.counters[0].fused > 0, "{} never received the hub's feedback", v.name);
+        assert!(
+            v.counters[0].fused > 0,
+            "{} never received the hub's feedback",
+            v.name
+        );
         let sizes: Vec<usize> = v
             .map_sizes
             .iter()

@@ -718,6 +718,12 @@ impl Channel {
         if d.is_empty() {
             return Ok(());
         }
+        // Lossy mode: the channel records exactly what is sent (d_q ⪯ d), so the rest goes out
+        // with later deltas and nothing is counted twice.
+        let d = match ctx.config.delta_precision {
+            super::DeltaPrecision::F64 => d,
+            super::DeltaPrecision::F32 => d.quantized_f32_conservative(),
+        };
         if self.budget.is_some_and(|b| d.block_sparse_wire_bytes() > b) {
             // The full delta does not fit: fall back to CI for good (both directions: the
             // peer switches on our first submap or Hello).

@@ -76,7 +76,7 @@ mod node;
 
 pub use channel::ChannelStats;
 pub use message::{Body, DdfMessage, Header, Hello, Outgoing};
-pub use node::{ChannelView, DdfConfig, DdfError, DdfNode, NodeStats, RoundOutput};
+pub use node::{ChannelView, DdfConfig, DdfError, DdfNode, DeltaPrecision, NodeStats, RoundOutput};
 
 use crate::info::MapInformation;
 use crate::topology::NodeId;

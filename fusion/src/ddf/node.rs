@@ -34,6 +34,11 @@ pub struct DdfConfig {
     pub byte_budget: Option<usize>,
     /// What CI's ω minimises.
     pub ci_criterion: CiCriterion,
+    /// Precision of the Y blocks of deltas on the wire: exact f64, or f32 made conservative
+    /// (Y_q ⪯ Y, [`MapInformation::quantized_f32_conservative`]) — half the bytes per block;
+    /// what is held back stays in Y − C and goes out with later deltas.
+    #[serde(default)]
+    pub delta_precision: DeltaPrecision,
     /// How many retired epochs of each peer are remembered (messages from them are dropped),
     /// and how many unproven candidate epochs are kept.
     pub retired_epochs: usize,
@@ -49,9 +54,21 @@ impl Default for DdfConfig {
             block_threshold_rel: 1e-12,
             byte_budget: None,
             ci_criterion: CiCriterion::Trace,
+            delta_precision: DeltaPrecision::F64,
             retired_epochs: 64,
         }
     }
+}
+
+/// Precision of the information blocks of deltas.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum DeltaPrecision {
+    /// Exact f64 (deltas add up to the centralized sum to round-off).
+    #[default]
+    F64,
+    /// f32 with a conservative deflation (never more information than exact; consistent).
+    F32,
 }
 
 /// Errors of the DDF state machine. None of them leaves a channel half-updated.

@@ -70,7 +70,28 @@ fn gather(m: MatRef<'_, f64>, ri: &[usize], ci: &[usize]) -> Mat<f64> {
     match (contiguous(ri), contiguous(ci)) {
         // Contiguous index ranges (the common case: a delta in state order) copy whole columns.
         (Some(r0), Some(c0)) => m.submatrix(r0, c0, ri.len(), ci.len()).to_owned(),
-        _ => Mat::from_fn(ri.len(), ci.len(), |i, j| m[(ri[i], ci[j])]),
+        _ => {
+            // Copy contiguous runs of row indices (features are 3-blocks, often consecutive)
+            // column by column instead of element by element.
+            let mut runs: Vec<(usize, usize, usize)> = Vec::new(); // (src, dst, len)
+            for (d, &r) in ri.iter().enumerate() {
+                match runs.last_mut() {
+                    Some((s0, d0, len)) if *s0 + *len == r && *d0 + *len == d => *len += 1,
+                    _ => runs.push((r, d, 1)),
+                }
+            }
+            let mut out = Mat::zeros(ri.len(), ci.len());
+            for (jj, &j) in ci.iter().enumerate() {
+                let src = m.col(j);
+                let mut dst = out.as_mut().col_mut(jj);
+                for &(s0, d0, len) in &runs {
+                    dst.as_mut()
+                        .subrows_mut(d0, len)
+                        .copy_from(src.subrows(s0, len));
+                }
+            }
+            out
+        }
     }
 }
 
@@ -85,9 +106,51 @@ fn contiguous(idx: &[usize]) -> Option<usize> {
 
 /// ½ (m[ri, ci] + m[ci, ri]ᵀ): the symmetric part of a (validated, nearly symmetric) block.
 fn gather_sym(m: MatRef<'_, f64>, ri: &[usize], ci: &[usize]) -> Mat<f64> {
+    if ri == ci {
+        let mut a = gather(m, ri, ci);
+        symmetrize_tiled(&mut a);
+        return a;
+    }
     let a = gather(m, ri, ci);
     let b = gather(m, ci, ri);
     Mat::from_fn(ri.len(), ci.len(), |i, j| 0.5 * (a[(i, j)] + b[(j, i)]))
+}
+
+/// Tile edge for transposed access: 64 × 64 f64 tiles (32 KiB) keep both the column-major
+/// reads and the transposed ones in L1/L2.
+const TILE: usize = 64;
+
+/// Replaces a square matrix by its symmetric part, tile by tile (cache-friendly transpose).
+fn symmetrize_tiled(a: &mut Mat<f64>) {
+    let n = a.nrows();
+    for jb in (0..n).step_by(TILE) {
+        for ib in (jb..n).step_by(TILE) {
+            for j in jb..(jb + TILE).min(n) {
+                for i in ib.max(j + 1)..(ib + TILE).min(n) {
+                    let v = 0.5 * (a[(i, j)] + a[(j, i)]);
+                    a[(i, j)] = v;
+                    a[(j, i)] = v;
+                }
+            }
+        }
+    }
+}
+
+/// The first (i, j), i > j, with |a_ij − a_ji| > tol, scanning tile by tile.
+fn asymmetry_beyond(a: MatRef<'_, f64>, tol: f64) -> Option<(usize, usize)> {
+    let n = a.nrows();
+    for jb in (0..n).step_by(TILE) {
+        for ib in (jb..n).step_by(TILE) {
+            for j in jb..(jb + TILE).min(n) {
+                for i in ib.max(j + 1)..(ib + TILE).min(n) {
+                    if (a[(i, j)] - a[(j, i)]).abs() > tol {
+                        return Some((i, j));
+                    }
+                }
+            }
+        }
+    }
+    None
 }
 
 impl SlamFilter {
@@ -119,15 +182,11 @@ impl SlamFilter {
             return Err(SlamError::OriginMismatch);
         }
         let scale = delta.matrix.norm_max();
-        for j in 0..k {
-            for i in j + 1..k {
-                // Symmetric up to round-off of the sender's own arithmetic (1e-9 relative).
-                if (delta.matrix[(i, j)] - delta.matrix[(j, i)]).abs() > 1e-9 * scale {
-                    return Err(SlamError::InvalidInformation(format!(
-                        "matrix is not symmetric at ({i}, {j})"
-                    )));
-                }
-            }
+        // Symmetric up to round-off of the sender's own arithmetic (1e-9 relative).
+        if let Some((i, j)) = asymmetry_beyond(delta.matrix.as_ref(), 1e-9 * scale) {
+            return Err(SlamError::InvalidInformation(format!(
+                "matrix is not symmetric at ({i}, {j})"
+            )));
         }
         Ok(())
     }
@@ -210,7 +269,13 @@ impl SlamFilter {
 
         // Mutation starts here. Flushing changes only the representation of P.
         self.flush();
-        self.map_generation += 1;
+        // The map information after the fusion is exactly Y + ΔY (aligned): keep the cache.
+        let info_before = self
+            .info_cache
+            .y
+            .clone()
+            .filter(|_| self.info_cache_current());
+        self.bump_map_generation(false);
         let n0 = self.dim();
         if let Some((b, y_uu_inv, x_u)) = &new_block {
             // P_u· = −B P_k·, P_uu = ΔY_uu⁻¹ + B P_kk Bᵀ.
@@ -248,6 +313,7 @@ impl SlamFilter {
             }
             report.new_features = new_ids.clone();
         }
+        let mut map_route_post: Option<Mat<f64>> = None;
         let result = match route {
             None => Ok(()),
             Some(Route::Pseudo { h_k, signs, nu }) => {
@@ -261,9 +327,14 @@ impl SlamFilter {
                 p_aa_post,
                 y_aa,
                 dx_a,
+                post,
             }) => {
                 report.method = FuseMethod::MapInformation;
-                self.apply_map_route(&known_state, &p_aa, &p_aa_post, &y_aa, &dx_a)
+                let r = self.apply_map_route(&known_state, &p_aa, &p_aa_post, &y_aa, &dx_a);
+                // Y_aa⁺ in delta order: the whole map's new information when the delta covers
+                // every feature in map order (no permutation needed).
+                map_route_post = Some(post);
+                r
             }
         };
         if let Err(e) = result {
@@ -276,6 +347,37 @@ impl SlamFilter {
         }
         // New features were appended behind any stored poses: restore vehicles, features, poses.
         self.settle_poses_last();
+        let whole_map_in_order = nu == 0 && known_state == self.map_state_indices();
+        let info_next = info_before.map(|y| {
+            if whole_map_in_order && let Some(post) = map_route_post {
+                return post;
+            }
+            let pos: std::collections::HashMap<FeatureId, usize> = self
+                .layout
+                .features()
+                .enumerate()
+                .map(|(i, (id, _))| (id, i))
+                .collect();
+            let k = 3 * pos.len();
+            let k0 = y.nrows();
+            let mut out = Mat::zeros(k, k);
+            out.as_mut().submatrix_mut(0, 0, k0, k0).copy_from(&y);
+            let at: Vec<usize> = delta
+                .ids
+                .iter()
+                .flat_map(|id| {
+                    let b = 3 * pos[id];
+                    b..b + 3
+                })
+                .collect();
+            for (jj, &j) in at.iter().enumerate() {
+                for (ii, &i) in at.iter().enumerate() {
+                    out[(i, j)] += delta.matrix[(ii, jj)];
+                }
+            }
+            out
+        });
+        self.store_info(info_next);
         Ok(report)
     }
 
@@ -377,21 +479,60 @@ impl SlamFilter {
         g: Col<f64>,
     ) -> Result<Route, SlamError> {
         let p_aa = gather(self.p.as_ref(), known_state, known_state);
-        let y_aa = match &self.info_cache {
-            // A whole-map delta: Y_aa is the cached map information, permuted to delta order.
-            Some((generation, y))
-                if *generation == self.map_generation && y.nrows() == known_state.len() =>
-            {
-                let mut pos = vec![usize::MAX; self.dim()];
-                for (i, (_, off)) in self.layout.features().enumerate() {
-                    for c in 0..3 {
-                        pos[off + c] = 3 * i + c;
-                    }
+        let cached = self
+            .info_cache
+            .y
+            .as_ref()
+            .filter(|_| self.info_cache_current());
+        // Y_aa, the marginal information of the delta's known features: from the maintained
+        // map information when it is current (whole map: a permutation; a subset a of the
+        // features with the rest b: the Schur complement Y_aa − Y_ab Y_bb⁻¹ Y_ba, an inversion
+        // of the small b block only), else by inverting P_aa.
+        let from_cache = cached.and_then(|y| {
+            let mut pos = vec![usize::MAX; self.dim()];
+            for (i, (_, off)) in self.layout.features().enumerate() {
+                for c in 0..3 {
+                    pos[off + c] = 3 * i + c;
                 }
-                let perm: Vec<usize> = known_state.iter().map(|s| pos[*s]).collect();
-                gather(y.as_ref(), &perm, &perm)
             }
-            _ => p_aa
+            let a: Vec<usize> = known_state.iter().map(|s| pos[*s]).collect();
+            if a.contains(&usize::MAX) || y.nrows() < a.len() {
+                return None;
+            }
+            if a.len() == y.nrows() {
+                return Some(if a.iter().enumerate().all(|(i, &p)| i == p) {
+                    y.clone()
+                } else {
+                    gather(y.as_ref(), &a, &a)
+                });
+            }
+            let mut in_a = vec![false; y.nrows()];
+            for &i in &a {
+                in_a[i] = true;
+            }
+            let b: Vec<usize> = (0..y.nrows()).filter(|i| !in_a[*i]).collect();
+            // Only worth it while the complement is small next to the delta.
+            if 2 * b.len() > a.len() {
+                return None;
+            }
+            let y_bb = gather_sym(y.as_ref(), &b, &b);
+            let y_ba = gather(y.as_ref(), &b, &a);
+            let llt = y_bb.llt(Side::Lower).ok()?;
+            let sol = llt.solve(&y_ba); // Y_bb⁻¹ Y_ba
+            let mut y_aa = gather(y.as_ref(), &a, &a);
+            matmul(
+                y_aa.as_mut(),
+                Accum::Add,
+                y_ba.transpose(),
+                sol.as_ref(),
+                -1.0,
+                Par::Seq,
+            );
+            Some(y_aa)
+        });
+        let y_aa = match from_cache {
+            Some(y) => y,
+            None => p_aa
                 .llt(Side::Lower)
                 .map_err(|_| SlamError::NotPositiveDefinite("filter map covariance"))?
                 .inverse(),
@@ -413,13 +554,14 @@ impl SlamFilter {
             p_aa_post,
             y_aa,
             dx_a,
+            post,
         })
     }
 
     fn apply_map_route(
         &mut self,
         known_state: &[usize],
-        p_aa: &Mat<f64>,
+        _p_aa: &Mat<f64>,
         p_aa_post: &Mat<f64>,
         y_aa: &Mat<f64>,
         dx_a: &Col<f64>,
@@ -435,7 +577,8 @@ impl SlamFilter {
         let p_ba_post = &c * p_aa_post;
         let dx_b = &c * dx_a;
         let mut p_bb = gather(self.p.as_ref(), &rest, &rest);
-        let c_delta = &c * (p_aa_post - p_aa);
+        // C (P_aa⁺ − P_aa) = P_ba⁺ − P_ba, since C P_aa = P_ba Y_aa P_aa = P_ba.
+        let c_delta = &p_ba_post - &p_ba;
         triangular::matmul(
             p_bb.as_mut(),
             BlockStructure::TriangularLower,
@@ -501,6 +644,8 @@ enum Route {
         p_aa_post: Mat<f64>,
         y_aa: Mat<f64>,
         dx_a: Col<f64>,
+        /// Y_aa + Ȳ: the fused marginal information of the delta's features.
+        post: Mat<f64>,
     },
 }
 

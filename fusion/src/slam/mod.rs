@@ -27,6 +27,7 @@
 mod association;
 mod bearing;
 mod fuse;
+mod info_cache;
 pub mod layout;
 pub mod triangulation;
 mod update;
@@ -288,9 +289,9 @@ pub struct SlamFilter {
     gates: Vec<f64>,
     /// Bumped whenever x_m or P_mm may change (updates, augmentation, fusion; not prediction).
     map_generation: u64,
-    /// Y_mm = P_mm⁻¹ from the last [`SlamFilter::map_information`], valid while
-    /// `map_generation` is unchanged (reused by the map-information fusion route).
-    info_cache: Option<(u64, Mat<f64>)>,
+    /// Y_mm = P_mm⁻¹, maintained through updates, augmentations and fusions
+    /// (`info_cache` module), valid while its generation equals `map_generation`.
+    info_cache: info_cache::InfoCache,
     /// Reserved row/column capacity of P (see `grow`).
     capacity: usize,
     /// Bearing-only tracks, stored observations and stored-pose bookkeeping.
@@ -377,7 +378,7 @@ impl SlamFilter {
             bearing: bearing::BearingState::new(pose_frame),
             capacity: n,
             map_generation: 0,
-            info_cache: None,
+            info_cache: info_cache::InfoCache::default(),
             config,
             vehicles: slots,
             layout,
@@ -508,17 +509,19 @@ impl SlamFilter {
     pub fn map_information(&mut self) -> Result<MapInformation, SlamError> {
         let mm = self.map_marginal();
         let k = mm.mean.nrows();
-        let y = match &self.info_cache {
-            Some((generation, y)) if *generation == self.map_generation && y.nrows() == k => {
-                y.clone()
-            }
+        let y = match self.checked_info(&mm.covariance) {
+            Some(y) if y.nrows() == k => y.clone(),
             _ => {
                 let y = mm
                     .covariance
                     .llt(faer::Side::Lower)
                     .map_err(|_| SlamError::NotPositiveDefinite("map covariance"))?
                     .inverse();
-                self.info_cache = Some((self.map_generation, y.clone()));
+                self.info_cache = info_cache::InfoCache {
+                    generation: self.map_generation,
+                    y: Some(y.clone()),
+                    steps: 0,
+                };
                 y
             }
         };
@@ -531,6 +534,12 @@ impl SlamFilter {
             matrix: y,
             vector,
         })
+    }
+
+    /// Drops the maintained map information, so the next [`SlamFilter::map_information`]
+    /// inverts P_mm afresh (benchmarks compare both; the estimate is not affected).
+    pub fn forget_map_information(&mut self) {
+        self.info_cache = info_cache::InfoCache::default();
     }
 
     /// The full state vector x.
@@ -672,8 +681,8 @@ impl SlamFilter {
             .collect();
         let plan = self.associate(vehicle, &model, &zs, &descriptors);
         if !plan.updates.is_empty() || !plan.initializations.is_empty() {
-            // The map (and so the cached map information) may change below.
-            self.map_generation += 1;
+            // The map changes below; updates and augmentations keep the cached Y_mm current.
+            self.bump_map_generation(true);
         }
         let mut report = FrameReport {
             outcomes: plan.outcomes.clone(),

@@ -113,6 +113,8 @@ impl SlamFilter {
         if !all_finite(k.as_ref()) || !(0..n).all(|i| dx[i].is_finite()) {
             return Err(SlamError::NumericalFailure("Kalman gain"));
         }
+        // The map information after this update (Woodbury on the map block), before P changes.
+        let info_next = self.info_after_update(m.as_ref(), s.as_ref());
         match form {
             UpdateForm::Joseph => {
                 // lhs = [K | K S − M], rhs = [−M | K]: P += lhs · rhsᵀ = −K Mᵀ + (K S − M) Kᵀ.
@@ -134,6 +136,7 @@ impl SlamFilter {
         for i in 0..n {
             self.x[i] += dx[i];
         }
+        self.store_info(info_next);
         Ok(())
     }
 
@@ -444,6 +447,7 @@ impl SlamFilter {
         if pmm.llt(Side::Lower).is_err() {
             return Err(SlamError::NotPositiveDefinite("new feature covariance"));
         }
+        let info_next = self.info_after_augment(cross.as_ref(), pmm.as_ref());
         let id = self.new_feature_id(descriptor);
         self.grow(3);
         let off = self.layout.push(SlotKind::Feature(id));
@@ -460,6 +464,7 @@ impl SlamFilter {
         }
         // Stored poses of bearing-only vehicles (mixed teams) stay behind the features.
         self.settle_poses_last();
+        self.store_info(info_next);
         Ok(id)
     }
 }

@@ -4,12 +4,13 @@ use crate::record::{LinkRecord, RunRecord, VehicleRecord};
 use serde::{Deserialize, Serialize};
 use statrs::distribution::{ChiSquared, ContinuousCDF};
 
-/// JSON has no NaN: serde_json writes a NaN figure (a metric that is unavailable, e.g. the
-/// position error of a replayed vehicle without truth) as `null`; this reads it back as NaN.
+/// Serde default of `metrics_available` (summaries written before the field existed).
 fn yes() -> bool {
     true
 }
 
+/// JSON has no NaN: serde_json writes a NaN figure (a metric that is unavailable, e.g. the
+/// position error of a replayed vehicle without truth) as `null`; this reads it back as NaN.
 fn null_as_nan<'de, D: serde::Deserializer<'de>>(d: D) -> Result<f64, D::Error> {
     Option::<f64>::deserialize(d).map(|v| v.unwrap_or(f64::NAN))
 }
@@ -84,6 +85,9 @@ pub struct LinkSummary {
     pub rejections: u64,
     /// Whether the link fell back to covariance intersection.
     pub ci: bool,
+    /// Bytes sent (both directions) / bytes of the naive dense f64 (Y, y) of the whole map per
+    /// round per direction (0 when not measured).
+    pub bandwidth_ratio: f64,
 }
 
 /// The whole summary.
@@ -228,6 +232,11 @@ fn summarize_link(l: &LinkRecord) -> LinkSummary {
         drops: last.map_or(0, |s| s.drops),
         rejections: last.map_or(0, |s| s.rejections),
         ci: l.ci,
+        bandwidth_ratio: if l.naive_bytes > 0 {
+            last.map_or(0, |s| s.bytes_ab + s.bytes_ba) as f64 / l.naive_bytes as f64
+        } else {
+            0.0
+        },
     }
 }
 
@@ -309,6 +318,19 @@ pub fn table(summaries: &[(&str, &Summary)]) -> String {
             .map(|l| l.bytes_ab + l.bytes_ba)
             .sum::<u64>()
             .to_string()
+    });
+    push("link bytes / naive dense", &|s| {
+        let naive: Vec<f64> = s
+            .links
+            .iter()
+            .filter(|l| l.bandwidth_ratio > 0.0)
+            .map(|l| l.bandwidth_ratio)
+            .collect();
+        if naive.is_empty() {
+            "-".into()
+        } else {
+            format!("{:.3}", naive.iter().sum::<f64>() / naive.len() as f64)
+        }
     });
     push("link drops", &|s| {
         s.links.iter().map(|l| l.drops).sum::<u64>().to_string()

@@ -12,7 +12,7 @@ use canopy_transport::link::{Link, LinkEvent};
 use super::protocol::{Control, MONITOR_ID, Report, WORLD_ID, WorldMsg};
 use super::{
     FusionLinks, RoleCommon, control_link, decode_body, fresh_epoch, link_report, load_resolved,
-    send_body, stop_flag,
+    naive_round_bytes, send_body, stop_flag,
 };
 use crate::agent::HubAgent;
 use crate::network::topology;
@@ -50,6 +50,7 @@ pub fn run(c: &RoleCommon) -> Result<()> {
     let record_dt = s.run.record_interval_s;
     let mut t = 0.0_f64;
     let mut next_round = round_dt;
+    let mut naive_bytes = 0u64;
     let mut next_report = 0.0;
     let mut finished = false;
     let mut world_seen = false;
@@ -104,6 +105,7 @@ pub fn run(c: &RoleCommon) -> Result<()> {
                 t = next_round;
                 links.clock.set(t);
                 service(&mut agent, &mut links, t);
+                naive_bytes += naive_round_bytes(agent.store().ids.len());
                 let out = agent.on_round(t).unwrap_or_default();
                 links.send(t, out);
                 next_round += round_dt;
@@ -116,7 +118,9 @@ pub fn run(c: &RoleCommon) -> Result<()> {
             let reports = links
                 .links
                 .iter()
-                .map(|(&peer, l)| link_report(peer, l, agent.ddf().channel(NodeId(peer))))
+                .map(|(&peer, l)| {
+                    link_report(peer, l, agent.ddf().channel(NodeId(peer)), naive_bytes)
+                })
                 .collect();
             let r = Report::Hub {
                 t,

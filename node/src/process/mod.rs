@@ -330,6 +330,7 @@ pub(crate) fn link_report(
     peer: NodeId,
     link: &FusionLink,
     channel: Option<canopy_fusion::ddf::ChannelView>,
+    naive_bytes: u64,
 ) -> protocol::LinkReport {
     let st = link.stats();
     let fs = link.fault_stats();
@@ -346,7 +347,15 @@ pub(crate) fn link_report(
         up: link.peer_state() == PeerState::Up,
         ci: channel.is_some_and(|c| c.mode != canopy_fusion::ddf::LinkMode::Exact),
         channel: channel.map(|c| c.stats).unwrap_or_default(),
+        naive_bytes,
     }
+}
+
+/// Bytes of one naive round from a node holding `features` features: its whole map information
+/// (Y, y) as dense f64 (the reference of the bandwidth ratio, as in `canopy sim`).
+pub(crate) fn naive_round_bytes(features: usize) -> u64 {
+    let n = features as u64;
+    8 * (9 * n * n + 3 * n)
 }
 
 /// A fresh random DDF epoch for this process start (never 0).

@@ -221,6 +221,7 @@ fn add(a: &LinkReport, b: &LinkReport) -> LinkReport {
         up: b.up,
         ci: a.ci || b.ci,
         channel: b.channel,
+        naive_bytes: a.naive_bytes + b.naive_bytes,
     }
 }
 
@@ -1040,6 +1041,7 @@ fn assemble(
                 TransportKind::Net => "net".into(),
             },
             ci: false,
+            naive_bytes: 0,
             samples: Vec::new(),
         };
         let sa = m.link_streams.get(&(a, b));
@@ -1050,6 +1052,7 @@ fn assemble(
             let ra = sa.and_then(|x| x.at(t)).copied().unwrap_or_default();
             let rb = sb.and_then(|x| x.at(t)).copied().unwrap_or_default();
             rec.ci |= ra.ci || rb.ci;
+            rec.naive_bytes = ra.naive_bytes + rb.naive_bytes;
             rec.samples.push(LinkSample {
                 t,
                 bytes_ab: ra.sent_bytes,

@@ -198,6 +198,9 @@ pub struct LinkReport {
     pub ci: bool,
     /// The DDF channel's counters.
     pub channel: ChannelStats,
+    /// What the naive scheme would have sent on this link from this end so far: this node's
+    /// whole map information (Y, y), dense f64, every round (8·(9n² + 3n) bytes for n features).
+    pub naive_bytes: u64,
 }
 
 /// Counters of a vehicle process.

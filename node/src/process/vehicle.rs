@@ -33,7 +33,7 @@ use super::protocol::{
 use super::world::stream_buffer;
 use super::{
     FusionLinks, RoleCommon, control_link, decode_body, fresh_epoch, link_report, load_resolved,
-    send_body, stop_flag,
+    naive_round_bytes, send_body, stop_flag,
 };
 use crate::agent::VehicleAgent;
 use crate::baseline::estimator_setup;
@@ -59,6 +59,8 @@ struct Vehicle<'s> {
     next_round: f64,
     next_record: f64,
     last_report: f64,
+    /// Bytes the naive scheme would have sent per link so far (`naive_round_bytes`).
+    naive_bytes: u64,
 }
 
 fn initial_from(m: &InitMsg) -> InitialEstimate {
@@ -179,6 +181,7 @@ impl Vehicle<'_> {
                     peer,
                     l,
                     self.agent.ddf().and_then(|d| d.channel(NodeId(peer))),
+                    self.naive_bytes,
                 )
             })
             .collect();
@@ -232,6 +235,7 @@ impl Vehicle<'_> {
             self.t = self.t.max(now);
             self.links.clock.set(now);
             self.service_links();
+            self.naive_bytes += naive_round_bytes(self.agent.filter().num_features());
             let out = self.agent.on_round(now).unwrap_or_default();
             self.links.send(now, out);
             self.service_links();
@@ -354,6 +358,7 @@ pub fn run(c: &RoleCommon, id: WireId, incarnation: u32) -> Result<()> {
         t: init.time,
         // The first round and record times at or after the start.
         next_round: ((init.time / round_dt).floor() + 1.0) * round_dt,
+        naive_bytes: 0,
         next_record: (init.time / record_dt - 1e-9).ceil() * record_dt,
         last_report: f64::NEG_INFINITY,
     };

@@ -139,8 +139,7 @@ impl Run {
                         coverage: common as f64 / base.len().max(1) as f64,
                         share: shares.get(common / 2).copied().unwrap_or(0.0),
                         features: m.len(),
-                        rmse: (errs.iter().map(|e| e * e).sum::<f64>()
-                            / errs.len().max(1) as f64)
+                        rmse: (errs.iter().map(|e| e * e).sum::<f64>() / errs.len().max(1) as f64)
                             .sqrt(),
                     },
                 )
@@ -204,7 +203,8 @@ pub fn run_with(mut cmd: Command, scenario: &Path, args: &[&str]) -> Run {
         std::fs::read_to_string(dir.path().join(name))
             .unwrap_or_else(|e| panic!("{name} missing ({e}):\n{text}"))
     };
-    let summary: Summary = serde_json::from_str(&read("summary.json")).expect("summary.json parses");
+    let summary: Summary =
+        serde_json::from_str(&read("summary.json")).expect("summary.json parses");
     let checks: RunChecks = serde_json::from_str(&read("checks.json")).expect("checks.json parses");
     Run {
         dir,
@@ -245,11 +245,20 @@ pub const CONFIDENCE_TOL: f64 = 1.2;
 /// input, the confidence bound at every map report, and NEES consistent with the χ² bounds.
 pub fn assert_sound(r: &Run) {
     let text = r.text();
-    assert!(r.checks.failure.is_none(), "run failed: {:?}", r.checks.failure);
+    assert!(
+        r.checks.failure.is_none(),
+        "run failed: {:?}",
+        r.checks.failure
+    );
     assert!(!r.checks.interrupted);
     assert!(!text.contains("panicked"), "the launcher panicked:\n{text}");
     for p in &r.checks.processes {
-        assert!(!p.panicked, "process {} panicked; log {}", p.name, p.log.display());
+        assert!(
+            !p.panicked,
+            "process {} panicked; log {}",
+            p.name,
+            p.log.display()
+        );
         assert!(
             p.clean_exit() || p.killed_by_monitor,
             "process {} (incarnation {}) ended with code {:?} signal {:?}; log {}",
@@ -263,7 +272,11 @@ pub fn assert_sound(r: &Run) {
     for v in &r.checks.vehicles {
         for c in &v.counters {
             assert_eq!(c.stream_gaps, 0, "{}: sensor batches lost", v.name);
-            assert_eq!(c.inputs_rejected, 0, "{}: estimator inputs rejected", v.name);
+            assert_eq!(
+                c.inputs_rejected, 0,
+                "{}: estimator inputs rejected",
+                v.name
+            );
         }
         assert!(v.estimate_reports > 0, "{} never reported", v.name);
     }
