@@ -35,6 +35,15 @@ pub enum Command {
     },
     /// Print the built-in default scenario as TOML (a starting point for your own).
     Default,
+    /// Print a generated tree team of N vehicles as TOML (benchmarks, scale tests).
+    Team {
+        /// Number of vehicles (1–64).
+        #[arg(value_parser = clap::value_parser!(u32).range(1..=i64::from(crate::team::MAX_TEAM)))]
+        vehicles: u32,
+        /// Simulated duration [s].
+        #[arg(long, default_value_t = 60.0)]
+        duration: f64,
+    },
     /// Print the summaries of finished runs side by side.
     Compare {
         /// Output directories (each with a summary.json).
@@ -352,6 +361,13 @@ pub fn run_cli(cli: Cli) -> Result<()> {
         Command::Role(args) => crate::process::run_role(args),
         Command::Check { scenario } => cmd_check(&scenario),
         Command::Compare { dirs } => cmd_compare(&dirs),
+        Command::Team { vehicles, duration } => {
+            print!(
+                "{}",
+                crate::team::team_scenario(vehicles, duration).to_toml_string()
+            );
+            Ok(())
+        }
         Command::Default => {
             print!("{}", Scenario::builtin_default().to_toml_string());
             Ok(())

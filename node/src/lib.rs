@@ -16,6 +16,7 @@
 //! - [`baseline`]: the centralized all-data reference EKF driver.
 //! - [`replay`]: recorded sensor logs (CSV) and the sensor sources of a run.
 //! - [`process`]: `canopy run` — the world, vehicle, hub and monitor processes.
+//! - [`team`]: generated tree teams of any size (`canopy team N`, benchmarks, scale tests).
 //! - [`cli`]: the command line.
 
 pub mod agent;
@@ -29,5 +30,6 @@ pub mod record;
 pub mod replay;
 pub mod scenario;
 pub mod sim;
+pub mod team;
 pub mod wire;
 pub mod world;
