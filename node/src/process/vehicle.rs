@@ -49,6 +49,8 @@ const LINGER_TIMEOUT: Duration = Duration::from_secs(120);
 
 struct Vehicle<'s> {
     s: &'s Scenario,
+    /// This vehicle's IMU rate [Hz].
+    cfg_imu_rate: f64,
     incarnation: u32,
     agent: VehicleAgent,
     links: FusionLinks,
@@ -61,6 +63,88 @@ struct Vehicle<'s> {
     last_report: f64,
     /// Bytes the naive scheme would have sent per link so far (`naive_round_bytes`).
     naive_bytes: u64,
+    /// Stall of the estimator by fusion work (see [`StallMeter`]).
+    stall: StallMeter,
+}
+
+/// How long fusion work (rounds, fusing received deltas) holds up the estimator: the time
+/// spent in it between two consecutive IMU samples, one figure per IMU interval that saw any,
+/// as wall time (includes waiting for a core while other processes run) and as this thread's
+/// CPU time (the work itself). Printed to the vehicle's log at the end (`fusion stall: …`,
+/// read by `scripts/bench.sh`).
+#[derive(Debug, Default)]
+struct StallMeter {
+    /// Fusion (wall, CPU) time since the last IMU sample [s].
+    pending: (f64, f64),
+    /// One (wall, CPU) entry per IMU interval with fusion work [s].
+    stalls: Vec<(f64, f64)>,
+}
+
+/// A start mark: wall clock and this thread's CPU clock.
+#[derive(Debug, Clone, Copy)]
+struct Mark(Instant, f64);
+
+/// This thread's CPU time [s] (0 where the clock is unavailable).
+fn thread_cpu_s() -> f64 {
+    use nix::time::{ClockId, clock_gettime};
+    clock_gettime(ClockId::CLOCK_THREAD_CPUTIME_ID)
+        .map(|t| t.tv_sec() as f64 + 1e-9 * t.tv_nsec() as f64)
+        .unwrap_or(0.0)
+}
+
+impl StallMeter {
+    fn mark() -> Mark {
+        Mark(Instant::now(), thread_cpu_s())
+    }
+    fn add(&mut self, since: Mark) {
+        self.pending.0 += since.0.elapsed().as_secs_f64();
+        self.pending.1 += (thread_cpu_s() - since.1).max(0.0);
+    }
+    fn on_imu(&mut self) {
+        if self.pending.0 > 0.0 {
+            self.stalls.push(self.pending);
+            self.pending = (0.0, 0.0);
+        }
+    }
+    /// `fusion stall: n=… cpu_max_ms=… cpu_p99_ms=… cpu_p50_ms=… cpu_over_imu_period=…
+    /// wall_max_ms=… wall_p99_ms=… wall_p50_ms=… wall_over_imu_period=… imu_period_ms=…
+    /// features=…` (`imu_period` in s).
+    fn summary(&self, imu_period: f64, features: usize) -> String {
+        let stats = |pick: fn(&(f64, f64)) -> f64| {
+            let mut v: Vec<f64> = self.stalls.iter().map(pick).collect();
+            v.sort_by(f64::total_cmp);
+            let q = |p: f64| {
+                if v.is_empty() {
+                    0.0
+                } else {
+                    v[((v.len() - 1) as f64 * p).round() as usize] * 1e3
+                }
+            };
+            (
+                q(1.0),
+                q(0.99),
+                q(0.5),
+                v.iter().filter(|&&x| x > imu_period).count(),
+            )
+        };
+        let c = stats(|x| x.1);
+        let w = stats(|x| x.0);
+        format!(
+            "fusion stall: n={} cpu_max_ms={:.3} cpu_p99_ms={:.3} cpu_p50_ms={:.3} \
+             cpu_over_imu_period={} wall_max_ms={:.3} wall_p99_ms={:.3} wall_p50_ms={:.3} \
+             wall_over_imu_period={} imu_period_ms={:.1} features={features}",
+            self.stalls.len(),
+            c.0,
+            c.1,
+            c.2,
+            c.3,
+            w.0,
+            w.1,
+            w.2,
+            w.3,
+            imu_period * 1e3,
+        )
+    }
 }
 
 fn initial_from(m: &InitMsg) -> InitialEstimate {
@@ -123,7 +207,10 @@ impl Vehicle<'_> {
     /// Link events and DDF messages waiting now.
     fn service_links(&mut self) {
         let now = self.t;
-        for (peer, events, msgs) in self.links.poll() {
+        let polled = self.links.poll();
+        let start = StallMeter::mark();
+        let busy = !polled.is_empty();
+        for (peer, events, msgs) in polled {
             for ev in events {
                 let out = match ev {
                     LinkEvent::PeerUp => {
@@ -139,6 +226,9 @@ impl Vehicle<'_> {
             for msg in msgs {
                 self.on_message(now, peer, msg);
             }
+        }
+        if busy {
+            self.stall.add(start);
         }
     }
 
@@ -236,13 +326,16 @@ impl Vehicle<'_> {
             self.links.clock.set(now);
             self.service_links();
             self.naive_bytes += naive_round_bytes(self.agent.filter().num_features());
+            let start = StallMeter::mark();
             let out = self.agent.on_round(now).unwrap_or_default();
             self.links.send(now, out);
+            self.stall.add(start);
             self.service_links();
             self.next_round += round_dt;
         }
         self.t = imu.time;
         self.links.clock.set(imu.time);
+        self.stall.on_imu();
         if self.agent.on_imu(imu).is_err() {
             self.counters.inputs_rejected += 1;
         }
@@ -289,6 +382,11 @@ impl Vehicle<'_> {
         self.map_report(true);
         let t = self.t;
         self.report(&Report::Finished { t });
+        eprintln!(
+            "{}",
+            self.stall
+                .summary(1.0 / self.cfg_imu_rate, self.agent.filter().num_features())
+        );
     }
 }
 
@@ -349,6 +447,8 @@ pub fn run(c: &RoleCommon, id: WireId, incarnation: u32) -> Result<()> {
     let round_dt = 1.0 / s.fusion.rate_hz;
     let mut v = Vehicle {
         s: &s,
+        cfg_imu_rate: cfg.imu.rate_hz,
+        stall: StallMeter::default(),
         incarnation,
         agent,
         links,
