@@ -43,6 +43,9 @@ pub enum Command {
         /// Simulated duration [s].
         #[arg(long, default_value_t = 60.0)]
         duration: f64,
+        /// Features in the world (default: the built-in world's).
+        #[arg(long)]
+        features: Option<usize>,
     },
     /// Print the summaries of finished runs side by side.
     Compare {
@@ -361,11 +364,14 @@ pub fn run_cli(cli: Cli) -> Result<()> {
         Command::Role(args) => crate::process::run_role(args),
         Command::Check { scenario } => cmd_check(&scenario),
         Command::Compare { dirs } => cmd_compare(&dirs),
-        Command::Team { vehicles, duration } => {
-            print!(
-                "{}",
-                crate::team::team_scenario(vehicles, duration).to_toml_string()
-            );
+        Command::Team {
+            vehicles,
+            duration,
+            features,
+        } => {
+            let s = crate::team::team_scenario_with(vehicles, duration, features);
+            s.validate().context("the generated team")?;
+            print!("{}", s.to_toml_string());
             Ok(())
         }
         Command::Default => {

@@ -15,6 +15,17 @@ use crate::scenario::{FaultSpec, Scenario};
 /// launcher's shared control services would need more room than is tested).
 pub const MAX_TEAM: u32 = 64;
 
+/// A tree team of `n` vehicles (1 ≤ n ≤ [`MAX_TEAM`]) simulated for `duration_s` seconds, in
+/// the built-in world with `features` features if given (default: the built-in count).
+pub fn team_scenario_with(n: u32, duration_s: f64, features: Option<usize>) -> Scenario {
+    let mut s = team_scenario(n, duration_s);
+    if let Some(f) = features {
+        s.world.features.count = Some(f);
+        s.world.features.density_per_km2 = None;
+    }
+    s
+}
+
 /// A tree team of `n` vehicles (1 ≤ n ≤ [`MAX_TEAM`]) simulated for `duration_s` seconds.
 pub fn team_scenario(n: u32, duration_s: f64) -> Scenario {
     let n = n.clamp(1, MAX_TEAM);
@@ -66,5 +77,9 @@ mod tests {
             let back = Scenario::from_toml_str(&s.to_toml_string()).expect("parses");
             assert_eq!(back, s);
         }
+        let s = team_scenario_with(8, 60.0, Some(300));
+        s.validate().expect("valid with a feature count");
+        assert_eq!(s.world.feature_count(), 300);
+        assert!(team_scenario_with(8, 60.0, Some(0)).validate().is_err());
     }
 }
