@@ -47,6 +47,9 @@ pub struct AgentCounters {
     pub messages_rejected: u64,
     /// CI changes fused (bandwidth-limited links).
     pub ci_fused: u64,
+    /// Features removed because fused information left them with none (a neighbour's restart
+    /// took back what only its lost process had observed).
+    pub features_forgotten: u64,
 }
 
 /// Adapter: the EKF as the DDF's fuse target.
@@ -138,8 +141,14 @@ impl VehicleAgent {
     pub fn flush_fusion(&mut self) {
         if let Some(sum) = self.pending.take() {
             let n = std::mem::take(&mut self.pending_count);
-            match self.filter.fuse_map_information(&sum) {
-                Ok(_) => self.counters.fused += n,
+            // Features whose information the batch cancels exactly (a resynchronisation after a
+            // neighbour restarted) are removed, not refused
+            // (`SlamFilter::fuse_map_information_forgetting`).
+            match self.filter.fuse_map_information_forgetting(&sum) {
+                Ok(r) => {
+                    self.counters.fused += n;
+                    self.counters.features_forgotten += r.forgotten.len() as u64;
+                }
                 Err(_) => self.counters.fuse_refused += n,
             }
         }

@@ -25,7 +25,7 @@ pub struct Cli {
 #[derive(Debug, Subcommand)]
 pub enum Command {
     /// Run a scenario as real processes (world, one per vehicle, hub) on this host.
-    Run(RunArgs),
+    Run(LaunchArgs),
     /// Run a scenario in one deterministic process (simulated network).
     Sim(RunArgs),
     /// Validate a scenario and explain what it will run.
@@ -35,12 +35,39 @@ pub enum Command {
     },
     /// Print the built-in default scenario as TOML (a starting point for your own).
     Default,
+    /// Print a generated tree team of N vehicles as TOML (benchmarks, scale tests).
+    Team {
+        /// Number of vehicles (1–64).
+        #[arg(value_parser = clap::value_parser!(u32).range(1..=i64::from(crate::team::MAX_TEAM)))]
+        vehicles: u32,
+        /// Simulated duration [s].
+        #[arg(long, default_value_t = 60.0)]
+        duration: f64,
+        /// Features in the world (default: the built-in world's).
+        #[arg(long)]
+        features: Option<usize>,
+    },
     /// Print the summaries of finished runs side by side.
     Compare {
         /// Output directories (each with a summary.json).
         #[arg(required = true)]
         dirs: Vec<PathBuf>,
     },
+    /// The processes `canopy run` spawns (internal).
+    #[command(hide = true)]
+    Role(crate::process::RoleArgs),
+}
+
+/// Arguments of `run`.
+#[derive(Debug, Args)]
+pub struct LaunchArgs {
+    /// What `run` shares with `sim`.
+    #[command(flatten)]
+    pub run: RunArgs,
+    /// Run a vehicle's process in a network namespace: `VEHICLE=NAMESPACE` (vehicle id or
+    /// name; the process is started with `ip netns exec NAMESPACE`). Repeatable.
+    #[arg(long, value_name = "VEHICLE=NS")]
+    pub netns: Vec<String>,
 }
 
 /// Arguments of `run` and `sim`.
@@ -60,6 +87,10 @@ pub struct RunArgs {
     /// Do not show a progress bar.
     #[arg(long)]
     pub quiet: bool,
+    /// Also write every simulated vehicle's sensor stream as replay logs (CSV) into this
+    /// directory (see the README, "Replay logs").
+    #[arg(long, value_name = "DIR")]
+    pub record_logs: Option<PathBuf>,
 }
 
 /// Loads the scenario named on the command line, or the built-in default.
@@ -124,9 +155,24 @@ pub fn progress_bar(duration: f64, quiet: bool) -> indicatif::ProgressBar {
     pb
 }
 
+fn record_logs(args: &RunArgs, s: &Scenario) -> Result<()> {
+    if let Some(dir) = &args.record_logs {
+        let duration = args.duration.unwrap_or(s.run.duration_s);
+        let written = crate::replay::record_logs(s, dir, duration)
+            .with_context(|| format!("writing replay logs to {}", dir.display()))?;
+        println!(
+            "replay logs of {} vehicle(s) in {}",
+            written.len(),
+            dir.display()
+        );
+    }
+    Ok(())
+}
+
 fn cmd_sim(args: &RunArgs) -> Result<()> {
     let s = load_scenario(args.scenario.as_deref())?;
     let out = out_dir(args, &s);
+    record_logs(args, &s)?;
     let duration = args.duration.unwrap_or(s.run.duration_s);
     let pb = progress_bar(duration, args.quiet);
     let stop = ctrl_c_flag();
@@ -158,8 +204,83 @@ fn cmd_sim(args: &RunArgs) -> Result<()> {
     Ok(())
 }
 
+fn cmd_run(args: &LaunchArgs) -> Result<()> {
+    let s = load_scenario(args.run.scenario.as_deref())?;
+    let out = out_dir(&args.run, &s);
+    record_logs(&args.run, &s)?;
+    let mut netns = std::collections::BTreeMap::new();
+    for spec in &args.netns {
+        let (who, ns) = spec
+            .split_once('=')
+            .with_context(|| format!("--netns {spec}: expected VEHICLE=NAMESPACE"))?;
+        let v = s
+            .vehicles
+            .iter()
+            .find(|v| v.display_name() == who || v.id.to_string() == who)
+            .with_context(|| format!("--netns {spec}: no vehicle `{who}` in the scenario"))?;
+        netns.insert(v.id, ns.to_string());
+    }
+    let opts = crate::process::monitor::LaunchOptions {
+        out: out.clone(),
+        duration: args.run.duration,
+        baseline: args.run.no_baseline.then_some(false),
+        quiet: args.run.quiet,
+        netns,
+        exe: None,
+        stop: ctrl_c_flag(),
+    };
+    let outcome = crate::process::monitor::launch(s.clone(), &opts).context("canopy run failed")?;
+    if outcome.checks.interrupted {
+        eprintln!(
+            "interrupted: writing what was gathered up to t = {:.1} s",
+            outcome.record.duration
+        );
+    }
+    let summary = write_all(&outcome.record, &out)
+        .with_context(|| format!("writing outputs to {}", out.display()))?;
+    crate::process::monitor::write_checks(&outcome.checks, &out)?;
+    print!(
+        "{}",
+        table(&[(s.run.name.as_deref().unwrap_or("run"), &summary)])
+    );
+    if let Some(r) = outcome.checks.max_confidence_ratio {
+        println!("largest confidence ratio vs the centralized reference: {r:.3} (≤ 1 ideal)");
+    }
+    for p in &outcome.checks.processes {
+        if !p.clean_exit() && !p.killed_by_monitor {
+            println!(
+                "process {} (incarnation {}) did not exit cleanly (code {:?}, signal {:?}); log {}",
+                p.name,
+                p.incarnation,
+                p.exit_code,
+                p.signal,
+                p.log.display()
+            );
+        }
+    }
+    println!("outputs in {}", out.display());
+    if let Some(f) = &outcome.checks.failure {
+        anyhow::bail!("the run failed: {f}");
+    }
+    Ok(())
+}
+
 fn cmd_check(path: &Path) -> Result<()> {
     let s = load_scenario(Some(path))?;
+    for (i, v) in s.vehicles.iter().enumerate() {
+        if let Some(r) = &v.replay {
+            let log = crate::replay::ReplayLog::load(r)
+                .with_context(|| format!("{}: vehicle[{i}].replay", path.display()))?;
+            println!(
+                "  vehicle {} replays {} IMU samples and {} frames ({:.1} s to {:.1} s)",
+                v.id,
+                log.imu.len(),
+                log.frames.len(),
+                log.initial.time,
+                log.imu.last().map_or(log.initial.time, |x| x.time)
+            );
+        }
+    }
     let names = node_names(&s);
     println!("{}: valid", path.display());
     println!(
@@ -239,11 +360,20 @@ fn cmd_compare(dirs: &[PathBuf]) -> Result<()> {
 pub fn run_cli(cli: Cli) -> Result<()> {
     match cli.command {
         Command::Sim(args) => cmd_sim(&args),
-        Command::Run(_) => {
-            anyhow::bail!("`canopy run` (multi-process) is not wired yet; use `canopy sim`")
-        }
+        Command::Run(args) => cmd_run(&args),
+        Command::Role(args) => crate::process::run_role(args),
         Command::Check { scenario } => cmd_check(&scenario),
         Command::Compare { dirs } => cmd_compare(&dirs),
+        Command::Team {
+            vehicles,
+            duration,
+            features,
+        } => {
+            let s = crate::team::team_scenario_with(vehicles, duration, features);
+            s.validate().context("the generated team")?;
+            print!("{}", s.to_toml_string());
+            Ok(())
+        }
         Command::Default => {
             print!("{}", Scenario::builtin_default().to_toml_string());
             Ok(())

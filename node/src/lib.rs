@@ -11,14 +11,25 @@
 //!   `[secrets]` tables, their validation and the fusion topology.
 //! - [`record`]: what a run gathers (estimates vs truth, maps, link statistics, events).
 //! - [`output`]: summary.json, TUM trajectories, CSVs and report.html.
+//! - [`agent`]: the vehicle and hub agents (estimator + DDF node, sans-IO).
+//! - [`sim`]: `canopy sim`, the whole scenario in one deterministic process.
+//! - [`baseline`]: the centralized all-data reference EKF driver.
+//! - [`replay`]: recorded sensor logs (CSV) and the sensor sources of a run.
+//! - [`process`]: `canopy run` — the world, vehicle, hub and monitor processes.
+//! - [`team`]: generated tree teams of any size (`canopy team N`, benchmarks, scale tests).
+//! - [`cli`]: the command line.
 
 pub mod agent;
+pub mod baseline;
 pub mod cli;
 pub mod metrics;
 pub mod network;
 pub mod output;
+pub mod process;
 pub mod record;
+pub mod replay;
 pub mod scenario;
 pub mod sim;
+pub mod team;
 pub mod wire;
 pub mod world;

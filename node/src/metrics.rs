@@ -103,22 +103,67 @@ pub fn pose_sample(
     }
 }
 
+/// An estimate sample of a vehicle without truth (a replayed vehicle): truth fields and NEES
+/// are NaN, the estimate is in the launch frame as in [`pose_sample`].
+pub fn estimate_sample(
+    world: &World,
+    t: f64,
+    est: &VehicleState,
+    cov: &VehicleCovariance,
+) -> PoseSample {
+    let r = launch_from_nav(world);
+    let p3: Matrix3<f64> = cov.fixed_view::<3, 3>(POS, POS).into();
+    PoseSample {
+        t,
+        est_pos: arr(&world.to_launch(&est.position)),
+        est_att: arr(&launch_attitude(world, &est.position, &est.attitude)),
+        truth_pos: [f64::NAN; 3],
+        truth_att: [f64::NAN; 3],
+        pos_cov: arr9(&(r * p3 * r.transpose())),
+        nees_pos: f64::NAN,
+        nees_pose: f64::NAN,
+    }
+}
+
+/// One feature (mean and covariance in the estimator's frame) as a launch-frame record, with
+/// truth where the id names a world feature.
+pub fn feature_record(
+    world: &World,
+    id: FeatureId,
+    mean: &Vector3<f64>,
+    cov: &Matrix3<f64>,
+) -> MapFeatureRecord {
+    let r = launch_from_nav(world);
+    MapFeatureRecord {
+        id,
+        est: arr(&world.to_launch(mean)),
+        cov: arr9(&(r * cov * r.transpose())),
+        truth: world.feature(id).map(|f| arr(&f.position_ned)),
+    }
+}
+
 /// The filter's map in the launch frame, with truth where the id names a world feature.
 pub fn map_records(world: &World, filter: &SlamFilter) -> Vec<MapFeatureRecord> {
-    let r = launch_from_nav(world);
     filter
         .features()
         .into_iter()
         .filter_map(|(id, m)| {
             let cov = filter.feature_covariance(id)?;
-            Some(MapFeatureRecord {
-                id,
-                est: arr(&world.to_launch(&m)),
-                cov: arr9(&(r * cov * r.transpose())),
-                truth: world.feature(id).map(|f| arr(&f.position_ned)),
-            })
+            Some(feature_record(world, id, &m, &cov))
         })
         .collect()
+}
+
+/// λ_max(P_ref · P_i⁻¹) of one feature: how much more confident covariance `p_i` is than the
+/// reference `p_ref` in its most confident direction (rotation invariant, so any common frame
+/// will do). `None` when `p_i` is not positive definite.
+pub fn feature_confidence_ratio(p_i: &Matrix3<f64>, p_ref: &Matrix3<f64>) -> Option<f64> {
+    // Eigenvalues of P_i^{-1/2} P_ref P_i^{-1/2} via the Cholesky factor of P_i.
+    let l = p_i.cholesky()?.l();
+    let linv = l.try_inverse()?;
+    let m = linv * p_ref * linv.transpose();
+    let m = (m + m.transpose()) * 0.5;
+    Some(m.symmetric_eigenvalues().max())
 }
 
 /// Largest over common features of λ_max(P_ref · P_i⁻¹): how much more confident the vehicle
@@ -148,4 +193,25 @@ pub fn confidence_ratio(filter: &SlamFilter, reference: &SlamFilter) -> Option<(
         }
     }
     worst
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn feature_confidence_ratio_is_the_largest_generalised_eigenvalue() {
+        // Diagonal pair: the generalised eigenvalues are the ratios of the diagonals.
+        let pi = Matrix3::from_diagonal(&Vector3::new(1.0, 2.0, 4.0));
+        let pr = Matrix3::from_diagonal(&Vector3::new(2.0, 2.0, 1.0));
+        let r = feature_confidence_ratio(&pi, &pr).unwrap();
+        assert!((r - 2.0).abs() < 1e-12); // max(2/1, 2/2, 1/4)
+        // Invariant under a common rotation.
+        let rot = nalgebra::Rotation3::from_euler_angles(0.3, -0.4, 1.1).into_inner();
+        let r2 =
+            feature_confidence_ratio(&(rot * pi * rot.transpose()), &(rot * pr * rot.transpose()))
+                .unwrap();
+        assert!((r2 - 2.0).abs() < 1e-12);
+        assert!(feature_confidence_ratio(&Matrix3::zeros(), &pr).is_none());
+    }
 }

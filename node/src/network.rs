@@ -470,6 +470,10 @@ pub struct SecretsConfig {
     pub zenoh_password: Option<String>,
 }
 
+/// Node ids from this one up are reserved for the processes of a run that are not fusion nodes
+/// (the world and the monitor, see `crate::process`).
+pub const FIRST_RESERVED_NODE_ID: u32 = u32::MAX - 15;
+
 /// Names of every node of the scenario (vehicles and, in central mode, the hub).
 pub fn node_names(s: &Scenario) -> BTreeMap<u32, String> {
     let mut names: BTreeMap<u32, String> = s
@@ -609,6 +613,26 @@ pub fn validate(s: &Scenario) -> Result<(), ScenarioError> {
         ));
     }
     let ids: BTreeSet<u32> = s.vehicles.iter().map(|v| v.id).collect();
+    if let Some(i) = s
+        .vehicles
+        .iter()
+        .position(|v| v.id >= FIRST_RESERVED_NODE_ID)
+    {
+        return Err(ScenarioError::invalid(
+            format!("vehicle[{i}].id"),
+            format!(
+                "ids from {FIRST_RESERVED_NODE_ID} up are reserved for the world and monitor processes"
+            ),
+        ));
+    }
+    if f.mode == FusionMode::Central && f.hub_id >= FIRST_RESERVED_NODE_ID {
+        return Err(ScenarioError::invalid(
+            "fusion.hub_id",
+            format!(
+                "ids from {FIRST_RESERVED_NODE_ID} up are reserved for the world and monitor processes"
+            ),
+        ));
+    }
     if f.mode == FusionMode::Central && ids.contains(&f.hub_id) {
         return Err(ScenarioError::invalid(
             "fusion.hub_id",
@@ -774,6 +798,17 @@ pub fn validate(s: &Scenario) -> Result<(), ScenarioError> {
                     ));
                 }
             }
+        }
+        if e.restart_after_s.is_some()
+            && let Some(v) = e.vehicle
+            && s.vehicles.iter().any(|x| x.id == v && x.replay.is_some())
+        {
+            return Err(ScenarioError::invalid(
+                format!("{field}.restart_after_s"),
+                format!(
+                    "vehicle {v} is replayed from logs, which hold no external fix to restart from"
+                ),
+            ));
         }
         if let Some(r) = e.restart_after_s
             && !(r.is_finite() && r > 0.0)

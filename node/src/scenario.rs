@@ -137,7 +137,20 @@ impl Scenario {
             path: path.to_path_buf(),
             source,
         })?;
-        Self::from_toml_str(&text).map_err(|error| ScenarioError::File {
+        let parsed = toml::from_str::<Scenario>(&text)
+            .map_err(ScenarioError::from)
+            .and_then(|mut s| {
+                // Replay logs are named relative to the scenario file.
+                let base = path.parent().unwrap_or(Path::new("."));
+                for v in &mut s.vehicles {
+                    if let Some(r) = v.replay.as_mut() {
+                        r.resolve(base);
+                    }
+                }
+                s.validate()?;
+                Ok(s)
+            });
+        parsed.map_err(|error| ScenarioError::File {
             path: path.to_path_buf(),
             error: Box::new(error),
         })
@@ -176,6 +189,7 @@ impl Scenario {
                 sensor: SensorConfig::default(),
                 imu: ImuConfig::default(),
                 initial: InitialConfig::default(),
+                replay: None,
             };
         let mut orbit = survey(3, 0.0, 180.0, 0.25, 0.0);
         orbit.trajectory.shape = ShapeConfig::Orbit {
@@ -530,6 +544,12 @@ pub struct VehicleConfig {
     /// Initial estimate uncertainty. Default [`InitialConfig::default`].
     #[serde(default)]
     pub initial: InitialConfig,
+    /// Replay this vehicle's sensor input from recorded logs instead of simulating it
+    /// (`[vehicle.replay]`, see [`crate::replay`]); the trajectory, sensor noise and IMU errors
+    /// are then not simulated, the sensor and IMU settings only describe the estimator's
+    /// models, and the vehicle has no truth. Default: simulated.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub replay: Option<crate::replay::ReplayConfig>,
 }
 
 impl VehicleConfig {

@@ -15,9 +15,7 @@ use std::sync::atomic::{AtomicBool, Ordering};
 
 use canopy_fusion::ddf::Outgoing;
 use canopy_fusion::ins::VehicleState;
-use canopy_fusion::slam::{
-    AssociationConfig, AssociationMode, SlamConfig, SlamFilter, VehicleSetup,
-};
+use canopy_fusion::slam::{AssociationConfig, SlamConfig, SlamFilter, VehicleSetup};
 use canopy_fusion::topology::NodeId;
 use canopy_transport::fault::{Clock, FaultyLink, ManualClock};
 use canopy_transport::link::{Link, LinkEvent, PeerState};
@@ -411,6 +409,12 @@ impl<'s> Sim<'s> {
 /// Runs a scenario in one deterministic process.
 pub fn simulate(s: &Scenario, mut opts: SimOptions<'_>) -> Result<SimOutcome, SimError> {
     s.validate()?;
+    if let Some(i) = s.vehicles.iter().position(|v| v.replay.is_some()) {
+        return Err(SimError::Scenario(ScenarioError::invalid(
+            format!("vehicle[{i}].replay"),
+            "`canopy sim` simulates every vehicle; run scenarios with replayed vehicles with `canopy run`",
+        )));
+    }
     let started = std::time::Instant::now();
     let duration = opts.duration.unwrap_or(s.run.duration_s);
     let (world, vehicles) = world::build(s)?;
@@ -537,18 +541,11 @@ pub fn simulate(s: &Scenario, mut opts: SimOptions<'_>) -> Result<SimOutcome, Si
             .zip(&s.vehicles)
             .map(|(v, cfg)| vehicle_setup(v, v.initial_estimate(), cfg.imu.noise_model()))
             .collect();
-        let cfg = SlamConfig {
-            frame: world.frame(),
-            origin: world.map_origin(),
-            // The reference associates by descriptor, verified by the gate.
-            association: AssociationConfig {
-                mode: AssociationMode::Descriptor,
-                gate_probability: s.fusion.gate_probability,
-                ..AssociationConfig::default()
-            },
-            fresh_id_namespace: u32::MAX,
-        };
-        sim.baseline = Some(SlamFilter::new(cfg, &setups).map_err(SimError::Baseline)?);
+        // The reference associates by descriptor, verified by the gate (shared with the
+        // monitor of multi-process runs).
+        sim.baseline = Some(
+            crate::baseline::reference_filter(s, &world, &setups).map_err(SimError::Baseline)?,
+        );
     }
 
     // Events: crash/restart/hub loss in time order.
@@ -652,6 +649,10 @@ pub fn simulate(s: &Scenario, mut opts: SimOptions<'_>) -> Result<SimOutcome, Si
                 node.restarts += 1;
                 let inc = node.restarts;
                 let est = sim.vehicles[idx].restart_estimate(u64::from(inc));
+                // The reference gets the same external fix, so it still holds all the data.
+                if let Some(b) = sim.baseline.as_mut() {
+                    let _ = crate::baseline::apply_restart_fix(b, idx, &est);
+                }
                 let agent = sim.vehicle_agent(idx, &est, inc)?;
                 sim.nodes.get_mut(&target).expect("exists").agent =
                     Some(Agent::Vehicle(Box::new(agent)));

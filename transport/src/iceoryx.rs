@@ -19,7 +19,14 @@
 //! `n{peer}` whose iceoryx2 node also subscribes to our outgoing data service and is alive
 //! (iceoryx2's process monitor: a crashed process is reported dead at once). The check runs at
 //! most every `liveness_interval`, from [`Link::poll_event`] and the receive calls; a dead
-//! peer's ports are cleaned on detection. A hung but living peer process is *not* detected (use
+//! peer's ports are cleaned on detection.
+//!
+//! Cost: the port lists are shared-memory reads; the node's state is read from its own
+//! monitor (one file-lock query, the monitor kept open while the candidate stays the same).
+//! `iceoryx2::Node::state_of` is *not* used on the hot path: it lists every node of the run
+//! and parses each node's TOML details file until it finds the one asked for, which made the
+//! check O(nodes) and dominated the CPU of a multi-process run (see docs/benchmarks.md). It is
+//! used only to clean a node found dead (rare). A hung but living peer process is *not* detected (use
 //! application heartbeats for that).
 //!
 //! Memory: the publisher preallocates `max_subscribers × (buffer + max_borrowed) + history +
@@ -34,13 +41,18 @@ use std::mem::MaybeUninit;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use iceoryx2::node::NodeView;
+use iceoryx2::identifiers::UniqueNodeId;
 use iceoryx2::port::listener::Listener;
 use iceoryx2::port::notifier::Notifier;
 use iceoryx2::port::publisher::Publisher;
 use iceoryx2::port::subscriber::Subscriber;
 use iceoryx2::prelude::*;
 use iceoryx2::sample::Sample;
+use iceoryx2_cal::monitoring::{
+    Monitoring, MonitoringBuilder, MonitoringMonitor, NamedConceptBuilder, NamedConceptMgmt,
+    State as MonitorState,
+};
+use iceoryx2_cal::named_concept::NamedConceptConfiguration;
 
 use crate::codec::{self, WireBody};
 use crate::envelope::{HEADER_LEN, NodeId, SendMeta};
@@ -52,6 +64,9 @@ use crate::link::{
 type Svc = ipc_threadsafe::Service;
 type PubSub = iceoryx2::service::port_factory::publish_subscribe::PortFactory<Svc, [u8], ()>;
 type EventSvc = iceoryx2::service::port_factory::event::PortFactory<Svc>;
+/// iceoryx2's node monitoring concept for [`Svc`] (a file lock per node).
+type NodeMonitoring = <Svc as iceoryx2::service::Service>::Monitoring;
+type NodeMonitor = <NodeMonitoring as Monitoring>::Monitor;
 
 const BACKEND: &str = "iceoryx2";
 
@@ -222,7 +237,20 @@ pub struct IceoryxLink {
     tracker: PeerTracker,
     last_liveness: Option<Instant>,
     iox_config: Config,
+    /// Where iceoryx2 keeps the node monitors of this run.
+    monitoring_config: <NodeMonitoring as NamedConceptMgmt>::Configuration,
+    /// The monitor of the last candidate peer node (kept open between checks).
+    peer_monitor: Option<(UniqueNodeId, NodeMonitor)>,
     node: Node<Svc>,
+}
+
+/// iceoryx2's node monitoring configuration under `cfg` (as iceoryx2 derives it internally:
+/// global prefix, node monitor suffix, node directory).
+fn node_monitoring_config(cfg: &Config) -> <NodeMonitoring as NamedConceptMgmt>::Configuration {
+    <<NodeMonitoring as NamedConceptMgmt>::Configuration>::default()
+        .prefix(&cfg.global.prefix)
+        .suffix(&cfg.global.node.monitor_suffix)
+        .path_hint(&cfg.global.node_dir())
 }
 
 impl std::fmt::Debug for IceoryxLink {
@@ -256,6 +284,7 @@ impl IceoryxLink {
             .map_err(err)?;
         let publisher = make_publisher(&out_data, cfg.max_body_len, cfg.local)?;
         let iox_config = iox_config(&ix.run_prefix)?;
+        let monitoring_config = node_monitoring_config(&iox_config);
         Ok(Self {
             cfg,
             ix,
@@ -271,6 +300,8 @@ impl IceoryxLink {
             tracker: PeerTracker::new(),
             last_liveness: None,
             iox_config,
+            monitoring_config,
+            peer_monitor: None,
             node,
         })
     }
@@ -304,23 +335,57 @@ impl IceoryxLink {
         candidates.retain(|id| subscribed.contains(id));
         let mut present = None;
         for id in candidates {
-            match Node::<Svc>::state_of(&self.iox_config, id) {
-                Ok(Some(NodeState::Alive(view))) => {
-                    present = Some(view.id().value() as u64 ^ (view.id().value() >> 64) as u64);
+            match self.node_state(id) {
+                MonitorState::Alive => {
+                    present = Some(id.value() as u64 ^ (id.value() >> 64) as u64);
                 }
-                Ok(Some(NodeState::Dead(view))) => {
-                    tracing::info!(
-                        peer = self.cfg.peer,
-                        "iceoryx2: peer node is dead, cleaning"
-                    );
-                    if let Err(e) = view.try_remove_stale_resources() {
-                        tracing::warn!(error = ?e, "iceoryx2: stale resource cleanup failed");
-                    }
-                }
-                _ => {}
+                MonitorState::Dead => self.clean_dead(id),
+                MonitorState::DoesNotExist => {}
             }
         }
         self.tracker.observe(present);
+    }
+
+    /// State of the node `id` from its monitor (one file-lock query). A node whose monitor
+    /// cannot be opened or read counts as not existing (the next check retries).
+    fn node_state(&mut self, id: UniqueNodeId) -> MonitorState {
+        if self.peer_monitor.as_ref().is_none_or(|(m, _)| *m != id) {
+            let name = match FileName::new(id.value().to_string().as_bytes()) {
+                Ok(n) => n,
+                Err(_) => return MonitorState::DoesNotExist,
+            };
+            match <NodeMonitoring as Monitoring>::Builder::new(&name)
+                .config(&self.monitoring_config)
+                .monitor()
+            {
+                Ok(m) => self.peer_monitor = Some((id, m)),
+                Err(e) => {
+                    tracing::debug!(error = ?e, "iceoryx2: cannot open a node monitor");
+                    return MonitorState::DoesNotExist;
+                }
+            }
+        }
+        let Some((_, m)) = &self.peer_monitor else {
+            return MonitorState::DoesNotExist;
+        };
+        m.state().unwrap_or(MonitorState::DoesNotExist)
+    }
+
+    /// Removes the stale resources of the dead node `id` (through iceoryx2's node listing,
+    /// which is slow but only runs once per dead node).
+    fn clean_dead(&mut self, id: UniqueNodeId) {
+        if self.peer_monitor.as_ref().is_some_and(|(m, _)| *m == id) {
+            self.peer_monitor = None;
+        }
+        if let Ok(Some(NodeState::Dead(view))) = Node::<Svc>::state_of(&self.iox_config, id) {
+            tracing::info!(
+                peer = self.cfg.peer,
+                "iceoryx2: peer node is dead, cleaning"
+            );
+            if let Err(e) = view.try_remove_stale_resources() {
+                tracing::warn!(error = ?e, "iceoryx2: stale resource cleanup failed");
+            }
+        }
     }
 
     fn take(&mut self) -> Result<Option<Received>, LinkError> {

@@ -643,3 +643,175 @@ enum Route {
         post: Mat<f64>,
     },
 }
+
+/// Relative size, against the largest entry of the map information and of the delta, below
+/// which a feature's fused information counts as *vanished* (see
+/// [`SlamFilter::fuse_map_information_forgetting`]).
+///
+/// Why this value: the fused information of a feature whose contributions cancel exactly (a
+/// DDF resynchronisation removing what a restarted neighbour held) is the round-off of sums of
+/// terms of the largest size, measured at ≲ 1e-11 of it in the crash–restart scenarios; a
+/// feature that still carries genuine information has at least ~1e-5 of it (σ of tens of metres
+/// against the best-known features' decimetres). 1e-9 sits between with two decades each way.
+pub const VANISHED_RTOL: f64 = 1e-9;
+
+/// What [`SlamFilter::fuse_map_information_forgetting`] did beyond a plain fusion.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct ForgetReport {
+    /// The fusion of the information that remained.
+    pub fused: FuseReport,
+    /// Known features whose information vanished: removed from the state.
+    pub forgotten: Vec<FeatureId>,
+    /// New features of the delta that carried no information: not added.
+    pub skipped: Vec<FeatureId>,
+}
+
+impl SlamFilter {
+    /// Removes features from the state: their entries of x and rows and columns of P are
+    /// dropped, which in covariance form is exactly marginalizing them out (the other states'
+    /// estimate and covariance are unchanged). Unknown ids are ignored; returns how many were
+    /// removed.
+    pub fn forget_features(&mut self, ids: &[FeatureId]) -> usize {
+        let mut removed = 0;
+        for &id in ids {
+            if self.remove_block(SlotKind::Feature(id)) {
+                removed += 1;
+            }
+        }
+        if removed > 0 {
+            self.map_generation += 1;
+        }
+        removed
+    }
+
+    /// [`SlamFilter::fuse_map_information`], and when that is refused because the fused
+    /// information would not be positive definite *only* because some features are left with
+    /// no information at all (their fused 3×3 diagonal block is below [`VANISHED_RTOL`] of the
+    /// largest entry — round-off of an exact cancellation), fuses the rest and removes those
+    /// features.
+    ///
+    /// This is what a channel-filter resynchronisation needs after a neighbour restarts
+    /// (ddf module docs): the first delta removes everything the lost process held, which leaves
+    /// the features only it had observed with exactly zero information — a state an EKF cannot
+    /// hold (infinite covariance) but marginalization represents exactly. With Y' = Y + ΔY the
+    /// fused map information and V the vanished features, Y'_VV ≈ 0 and, Y' being positive
+    /// semi-definite, Y'_V· ≈ 0: the remaining features' information is Y'_rr. It is applied by
+    /// fusing ΔY with its V×V block replaced by 0 (V keeps its current information, coupled to
+    /// the rest only by the round-off Y'_Vr) and then removing V, whose marginal leaves Y'_rr up to
+    /// that round-off. New features of V carry nothing and are not added.
+    ///
+    /// Any other refusal is returned unchanged, and on any error the filter is unchanged.
+    pub fn fuse_map_information_forgetting(
+        &mut self,
+        delta: &MapInformation,
+    ) -> Result<ForgetReport, SlamError> {
+        let err = match self.fuse_map_information(delta) {
+            Ok(fused) => {
+                return Ok(ForgetReport {
+                    fused,
+                    ..Default::default()
+                });
+            }
+            Err(e @ SlamError::NotPositiveDefinite(_)) => e,
+            Err(e) => return Err(e),
+        };
+        let y = self.map_information()?;
+        let scale = y.matrix_norm_max().max(delta.matrix_norm_max());
+        let mut vanished = HashSet::new();
+        for (b, &id) in delta.ids.iter().enumerate() {
+            let own = y.index_of(id);
+            let mut blk = nalgebra::Matrix3::<f64>::zeros();
+            for r in 0..3 {
+                for c in 0..3 {
+                    blk[(r, c)] = delta.matrix[(3 * b + r, 3 * b + c)]
+                        + own.map_or(0.0, |o| y.matrix[(3 * o + r, 3 * o + c)]);
+                }
+            }
+            let blk = (blk + blk.transpose()) * 0.5;
+            if blk.symmetric_eigenvalues().abs().max() <= VANISHED_RTOL * scale {
+                vanished.insert(id);
+            }
+        }
+        if vanished.is_empty() {
+            return Err(err);
+        }
+        // ΔY with the vanished features' own blocks zeroed (known ones) or removed (new ones).
+        let keep: Vec<FeatureId> = delta
+            .ids
+            .iter()
+            .copied()
+            .filter(|id| !vanished.contains(id) || self.layout.has_feature(*id))
+            .collect();
+        let mut reduced = delta.restrict(&keep);
+        let mut forgotten = Vec::new();
+        for (b, &id) in reduced.ids.iter().enumerate() {
+            if vanished.contains(&id) {
+                forgotten.push(id);
+                for r in 0..3 {
+                    reduced.vector[3 * b + r] = 0.0;
+                    for c in 0..3 {
+                        reduced.matrix[(3 * b + r, 3 * b + c)] = 0.0;
+                    }
+                }
+            }
+        }
+        let skipped: Vec<FeatureId> = delta
+            .ids
+            .iter()
+            .copied()
+            .filter(|id| vanished.contains(id) && !self.layout.has_feature(*id))
+            .collect();
+        let fused = self.fuse_map_information(&reduced)?;
+        self.forget_features(&forgotten);
+        Ok(ForgetReport {
+            fused,
+            forgotten,
+            skipped,
+        })
+    }
+}
+
+impl SlamFilter {
+    /// An external fix of a vehicle's position, velocity and attitude: the linear measurement
+    /// z = (p, v, Ψ) + w, w ~ N(0, R) with `covariance` = R (9×9, in the state order p, v, Ψ of
+    /// `state`), applied as an EKF update (eqs. 21.56–21.65, Joseph form, H = [I₉ 0] on the
+    /// vehicle block; the attitude innovation is wrapped to (−π, π]).
+    ///
+    /// A vehicle process restarted mid-run re-initialises from such a fix; the centralized
+    /// reference applies the same fix so that it still holds all the data of the team.
+    pub fn vehicle_fix(
+        &mut self,
+        vehicle: usize,
+        fix: &[f64; 9],
+        covariance: &nalgebra::SMatrix<f64, 9, 9>,
+    ) -> Result<(), SlamError> {
+        if vehicle >= self.num_vehicles() {
+            return Err(SlamError::UnknownVehicle(vehicle));
+        }
+        if !fix.iter().all(|v| v.is_finite()) || !covariance.iter().all(|v| v.is_finite()) {
+            return Err(SlamError::NumericalFailure("vehicle fix inputs"));
+        }
+        if covariance.cholesky().is_none() {
+            return Err(SlamError::NotPositiveDefinite("vehicle fix covariance"));
+        }
+        use crate::state::{ATT, POS, VEL};
+        const { assert!(POS + 3 == VEL && VEL + 3 == ATT) };
+        self.flush();
+        let off = self.layout.vehicle_block(vehicle) + POS;
+        let mut nu = Col::zeros(9);
+        for i in 0..9 {
+            nu[i] = fix[i] - self.x[off + i];
+        }
+        for i in ATT - POS..ATT - POS + 3 {
+            nu[i] = crate::rotation::wrap_angle(nu[i]);
+        }
+        let r = Mat::from_fn(9, 9, |i, j| 0.5 * (covariance[(i, j)] + covariance[(j, i)]));
+        let blocks = [super::update::HBlock {
+            row: 0,
+            col: off,
+            mat: Mat::identity(9, 9),
+        }];
+        self.map_generation += 1;
+        self.blocks_update(&blocks, &nu, r)
+    }
+}

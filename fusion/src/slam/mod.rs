@@ -33,7 +33,7 @@ pub mod triangulation;
 mod update;
 
 pub use bearing::{BearingConfig, BearingStats, TrackGate, TrackId, TrackInfo};
-pub use fuse::{FuseMethod, FuseReport};
+pub use fuse::{ForgetReport, FuseMethod, FuseReport, VANISHED_RTOL};
 pub use layout::{Layout, PoseId, Slot, SlotKind};
 
 use crate::consistency::chi2_quantile;

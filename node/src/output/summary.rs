@@ -4,6 +4,17 @@ use crate::record::{LinkRecord, RunRecord, VehicleRecord};
 use serde::{Deserialize, Serialize};
 use statrs::distribution::{ChiSquared, ContinuousCDF};
 
+/// Serde default of `metrics_available` (summaries written before the field existed).
+fn yes() -> bool {
+    true
+}
+
+/// JSON has no NaN: serde_json writes a NaN figure (a metric that is unavailable, e.g. the
+/// position error of a replayed vehicle without truth) as `null`; this reads it back as NaN.
+fn null_as_nan<'de, D: serde::Deserializer<'de>>(d: D) -> Result<f64, D::Error> {
+    Option::<f64>::deserialize(d).map(|v| v.unwrap_or(f64::NAN))
+}
+
 /// Two-sided 95 % bounds of a χ² variable with `dof` degrees of freedom.
 pub fn chi2_band(dof: f64) -> (f64, f64) {
     // dof > 0 by construction of the callers (3 or 6), so the distribution always exists.
@@ -16,21 +27,32 @@ pub fn chi2_band(dof: f64) -> (f64, f64) {
 pub struct VehicleSummary {
     /// Vehicle name.
     pub name: String,
+    /// Whether the vehicle had truth (false for a vehicle replayed from logs: its position
+    /// and NEES figures are then `null`).
+    #[serde(default = "yes")]
+    pub metrics_available: bool,
     /// RMS position error over the run [m].
+    #[serde(deserialize_with = "null_as_nan")]
     pub position_rmse_m: f64,
     /// Position error at the end of the run [m].
+    #[serde(deserialize_with = "null_as_nan")]
     pub final_position_error_m: f64,
     /// Time-averaged position NEES divided by its 3 dof (1.0 when consistent).
+    #[serde(deserialize_with = "null_as_nan")]
     pub position_anees: f64,
     /// Time-averaged pose (position + attitude) NEES divided by its 6 dof.
+    #[serde(deserialize_with = "null_as_nan")]
     pub pose_anees: f64,
     /// Fraction of samples whose pose NEES lies inside the per-sample χ²₆ 95 % interval.
+    #[serde(deserialize_with = "null_as_nan")]
     pub pose_nees_in_band: f64,
     /// Features in the vehicle's final map.
     pub map_features: usize,
     /// RMS error of the final map's features that have a truth [m].
+    #[serde(deserialize_with = "null_as_nan")]
     pub map_rmse_m: f64,
     /// Mean per-feature map NEES divided by its 3 dof.
+    #[serde(deserialize_with = "null_as_nan")]
     pub map_anees: f64,
     /// Wrong associations (observation associated to another feature).
     pub wrong_associations: u64,
@@ -80,10 +102,13 @@ pub struct Summary {
     /// World seed.
     pub seed: u64,
     /// Simulated time [s].
+    #[serde(deserialize_with = "null_as_nan")]
     pub duration_s: f64,
     /// Wall-clock time [s].
+    #[serde(deserialize_with = "null_as_nan")]
     pub wall_time_s: f64,
     /// Simulated seconds per wall-clock second.
+    #[serde(deserialize_with = "null_as_nan")]
     pub real_time_factor: f64,
     /// Per-vehicle figures.
     pub vehicles: Vec<VehicleSummary>,
@@ -101,12 +126,16 @@ pub struct Summary {
 #[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
 pub struct TeamSummary {
     /// Mean of the vehicles' position RMSE [m].
+    #[serde(deserialize_with = "null_as_nan")]
     pub position_rmse_m: f64,
     /// Mean of the vehicles' map RMSE [m].
+    #[serde(deserialize_with = "null_as_nan")]
     pub map_rmse_m: f64,
     /// Mean pose ANEES.
+    #[serde(deserialize_with = "null_as_nan")]
     pub pose_anees: f64,
     /// Mean map ANEES.
+    #[serde(deserialize_with = "null_as_nan")]
     pub map_anees: f64,
 }
 
@@ -155,6 +184,7 @@ pub fn summarize_vehicle(v: &VehicleRecord) -> VehicleSummary {
     );
     VehicleSummary {
         name: v.name.clone(),
+        metrics_available: v.samples.iter().any(|s| s.truth_pos[0].is_finite()),
         position_rmse_m,
         final_position_error_m,
         position_anees,
@@ -181,11 +211,13 @@ pub fn feature_nees(est: &[f64; 3], cov: &[f64; 9], truth: &[f64; 3]) -> Option<
 }
 
 fn team(vs: &[VehicleSummary]) -> TeamSummary {
+    // Means over the vehicles where a figure is available (replayed vehicles have no truth).
+    let avail = |f: fn(&VehicleSummary) -> f64| mean(vs.iter().map(f).filter(|x| x.is_finite()));
     TeamSummary {
-        position_rmse_m: mean(vs.iter().map(|v| v.position_rmse_m)),
-        map_rmse_m: mean(vs.iter().map(|v| v.map_rmse_m)),
-        pose_anees: mean(vs.iter().map(|v| v.pose_anees)),
-        map_anees: mean(vs.iter().map(|v| v.map_anees)),
+        position_rmse_m: avail(|v| v.position_rmse_m),
+        map_rmse_m: avail(|v| v.map_rmse_m),
+        pose_anees: avail(|v| v.pose_anees),
+        map_anees: avail(|v| v.map_anees),
     }
 }
 

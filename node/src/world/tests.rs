@@ -44,6 +44,7 @@ fn vehicle_cfg(shape: ShapeConfig) -> VehicleConfig {
         sensor: SensorConfig::default(),
         imu: ImuConfig::default(),
         initial: Default::default(),
+        replay: None,
     }
 }
 

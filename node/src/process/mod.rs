@@ -1,0 +1,364 @@
+//! The multi-process system: `canopy run` launches a world process, one process per vehicle
+//! and, in central mode, the hub, and monitors them; each of those runs one of the roles here.
+//!
+//! # Layout
+//! - [`protocol`]: message bodies between the processes (sensor stream, flow control, reports,
+//!   control), validated on receipt.
+//! - [`world`]: the world process — steps the simulator (or replays logs) in simulation time and
+//!   streams each vehicle's IMU samples and frames over iceoryx2, paced by flow control.
+//! - [`vehicle`]: the vehicle process — a [`crate::agent::VehicleAgent`] fed by the stream,
+//!   fusing over its configured links (iceoryx2 or zenoh, behind the fault layer on the
+//!   vehicle's simulation clock), reporting estimates and maps to the monitor.
+//! - [`hub`]: the hub of central mode — a [`crate::agent::HubAgent`] on world time.
+//! - [`monitor`]: the launcher — spawns, paces events (crash, restart, hub loss), reaps, gathers
+//!   reports into a [`crate::record::RunRecord`], runs the centralized reference, writes outputs.
+//!
+//! # Links of a run (all under one iceoryx2 prefix per run)
+//! ```text
+//!             ┌──────── monitor (MONITOR_ID) ────────┐   reports ↑, control ↓
+//!             │                 │                     │
+//!   world (WORLD_ID) ──stream──▶ vehicle i ◀──DDF──▶ vehicle j  (shm: iceoryx2, net: zenoh)
+//!             └──────time──────▶ hub (central mode) ◀──DDF──┘
+//! ```
+
+pub mod hub;
+pub mod monitor;
+pub mod protocol;
+pub mod vehicle;
+pub mod world;
+
+use std::collections::BTreeMap;
+use std::path::PathBuf;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::Duration;
+
+use anyhow::{Context, Result};
+use canopy_fusion::ddf::{DdfMessage, Outgoing};
+use canopy_transport::fault::{Clock, FaultyLink, ManualClock};
+use canopy_transport::iceoryx::{IceoryxConfig, IceoryxLink};
+use canopy_transport::link::{Link, LinkConfig, LinkEvent, PeerState};
+use canopy_transport::net::{ZenohAuth, ZenohConfig, ZenohTransport};
+use canopy_transport::wire::Validate;
+use canopy_transport::{MessageKind, NodeId, Received, SendMeta};
+use clap::{Args, Subcommand};
+use serde::Deserialize;
+
+use crate::network::{TransportKind, effective_links};
+use crate::scenario::Scenario;
+use crate::wire::{decode_ddf, send_ddf};
+use crate::world::vehicle_seed;
+
+/// Environment variable carrying the zenoh user to child processes (kept out of files).
+pub const ENV_ZENOH_USER: &str = "CANOPY_ZENOH_USER";
+/// Environment variable carrying the zenoh password to child processes.
+pub const ENV_ZENOH_PASSWORD: &str = "CANOPY_ZENOH_PASSWORD";
+
+/// Largest body on a control link (reports, sensor batches): a map report of 16 MiB holds
+/// ~200 000 features.
+pub const CONTROL_MAX_BODY: u64 = 16 << 20;
+
+/// `canopy role …`: the processes `canopy run` spawns (internal).
+#[derive(Debug, Args)]
+pub struct RoleArgs {
+    /// Which role.
+    #[command(subcommand)]
+    pub role: Role,
+}
+
+/// Options every role takes.
+#[derive(Debug, Args, Clone)]
+pub struct RoleCommon {
+    /// The run's resolved scenario file.
+    #[arg(long)]
+    pub scenario: PathBuf,
+    /// The run's iceoryx2 prefix (also the zenoh key prefix).
+    #[arg(long)]
+    pub prefix: String,
+}
+
+/// The roles.
+#[derive(Debug, Subcommand)]
+pub enum Role {
+    /// The world simulator / log player.
+    World(RoleCommon),
+    /// One vehicle.
+    Vehicle {
+        /// Common options.
+        #[command(flatten)]
+        common: RoleCommon,
+        /// Vehicle id.
+        #[arg(long)]
+        id: u32,
+        /// Process incarnation (0 = first start, then restarts).
+        #[arg(long, default_value_t = 0)]
+        incarnation: u32,
+    },
+    /// The hub of central mode.
+    Hub(RoleCommon),
+}
+
+/// Runs a role (the body of `canopy role …`).
+pub fn run_role(args: RoleArgs) -> Result<()> {
+    init_child_process();
+    match args.role {
+        Role::World(c) => world::run(&c),
+        Role::Vehicle {
+            common,
+            id,
+            incarnation,
+        } => vehicle::run(&common, id, incarnation),
+        Role::Hub(c) => hub::run(&c),
+    }
+}
+
+/// Child-process setup: die with the monitor (SIGTERM when it exits), log to stderr.
+fn init_child_process() {
+    #[cfg(target_os = "linux")]
+    {
+        let _ = nix::sys::prctl::set_pdeathsig(nix::sys::signal::Signal::SIGTERM);
+    }
+    let _ = tracing_subscriber::fmt()
+        .with_writer(std::io::stderr)
+        .with_env_filter(
+            tracing_subscriber::EnvFilter::try_from_default_env()
+                .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("warn")),
+        )
+        .try_init();
+}
+
+/// A flag set by SIGINT/SIGTERM (a child asked to stop by a signal finishes cleanly).
+pub(crate) fn stop_flag() -> Arc<AtomicBool> {
+    crate::cli::ctrl_c_flag()
+}
+
+/// Loads the run's resolved scenario.
+pub(crate) fn load_resolved(c: &RoleCommon) -> Result<Scenario> {
+    let mut s = Scenario::load(&c.scenario)
+        .with_context(|| format!("loading the run's scenario {}", c.scenario.display()))?;
+    if let (Ok(u), Ok(p)) = (
+        std::env::var(ENV_ZENOH_USER),
+        std::env::var(ENV_ZENOH_PASSWORD),
+    ) {
+        s.secrets.zenoh_user = Some(u);
+        s.secrets.zenoh_password = Some(p);
+    }
+    Ok(s)
+}
+
+/// An iceoryx2 link between this process and a non-fusion peer (world, monitor), with room for
+/// `buffer` messages in flight per direction.
+pub(crate) fn control_link(
+    prefix: &str,
+    local: NodeId,
+    peer: NodeId,
+    buffer: usize,
+) -> Result<IceoryxLink> {
+    let mut ix = IceoryxConfig::new(prefix);
+    ix.subscriber_buffer = buffer.max(4);
+    IceoryxLink::connect(
+        LinkConfig::new(local, peer).with_max_body_len(CONTROL_MAX_BODY),
+        ix,
+    )
+    .with_context(|| format!("opening the iceoryx2 link {local} -> {peer}"))
+}
+
+/// Sends a typed body. Delivery failures are counted by the link (datagram semantics).
+pub(crate) fn send_body(
+    link: &mut dyn Link,
+    kind: MessageKind,
+    seq: u64,
+    time: f64,
+    body: &impl serde::Serialize,
+) -> Result<()> {
+    link.send(&SendMeta::new(kind, seq, time), body)
+        .context("sending on a control link")
+}
+
+/// Decodes a received typed body; `None` (counted as a body rejection) when invalid.
+pub(crate) fn decode_body<B: for<'a> Deserialize<'a> + Validate>(m: &Received) -> Option<B> {
+    m.decode::<B>().ok()
+}
+
+/// Waits until `link` reports its peer up (or `timeout`, or `stop`).
+pub(crate) fn wait_peer_up(link: &mut dyn Link, timeout: Duration, stop: &AtomicBool) -> bool {
+    let deadline = std::time::Instant::now() + timeout;
+    while std::time::Instant::now() < deadline && !stop.load(Ordering::Relaxed) {
+        while link.poll_event().is_some() {}
+        if link.peer_state() == PeerState::Up {
+            return true;
+        }
+        std::thread::sleep(Duration::from_millis(5));
+    }
+    false
+}
+
+/// A fusion link: iceoryx2 or zenoh under the fault layer on this process's simulation clock.
+pub(crate) type FusionLink = FaultyLink<Box<dyn Link>>;
+
+/// This process's fusion links (DDF neighbours), the zenoh session they share, and the
+/// simulation clock of their fault layers.
+pub(crate) struct FusionLinks {
+    /// Links by neighbour.
+    pub links: BTreeMap<NodeId, FusionLink>,
+    /// Simulation clock of the fault layer.
+    pub clock: Arc<ManualClock>,
+    _zenoh: Option<ZenohTransport>,
+}
+
+impl std::fmt::Debug for FusionLinks {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("FusionLinks")
+            .field("peers", &self.links.keys().collect::<Vec<_>>())
+            .finish_non_exhaustive()
+    }
+}
+
+/// The zenoh key prefix of a run.
+pub(crate) fn zenoh_prefix(prefix: &str) -> String {
+    format!("canopy/{prefix}")
+}
+
+impl FusionLinks {
+    /// Opens the links of node `me` as configured in `s` (listen endpoints already resolved by
+    /// the launcher). Fault schedules are in simulated seconds on `clock`.
+    pub fn open(s: &Scenario, prefix: &str, me: NodeId, incarnation: u32) -> Result<Self> {
+        let clock = Arc::new(ManualClock::new(0.0));
+        let dyn_clock: Arc<dyn Clock> = clock.clone();
+        let mine: Vec<(usize, crate::network::LinkSpec)> = effective_links(s)
+            .into_iter()
+            .enumerate()
+            .filter(|(_, l)| l.a == me || l.b == me)
+            .collect();
+        let mut listen = Vec::new();
+        let mut connect = Vec::new();
+        for (i, l) in &mine {
+            if l.transport == TransportKind::Net {
+                let ep = l
+                    .listen
+                    .clone()
+                    .with_context(|| format!("link[{i}] has no resolved listen endpoint"))?;
+                if l.a == me {
+                    listen.push(ep);
+                } else {
+                    connect.push(ep);
+                }
+            }
+        }
+        let zenoh = if listen.is_empty() && connect.is_empty() {
+            None
+        } else {
+            let mut cfg = ZenohConfig::new(zenoh_prefix(prefix), listen, connect);
+            if let (Some(u), Some(p)) = (&s.secrets.zenoh_user, &s.secrets.zenoh_password) {
+                cfg.auth = Some(ZenohAuth {
+                    user: u.clone(),
+                    password: p.clone(),
+                    accept: vec![(u.clone(), p.clone())],
+                });
+            }
+            Some(ZenohTransport::open(me, cfg).context("opening the zenoh session")?)
+        };
+        let mut links = BTreeMap::new();
+        for (li, l) in &mine {
+            let (peer, end) = if l.a == me { (l.b, 0u32) } else { (l.a, 1u32) };
+            let inner: Box<dyn Link> = match l.transport {
+                TransportKind::Shm => Box::new(
+                    IceoryxLink::connect(LinkConfig::new(me, peer), IceoryxConfig::new(prefix))
+                        .with_context(|| format!("opening the iceoryx2 link {me}-{peer}"))?,
+                ),
+                TransportKind::Net => Box::new(
+                    zenoh
+                        .as_ref()
+                        .expect("opened above for net links")
+                        .link(peer, canopy_transport::codec::DEFAULT_MAX_BODY_LEN)
+                        .with_context(|| format!("opening the zenoh link {me}-{peer}"))?,
+                ),
+            };
+            // Same seeds as `canopy sim` for a first start; a restarted process draws anew.
+            let seed = vehicle_seed(s.world.seed ^ 0xfa017, ((*li as u32) << 1) | end)
+                ^ u64::from(incarnation).wrapping_mul(0x9e37_79b9_7f4a_7c15);
+            let faulty = FaultyLink::new(
+                inner,
+                l.faults.to_transport(seed, &s.partitions),
+                dyn_clock.clone(),
+            )
+            .with_context(|| format!("fault layer of link {me}-{peer}"))?;
+            links.insert(peer, faulty);
+        }
+        Ok(Self {
+            links,
+            clock,
+            _zenoh: zenoh,
+        })
+    }
+
+    /// Sends DDF messages (undeliverable ones are counted by the link; the DDF recovers).
+    pub fn send(&mut self, now: f64, out: Vec<Outgoing>) {
+        for o in out {
+            if let Some(link) = self.links.get_mut(&o.to.0) {
+                let _ = send_ddf(link, now, o.message);
+            }
+        }
+    }
+
+    /// Everything waiting on the links now: peer events and decoded DDF messages, per peer in
+    /// arrival order (events first).
+    pub fn poll(&mut self) -> Vec<(NodeId, Vec<LinkEvent>, Vec<DdfMessage>)> {
+        let mut out = Vec::new();
+        for (&peer, link) in &mut self.links {
+            let mut events = Vec::new();
+            while let Some(e) = link.poll_event() {
+                events.push(e);
+            }
+            let mut msgs = Vec::new();
+            while let Ok(Some(m)) = link.try_recv() {
+                // Bodies that fail to decode are counted by the link (`rejected.body`).
+                if let Some(Ok(msg)) = decode_ddf(&m) {
+                    msgs.push(msg);
+                }
+            }
+            if !events.is_empty() || !msgs.is_empty() {
+                out.push((peer, events, msgs));
+            }
+        }
+        out
+    }
+}
+
+/// The monitor-facing report of one fusion link.
+pub(crate) fn link_report(
+    peer: NodeId,
+    link: &FusionLink,
+    channel: Option<canopy_fusion::ddf::ChannelView>,
+    naive_bytes: u64,
+) -> protocol::LinkReport {
+    let st = link.stats();
+    let fs = link.fault_stats();
+    protocol::LinkReport {
+        peer,
+        sent_messages: st.sent_messages,
+        sent_bytes: st.sent_bytes,
+        received_messages: st.received_messages,
+        received_bytes: st.received_bytes,
+        dropped_send: st.dropped_no_peer + st.dropped_overflow,
+        dropped_faults: fs.dropped(),
+        rejected_transport: st.rejected.total(),
+        rejected_channel: channel.map_or(0, |c| c.stats.rejected),
+        up: link.peer_state() == PeerState::Up,
+        ci: channel.is_some_and(|c| c.mode != canopy_fusion::ddf::LinkMode::Exact),
+        channel: channel.map(|c| c.stats).unwrap_or_default(),
+        naive_bytes,
+    }
+}
+
+/// Bytes of one naive round from a node holding `features` features: its whole map information
+/// (Y, y) as dense f64 (the reference of the bandwidth ratio, as in `canopy sim`).
+pub(crate) fn naive_round_bytes(features: usize) -> u64 {
+    let n = features as u64;
+    8 * (9 * n * n + 3 * n)
+}
+
+/// A fresh random DDF epoch for this process start (never 0).
+pub(crate) fn fresh_epoch() -> u64 {
+    rand::random::<u64>() | 1
+}

@@ -1,0 +1,1284 @@
+//! `canopy run`: the launcher, which is also the monitor of the run.
+//!
+//! 1. Resolves the scenario (duration and baseline overrides, a free loopback port for every
+//!    `net` link without `listen`, absolute replay paths, secrets removed — they reach the
+//!    children through the environment) and writes it to `OUT/scenario.toml`; chooses a fresh
+//!    iceoryx2 prefix for the run.
+//! 2. Opens its links to every process, then spawns the world, one process per vehicle and, in
+//!    central mode, the hub (`canopy role …`, each in its own process group so a terminal's
+//!    Ctrl-C reaches only the monitor; output to `OUT/logs/`).
+//! 3. Gathers reports (estimates, maps, truth, link statistics), shows progress over simulated
+//!    time, runs the scenario's `[[event]]`s (SIGKILL a vehicle when its reported time reaches
+//!    `at_s`, restart it with a new incarnation once the team reaches `at_s + restart_after_s`;
+//!    kill the hub), reaps children and reports any that exit unexpectedly (status or signal).
+//! 4. Meanwhile runs the centralized reference in a thread ([`crate::baseline`]).
+//! 5. At the end (or on Ctrl-C, or when the world fails) asks every process to shut down,
+//!    waits (then SIGTERM, then SIGKILL), removes the run's iceoryx2 leftovers, and builds the
+//!    [`RunRecord`] and [`RunChecks`] from what was gathered.
+
+use std::collections::BTreeMap;
+use std::io::IsTerminal;
+use std::os::unix::process::CommandExt;
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, ExitStatus, Stdio};
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::time::{Duration, Instant};
+
+use anyhow::{Context, Result};
+use canopy_fusion::ins::{VehicleCovariance, VehicleState, VehicleVector};
+use canopy_fusion::sensor::FeatureId;
+use canopy_transport::iceoryx::{IceoryxLink, remove_run_leftovers, unique_run_prefix};
+use canopy_transport::link::Link;
+use canopy_transport::{MessageKind, NodeId};
+use nalgebra::{Matrix3, Vector3};
+use serde::{Deserialize, Serialize};
+
+use super::protocol::{
+    Control, EstimateReport, FeatureReport, FrameAssociations, LinkReport, MONITOR_ID, Outcome,
+    Report, TruthReport, VehicleCounters, WORLD_ID,
+};
+use super::{ENV_ZENOH_PASSWORD, ENV_ZENOH_USER, control_link, decode_body, send_body};
+use crate::baseline::{BaselineRun, run_reference};
+use crate::metrics::{estimate_sample, feature_confidence_ratio, feature_record, pose_sample};
+use crate::network::{EventKind, FusionMode, TransportKind, effective_links, node_names};
+use crate::record::{EventRecord, LinkRecord, LinkSample, RunRecord, VehicleRecord};
+use crate::scenario::Scenario;
+use crate::world::{TruthSample, World};
+
+/// Options of a multi-process run.
+#[derive(Debug, Clone)]
+pub struct LaunchOptions {
+    /// Output directory (created).
+    pub out: PathBuf,
+    /// Override of `[run].duration_s`.
+    pub duration: Option<f64>,
+    /// Override of `[run].baseline`.
+    pub baseline: Option<bool>,
+    /// No progress display.
+    pub quiet: bool,
+    /// Network namespace per vehicle id: the vehicle process runs under `ip netns exec NS`.
+    pub netns: BTreeMap<u32, String>,
+    /// The `canopy` executable to spawn (default: this executable).
+    pub exe: Option<PathBuf>,
+    /// Set to stop the run early (Ctrl-C); outputs are still written.
+    pub stop: Arc<AtomicBool>,
+}
+
+/// How a process of the run ended.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ProcessRecord {
+    /// `world`, `hub` or the vehicle's name.
+    pub name: String,
+    /// Incarnation (restarts of a vehicle).
+    pub incarnation: u32,
+    /// OS process id.
+    pub pid: u32,
+    /// Exit code, when it exited.
+    pub exit_code: Option<i32>,
+    /// Signal that ended it, when one did.
+    pub signal: Option<i32>,
+    /// It was killed on purpose (a scheduled crash or hub loss, or a straggler at shutdown).
+    pub killed_by_monitor: bool,
+    /// Its output contains a Rust panic message.
+    pub panicked: bool,
+    /// Simulated time when it ended (team time) [s].
+    pub ended_at: f64,
+    /// Its log file.
+    pub log: PathBuf,
+}
+
+impl ProcessRecord {
+    /// Exited with status 0.
+    pub fn clean_exit(&self) -> bool {
+        self.exit_code == Some(0)
+    }
+}
+
+/// One confidence check of a vehicle's map report against the centralized reference.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ConfidenceSample {
+    /// Vehicle name.
+    pub vehicle: String,
+    /// Time of the map report [s].
+    pub t: f64,
+    /// Time of the reference snapshot it was compared with [s] (t + the flow-control lead,
+    /// capped at the end: no vehicle can hold information gathered after that).
+    pub reference_t: f64,
+    /// Largest λ_max(P_ref · P_i⁻¹) over the features common to both (≤ 1 when the vehicle is
+    /// never more confident than all the team's data allows).
+    pub ratio: f64,
+    /// The feature where it occurred.
+    pub feature: FeatureId,
+    /// Features compared.
+    pub features: usize,
+}
+
+/// Counters of one vehicle, summed over its incarnations.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct VehicleCheck {
+    /// Vehicle name.
+    pub name: String,
+    /// Final counters per incarnation.
+    pub counters: Vec<VehicleCounters>,
+    /// Estimate reports received.
+    pub estimate_reports: usize,
+    /// Map reports received.
+    pub map_reports: usize,
+    /// Time of the last estimate report [s].
+    pub last_report_t: f64,
+    /// Features in the last map.
+    pub final_map_features: usize,
+    /// Map size at every map report: (t, features).
+    pub map_sizes: Vec<(f64, usize)>,
+    /// Times it was initialised (1 + restarts).
+    pub initialisations: usize,
+}
+
+/// One end of a fusion link at the end of the run.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct LinkEndCheck {
+    /// This end's node name.
+    pub node: String,
+    /// The other end's node name.
+    pub peer: String,
+    /// Incarnation of this end's last report.
+    pub incarnation: u32,
+    /// Counters.
+    pub report: LinkReport,
+}
+
+/// What `checks.json` holds: process exits, consistency checks against the reference, counters.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct RunChecks {
+    /// Every process started, with how it ended.
+    pub processes: Vec<ProcessRecord>,
+    /// Confidence of every map report against the reference (empty without baseline).
+    pub confidence: Vec<ConfidenceSample>,
+    /// Largest of `confidence[].ratio`.
+    pub max_confidence_ratio: Option<f64>,
+    /// Flow-control lead used for the reference time [s].
+    pub lead_s: f64,
+    /// Per vehicle.
+    pub vehicles: Vec<VehicleCheck>,
+    /// The last report of each end of each fusion link (counters summed over incarnations,
+    /// channel statistics of the current one).
+    pub link_ends: Vec<LinkEndCheck>,
+    /// Hub: DDF messages it rejected.
+    pub hub_rejected: u64,
+    /// The run was interrupted (Ctrl-C).
+    pub interrupted: bool,
+    /// Why the run failed, if it did.
+    pub failure: Option<String>,
+    /// iceoryx2 prefix of the run.
+    pub prefix: String,
+}
+
+/// The outcome of a multi-process run.
+#[derive(Debug)]
+pub struct LaunchOutcome {
+    /// What was gathered.
+    pub record: RunRecord,
+    /// Process and consistency checks.
+    pub checks: RunChecks,
+}
+
+fn ms(t: f64) -> i64 {
+    (t * 1000.0).round() as i64
+}
+
+struct Proc {
+    name: String,
+    vehicle: Option<u32>,
+    incarnation: u32,
+    child: Child,
+    planned_kill: bool,
+    status: Option<ExitStatus>,
+    ended_at: f64,
+    log: PathBuf,
+}
+
+#[derive(Default)]
+struct LinkStream {
+    incarnation: u32,
+    base: LinkReport,
+    last: LinkReport,
+    /// (t, cumulative over incarnations)
+    samples: Vec<(f64, LinkReport)>,
+}
+
+fn add(a: &LinkReport, b: &LinkReport) -> LinkReport {
+    LinkReport {
+        peer: b.peer,
+        sent_messages: a.sent_messages + b.sent_messages,
+        sent_bytes: a.sent_bytes + b.sent_bytes,
+        received_messages: a.received_messages + b.received_messages,
+        received_bytes: a.received_bytes + b.received_bytes,
+        dropped_send: a.dropped_send + b.dropped_send,
+        dropped_faults: a.dropped_faults + b.dropped_faults,
+        rejected_transport: a.rejected_transport + b.rejected_transport,
+        rejected_channel: a.rejected_channel + b.rejected_channel,
+        up: b.up,
+        ci: a.ci || b.ci,
+        channel: b.channel,
+        naive_bytes: a.naive_bytes + b.naive_bytes,
+    }
+}
+
+impl LinkStream {
+    fn push(&mut self, t: f64, incarnation: u32, r: LinkReport) {
+        if incarnation != self.incarnation {
+            self.base = add(&self.base, &self.last);
+            self.incarnation = incarnation;
+        }
+        self.last = r;
+        self.samples.push((t, add(&self.base, &r)));
+    }
+    fn at(&self, t: f64) -> Option<&LinkReport> {
+        let k = self.samples.partition_point(|(ts, _)| *ts <= t + 1e-6);
+        k.checked_sub(1).map(|k| &self.samples[k].1)
+    }
+}
+
+#[derive(Default)]
+struct Gathered {
+    name: String,
+    replay: bool,
+    incarnation: u32,
+    alive: bool,
+    last_t: f64,
+    finished: bool,
+    estimates: Vec<(f64, Vec<f64>, Vec<f64>)>,
+    maps: Vec<(f64, Vec<FeatureReport>)>,
+    last_map: Option<(f64, Vec<FeatureReport>)>,
+    associations: Vec<FrameAssociations>,
+    counters: BTreeMap<u32, VehicleCounters>,
+    initialisations: usize,
+    restarts: u32,
+}
+
+struct Monitor {
+    s: Scenario,
+    out: PathBuf,
+    prefix: String,
+    exe: PathBuf,
+    netns: BTreeMap<u32, String>,
+    names: BTreeMap<u32, String>,
+    links: BTreeMap<NodeId, IceoryxLink>,
+    procs: Vec<Proc>,
+    vehicles: BTreeMap<u32, Gathered>,
+    truth: BTreeMap<(u32, i64), TruthReport>,
+    true_ids: BTreeMap<(u32, i64), Vec<FeatureId>>,
+    link_streams: BTreeMap<(NodeId, NodeId), LinkStream>,
+    events: Vec<EventRecord>,
+    world_t: f64,
+    world_finished: bool,
+    hub_rejected: u64,
+    hub_alive: bool,
+    /// Vehicles the world holds its streams for (a scheduled restart).
+    restart_requests: BTreeMap<u32, f64>,
+    failure: Option<String>,
+    last_activity: Instant,
+}
+
+/// Resolves a scenario for a run: overrides, free ports for `net` links without `listen`,
+/// absolute replay paths. Returns it and the secrets (removed from it).
+pub fn resolve(
+    mut s: Scenario,
+    opts: &LaunchOptions,
+) -> Result<(Scenario, Option<(String, String)>)> {
+    if let Some(d) = opts.duration {
+        s.run.duration_s = d;
+    }
+    if let Some(b) = opts.baseline {
+        s.run.baseline = b;
+    }
+    for l in &mut s.links {
+        if l.transport == TransportKind::Net && l.listen.is_none() {
+            let sock = std::net::TcpListener::bind("127.0.0.1:0")
+                .context("finding a free loopback port for a net link")?;
+            let port = sock.local_addr()?.port();
+            l.listen = Some(format!("tcp/127.0.0.1:{port}"));
+        }
+    }
+    for v in &mut s.vehicles {
+        if let Some(r) = v.replay.as_mut() {
+            for p in [&mut r.imu, &mut r.observations, &mut r.initial] {
+                *p = std::fs::canonicalize(&*p)
+                    .with_context(|| format!("replay log {}", p.display()))?;
+            }
+        }
+    }
+    let secrets = match (s.secrets.zenoh_user.take(), s.secrets.zenoh_password.take()) {
+        (Some(u), Some(p)) => Some((u, p)),
+        _ => None,
+    };
+    s.validate().context("the resolved scenario")?;
+    Ok((s, secrets))
+}
+
+impl Monitor {
+    fn spawn(
+        &mut self,
+        name: &str,
+        vehicle: Option<u32>,
+        incarnation: u32,
+        secrets: &Option<(String, String)>,
+    ) -> Result<()> {
+        let logs = self.out.join("logs");
+        std::fs::create_dir_all(&logs)?;
+        let log = logs.join(if incarnation == 0 {
+            format!("{name}.log")
+        } else {
+            format!("{name}.{incarnation}.log")
+        });
+        let file =
+            std::fs::File::create(&log).with_context(|| format!("creating {}", log.display()))?;
+        let scenario = self.out.join("scenario.toml");
+        let mut args: Vec<String> = vec!["role".into()];
+        match (name, vehicle) {
+            ("world", _) => args.push("world".into()),
+            ("hub", _) => args.push("hub".into()),
+            (_, Some(id)) => {
+                args.extend(["vehicle".into(), "--id".into(), id.to_string()]);
+                args.extend(["--incarnation".into(), incarnation.to_string()]);
+            }
+            _ => unreachable!("a role without vehicle id is the world or the hub"),
+        }
+        args.extend([
+            "--scenario".into(),
+            scenario.display().to_string(),
+            "--prefix".into(),
+            self.prefix.clone(),
+        ]);
+        let mut cmd = match vehicle.and_then(|id| self.netns.get(&id)) {
+            Some(ns) => {
+                let mut c = Command::new("ip");
+                c.args(["netns", "exec", ns]).arg(&self.exe);
+                c
+            }
+            None => Command::new(&self.exe),
+        };
+        cmd.args(&args)
+            .stdin(Stdio::null())
+            .stdout(file.try_clone()?)
+            .stderr(file)
+            .process_group(0);
+        if let Some((u, p)) = secrets {
+            cmd.env(ENV_ZENOH_USER, u).env(ENV_ZENOH_PASSWORD, p);
+        }
+        let child = cmd
+            .spawn()
+            .with_context(|| format!("spawning the {name} process ({})", self.exe.display()))?;
+        self.procs.push(Proc {
+            name: name.to_string(),
+            vehicle,
+            incarnation,
+            child,
+            planned_kill: false,
+            status: None,
+            ended_at: 0.0,
+            log,
+        });
+        Ok(())
+    }
+
+    fn team_time(&self) -> f64 {
+        let live: Vec<f64> = self
+            .vehicles
+            .values()
+            .filter(|v| v.alive)
+            .map(|v| v.last_t)
+            .collect();
+        if live.is_empty() {
+            self.world_t
+        } else {
+            live.into_iter().fold(f64::INFINITY, f64::min)
+        }
+    }
+
+    fn on_report(&mut self, from: NodeId, r: Report) {
+        self.last_activity = Instant::now();
+        if from == WORLD_ID {
+            match r {
+                Report::Truth {
+                    t, samples, frames, ..
+                } => {
+                    self.world_t = self.world_t.max(t);
+                    for s in samples {
+                        self.truth.insert((s.vehicle, ms(s.t)), s);
+                    }
+                    for f in frames {
+                        self.true_ids.insert((f.vehicle, ms(f.t)), f.ids);
+                    }
+                }
+                Report::Initialized {
+                    vehicle,
+                    incarnation,
+                    t,
+                } => {
+                    if let Some(v) = self.vehicles.get_mut(&vehicle) {
+                        v.initialisations += 1;
+                        v.incarnation = incarnation;
+                        v.last_t = t;
+                    }
+                }
+                Report::Finished { t } => {
+                    self.world_t = self.world_t.max(t);
+                    self.world_finished = true;
+                }
+                Report::Waiting { vehicle, t, .. } => {
+                    self.world_t = self.world_t.max(t);
+                    self.restart_requests.insert(vehicle, t);
+                }
+                Report::Failed { reason } => {
+                    self.failure.get_or_insert(format!("world: {reason}"));
+                }
+                _ => {}
+            }
+            return;
+        }
+        if from == self.s.fusion.hub_id && self.s.fusion.mode == FusionMode::Central {
+            if let Report::Hub { t, links, rejected } = r {
+                self.hub_rejected = rejected;
+                for l in links {
+                    self.link_streams
+                        .entry((from, l.peer))
+                        .or_default()
+                        .push(t, 0, l);
+                }
+            }
+            return;
+        }
+        let Some(v) = self.vehicles.get_mut(&from) else {
+            return;
+        };
+        match r {
+            Report::Estimate(EstimateReport {
+                t,
+                state,
+                covariance,
+                counters,
+                links,
+                associations,
+            }) => {
+                v.last_t = v.last_t.max(t);
+                v.estimates.push((t, state, covariance));
+                v.counters.insert(v.incarnation, counters);
+                v.associations.extend(associations);
+                for l in links {
+                    self.link_streams
+                        .entry((from, l.peer))
+                        .or_default()
+                        .push(t, v.incarnation, l);
+                }
+            }
+            Report::Map(m) => {
+                v.last_t = v.last_t.max(m.t);
+                v.maps.push((m.t, m.features.clone()));
+                v.last_map = Some((m.t, m.features));
+            }
+            Report::Finished { t } => {
+                v.last_t = v.last_t.max(t);
+                v.finished = true;
+            }
+            Report::Failed { reason } => {
+                eprintln!("{}: {reason}", v.name);
+            }
+            _ => {}
+        }
+    }
+
+    fn poll_links(&mut self) -> bool {
+        let mut any = false;
+        let ids: Vec<NodeId> = self.links.keys().copied().collect();
+        for id in ids {
+            let mut got = Vec::new();
+            {
+                let link = self.links.get_mut(&id).expect("exists");
+                while link.poll_event().is_some() {}
+                for _ in 0..256 {
+                    match link.try_recv() {
+                        Ok(Some(m)) => {
+                            if let Some(r) = decode_body::<Report>(&m) {
+                                got.push(r);
+                            }
+                        }
+                        _ => break,
+                    }
+                }
+            }
+            any |= !got.is_empty();
+            for r in got {
+                self.on_report(id, r);
+            }
+        }
+        any
+    }
+
+    fn send_control(&mut self, to: NodeId) {
+        if let Some(l) = self.links.get_mut(&to) {
+            let _ = send_body(l, MessageKind::CONTROL, 0, 0.0, &Control::Shutdown);
+        }
+    }
+
+    fn kill(&mut self, name: &str, signal: nix::sys::signal::Signal, planned: bool) {
+        let t = self.team_time();
+        for p in self
+            .procs
+            .iter_mut()
+            .filter(|p| p.name == name && p.status.is_none())
+        {
+            p.planned_kill |= planned;
+            p.ended_at = t;
+            let _ = nix::sys::signal::kill(nix::unistd::Pid::from_raw(p.child.id() as i32), signal);
+        }
+    }
+
+    /// Reaps exited children; reports unexpected exits.
+    fn reap(&mut self) {
+        let t = self.team_time();
+        for p in &mut self.procs {
+            if p.status.is_some() {
+                continue;
+            }
+            if let Ok(Some(st)) = p.child.try_wait() {
+                p.status = Some(st);
+                if p.ended_at == 0.0 {
+                    p.ended_at = t;
+                }
+                let expected = p.planned_kill
+                    || (st.success() && (self.world_finished || self.failure.is_some()));
+                if !expected {
+                    eprintln!(
+                        "process {} (incarnation {}, pid {}) ended unexpectedly: {}; see {}",
+                        p.name,
+                        p.incarnation,
+                        p.child.id(),
+                        describe(&st),
+                        p.log.display()
+                    );
+                    self.events.push(EventRecord {
+                        t,
+                        until: None,
+                        kind: "process-exit".into(),
+                        subject: format!("{} ({})", p.name, describe(&st)),
+                    });
+                }
+                if let Some(id) = p.vehicle
+                    && let Some(v) = self.vehicles.get_mut(&id)
+                    && v.incarnation == p.incarnation
+                {
+                    v.alive = false;
+                }
+                if p.name == "hub" {
+                    self.hub_alive = false;
+                }
+                if p.name == "world" && !st.success() {
+                    self.failure
+                        .get_or_insert(format!("the world process ended: {}", describe(&st)));
+                }
+            }
+        }
+    }
+
+    fn running(&self) -> usize {
+        self.procs.iter().filter(|p| p.status.is_none()).count()
+    }
+
+    /// Shuts everything down: Shutdown, then SIGTERM, then SIGKILL.
+    fn shutdown(&mut self) {
+        let ids: Vec<NodeId> = self.links.keys().copied().collect();
+        // Vehicles and hub first (they send final reports), then the world.
+        for id in ids.iter().filter(|&&i| i != WORLD_ID) {
+            self.send_control(*id);
+        }
+        self.send_control(WORLD_ID);
+        let deadline = Instant::now() + Duration::from_secs(10);
+        while self.running() > 0 && Instant::now() < deadline {
+            self.poll_links();
+            self.reap();
+            std::thread::sleep(Duration::from_millis(5));
+        }
+        for sig in [
+            nix::sys::signal::Signal::SIGTERM,
+            nix::sys::signal::Signal::SIGKILL,
+        ] {
+            if self.running() == 0 {
+                break;
+            }
+            let names: Vec<String> = self
+                .procs
+                .iter()
+                .filter(|p| p.status.is_none())
+                .map(|p| p.name.clone())
+                .collect();
+            for n in names {
+                eprintln!("{n} did not stop; sending {sig}");
+                self.kill(&n, sig, true);
+            }
+            let deadline = Instant::now() + Duration::from_secs(3);
+            while self.running() > 0 && Instant::now() < deadline {
+                self.poll_links();
+                self.reap();
+                std::thread::sleep(Duration::from_millis(5));
+            }
+        }
+        // Anything still there is waited for (SIGKILL cannot be ignored).
+        for p in &mut self.procs {
+            if p.status.is_none() {
+                p.status = p.child.wait().ok();
+            }
+        }
+        self.poll_links();
+    }
+}
+
+fn describe(st: &ExitStatus) -> String {
+    use std::os::unix::process::ExitStatusExt;
+    match (st.code(), st.signal()) {
+        (Some(c), _) => format!("exit status {c}"),
+        (None, Some(s)) => {
+            let name = nix::sys::signal::Signal::try_from(s)
+                .map_or_else(|_| s.to_string(), |x| x.to_string());
+            format!("killed by signal {name}")
+        }
+        _ => "unknown status".into(),
+    }
+}
+
+/// Runs a scenario as real processes and gathers the run. The scenario must be valid.
+pub fn launch(s: Scenario, opts: &LaunchOptions) -> Result<LaunchOutcome> {
+    let started = Instant::now();
+    std::fs::create_dir_all(&opts.out)
+        .with_context(|| format!("creating {}", opts.out.display()))?;
+    let (s, secrets) = resolve(s, opts)?;
+    std::fs::write(opts.out.join("scenario.toml"), s.to_toml_string())
+        .with_context(|| format!("writing {}", opts.out.join("scenario.toml").display()))?;
+    let world = World::new(&s.world, s.world.seed).context("building the world")?;
+    let exe = match &opts.exe {
+        Some(e) => e.clone(),
+        None => std::env::current_exe().context("locating the canopy executable")?,
+    };
+    let prefix = unique_run_prefix();
+    let names = node_names(&s);
+    let duration = s.run.duration_s;
+
+    let mut m = Monitor {
+        s: s.clone(),
+        out: opts.out.clone(),
+        prefix: prefix.clone(),
+        exe,
+        netns: opts.netns.clone(),
+        names: names.clone(),
+        links: BTreeMap::new(),
+        procs: Vec::new(),
+        vehicles: s
+            .vehicles
+            .iter()
+            .map(|v| {
+                (
+                    v.id,
+                    Gathered {
+                        name: v.display_name(),
+                        replay: v.replay.is_some(),
+                        alive: true,
+                        ..Default::default()
+                    },
+                )
+            })
+            .collect(),
+        truth: BTreeMap::new(),
+        true_ids: BTreeMap::new(),
+        link_streams: BTreeMap::new(),
+        events: Vec::new(),
+        world_t: 0.0,
+        world_finished: false,
+        hub_rejected: 0,
+        hub_alive: s.fusion.mode == FusionMode::Central,
+        restart_requests: Default::default(),
+        failure: None,
+        last_activity: Instant::now(),
+    };
+    // Links first, so the children find the monitor.
+    m.links
+        .insert(WORLD_ID, control_link(&prefix, MONITOR_ID, WORLD_ID, 256)?);
+    for v in &s.vehicles {
+        m.links
+            .insert(v.id, control_link(&prefix, MONITOR_ID, v.id, 256)?);
+    }
+    if s.fusion.mode == FusionMode::Central {
+        m.links.insert(
+            s.fusion.hub_id,
+            control_link(&prefix, MONITOR_ID, s.fusion.hub_id, 256)?,
+        );
+    }
+
+    // The centralized reference, in a thread.
+    let base_stop = Arc::new(AtomicBool::new(false));
+    let base_progress = Arc::new(AtomicU64::new(0f64.to_bits()));
+    let baseline = s.run.baseline.then(|| {
+        let (sc, st, pr) = (s.clone(), base_stop.clone(), base_progress.clone());
+        std::thread::Builder::new()
+            .name("baseline".into())
+            .spawn(move || run_reference(&sc, duration, Some(&st), Some(&pr)))
+    });
+    let baseline = baseline
+        .transpose()
+        .context("starting the reference thread")?;
+
+    let spawn_all = |m: &mut Monitor| -> Result<()> {
+        m.spawn("world", None, 0, &secrets)?;
+        if s.fusion.mode == FusionMode::Central {
+            m.spawn("hub", None, 0, &secrets)?;
+        }
+        for v in &s.vehicles {
+            m.spawn(&v.display_name(), Some(v.id), 0, &secrets)?;
+        }
+        Ok(())
+    };
+    let spawned = spawn_all(&mut m);
+    if let Err(e) = &spawned {
+        m.failure = Some(format!("{e:#}"));
+    }
+
+    // Scheduled events: (index, stage) with stage 0 = kill, 1 = restart.
+    let mut pending: Vec<(usize, u8)> = s
+        .events
+        .iter()
+        .enumerate()
+        .flat_map(|(i, e)| {
+            let mut v = vec![(i, 0u8)];
+            if e.restart_after_s.is_some() {
+                v.push((i, 1));
+            }
+            v
+        })
+        .collect();
+    let pb = if opts.quiet {
+        indicatif::ProgressBar::hidden()
+    } else {
+        crate::cli::progress_bar(duration, false)
+    };
+    let plain_progress = !opts.quiet && !std::io::stderr().is_terminal();
+    // Event lines: above the progress bar, or plain lines when stderr is not a terminal.
+    let say = |pb: &indicatif::ProgressBar, line: String| {
+        if plain_progress {
+            eprintln!("{line}");
+        } else if !opts.quiet {
+            pb.println(line);
+        }
+    };
+    let mut next_plain = 10.0;
+    let mut interrupted = false;
+    let stall = Duration::from_secs(300);
+
+    while m.failure.is_none() {
+        if opts.stop.load(Ordering::Relaxed) {
+            interrupted = true;
+            break;
+        }
+        let busy = m.poll_links();
+        m.reap();
+        let team = m.team_time();
+        pb.set_position(team.max(0.0) as u64);
+        if plain_progress && team >= next_plain {
+            eprintln!("progress: t = {team:.1} s of {duration:.1} s");
+            next_plain += 10.0;
+        }
+        // Events.
+        let mut fired = Vec::new();
+        for (k, &(i, stage)) in pending.iter().enumerate() {
+            let e = &s.events[i];
+            let due = match (e.kind, stage) {
+                (EventKind::Crash, 0) => {
+                    let id = e.vehicle.expect("validated");
+                    m.vehicles
+                        .get(&id)
+                        .is_some_and(|v| v.alive && v.last_t >= e.at_s)
+                        || m.restart_requests.contains_key(&id)
+                }
+                (EventKind::HubLoss, _) => team >= e.at_s,
+                (_, _) => {
+                    // Restart once crashed, when the team reaches the restart time or the world
+                    // holds its streams for it (which it does at exactly that time).
+                    let id = e.vehicle.expect("validated");
+                    let crashed = !pending.iter().any(|&(j, st)| j == i && st == 0);
+                    crashed
+                        && (team >= e.at_s + e.restart_after_s.unwrap_or(0.0)
+                            || m.restart_requests.contains_key(&id))
+                }
+            };
+            if due {
+                fired.push(k);
+            }
+        }
+        for k in fired.into_iter().rev() {
+            let (i, stage) = pending.remove(k);
+            let e = s.events[i].clone();
+            let t = m.team_time();
+            match (e.kind, stage) {
+                (EventKind::Crash, 0) => {
+                    let id = e.vehicle.expect("validated");
+                    let name = names[&id].clone();
+                    let t = m.vehicles.get(&id).map_or(t, |v| v.last_t);
+                    m.kill(&name, nix::sys::signal::Signal::SIGKILL, true);
+                    if let Some(v) = m.vehicles.get_mut(&id) {
+                        v.alive = false;
+                    }
+                    say(
+                        &pb,
+                        format!("t = {t:.1} s: {name} killed with SIGKILL (scheduled crash)"),
+                    );
+                    m.events.push(EventRecord {
+                        t,
+                        until: e.restart_after_s.map(|r| e.at_s + r),
+                        kind: "crash".into(),
+                        subject: name,
+                    });
+                }
+                (EventKind::Crash, _) => {
+                    let id = e.vehicle.expect("validated");
+                    let name = names[&id].clone();
+                    // The world restarts it at exactly the scheduled time when it holds the
+                    // streams for it.
+                    let t = m.restart_requests.get(&id).copied().unwrap_or(t);
+                    let inc = {
+                        let v = m.vehicles.get_mut(&id).expect("validated");
+                        v.restarts += 1;
+                        v.alive = true;
+                        v.last_t = t;
+                        v.restarts
+                    };
+                    m.vehicles.get_mut(&id).expect("validated").incarnation = inc;
+                    m.restart_requests.remove(&id);
+                    if let Err(err) = m.spawn(&name, Some(id), inc, &secrets) {
+                        m.failure = Some(format!("restarting {name}: {err:#}"));
+                    }
+                    say(
+                        &pb,
+                        format!("t = {t:.1} s: {name} restarted (incarnation {inc})"),
+                    );
+                    m.events.push(EventRecord {
+                        t,
+                        until: None,
+                        kind: "restart".into(),
+                        subject: name,
+                    });
+                }
+                (EventKind::HubLoss, _) => {
+                    m.kill("hub", nix::sys::signal::Signal::SIGKILL, true);
+                    m.hub_alive = false;
+                    say(
+                        &pb,
+                        format!("t = {t:.1} s: hub killed with SIGKILL (hub loss)"),
+                    );
+                    m.events.push(EventRecord {
+                        t,
+                        until: None,
+                        kind: "hub-loss".into(),
+                        subject: "hub".into(),
+                    });
+                }
+            }
+        }
+        // Done: the world reached the end and every live vehicle finished its stream.
+        let vehicles_done = m.vehicles.values().all(|v| !v.alive || v.finished);
+        if m.world_finished && vehicles_done {
+            break;
+        }
+        if m.procs
+            .iter()
+            .any(|p| p.name == "world" && p.status.is_some())
+            && !m.world_finished
+        {
+            m.failure
+                .get_or_insert("the world process ended before the end of the run".into());
+        }
+        if m.last_activity.elapsed() > stall {
+            m.failure = Some(format!(
+                "no report for {} s: the run stalled",
+                stall.as_secs()
+            ));
+        }
+        if !busy {
+            std::thread::sleep(Duration::from_millis(2));
+        }
+    }
+    pb.finish_and_clear();
+    m.shutdown();
+    let removed = remove_run_leftovers(&prefix);
+    tracing::debug!(removed, "iceoryx2 leftovers removed");
+
+    let team_end = m.team_time().max(m.world_t.min(duration));
+    if interrupted || m.failure.is_some() {
+        base_stop.store(true, Ordering::Relaxed);
+    }
+    let baseline: Option<BaselineRun> = match baseline {
+        None => None,
+        Some(h) => match h.join() {
+            Ok(Ok(b)) => Some(b),
+            Ok(Err(e)) => {
+                eprintln!("the centralized reference failed: {e}");
+                None
+            }
+            Err(_) => {
+                eprintln!("the centralized reference thread panicked");
+                None
+            }
+        },
+    };
+    let record_end = if interrupted || m.failure.is_some() {
+        team_end.min(duration)
+    } else {
+        duration
+    };
+    let (record, checks) = assemble(&m, &world, baseline, record_end, started, interrupted);
+    Ok(LaunchOutcome { record, checks })
+}
+
+fn assemble(
+    m: &Monitor,
+    world: &World,
+    baseline: Option<BaselineRun>,
+    end: f64,
+    started: Instant,
+    interrupted: bool,
+) -> (RunRecord, RunChecks) {
+    let s = &m.s;
+    let lead = s.run.max_lead_s;
+    let audits = audit(m);
+    let mut vehicles = Vec::new();
+    let mut vchecks = Vec::new();
+    let mut confidence = Vec::new();
+    for cfg in &s.vehicles {
+        let v = &m.vehicles[&cfg.id];
+        let mut rec = VehicleRecord {
+            name: v.name.clone(),
+            restarts: v.restarts,
+            ..Default::default()
+        };
+        let mut est = v.estimates.clone();
+        est.sort_by(|a, b| a.0.total_cmp(&b.0));
+        for (t, x, p) in &est {
+            if *t > end + 1e-6 {
+                continue;
+            }
+            let state = VehicleState::from_vector(&VehicleVector::from_column_slice(x));
+            let cov = VehicleCovariance::from_row_slice(p);
+            if v.replay {
+                rec.samples.push(estimate_sample(world, *t, &state, &cov));
+            } else if let Some(tr) = m.truth.get(&(cfg.id, ms(*t))) {
+                rec.samples
+                    .push(pose_sample(world, &state, &cov, &truth_sample(world, tr)));
+            }
+        }
+        if let Some((_, feats)) = &v.last_map {
+            rec.map = feats
+                .iter()
+                .map(|f| feature_record(world, f.id, &Vector3::from(f.mean), &f.covariance()))
+                .collect();
+        }
+        let a = audits.get(&cfg.id).copied().unwrap_or_default();
+        rec.observations = a.observations;
+        rec.wrong_associations = a.wrong;
+        rec.duplicate_features = a.duplicates;
+        rec.rejected_messages = v.counters.values().map(|c| c.messages_rejected).sum();
+        vehicles.push(rec);
+        if let Some(b) = &baseline {
+            for (t, feats) in &v.maps {
+                let ref_t = (t + lead).min(b.duration);
+                let Some(snap) = b.snapshot_at_or_after(ref_t) else {
+                    continue;
+                };
+                let mut worst: Option<(f64, FeatureId)> = None;
+                let mut n = 0;
+                for f in feats {
+                    let Some(pr) = snap.covariances.get(&f.id) else {
+                        continue;
+                    };
+                    let pi: Matrix3<f64> = f.covariance();
+                    if let Some(r) = feature_confidence_ratio(&pi, pr) {
+                        n += 1;
+                        if worst.is_none_or(|(w, _)| r > w) {
+                            worst = Some((r, f.id));
+                        }
+                    }
+                }
+                if let Some((ratio, feature)) = worst {
+                    confidence.push(ConfidenceSample {
+                        vehicle: v.name.clone(),
+                        t: *t,
+                        reference_t: snap.t,
+                        ratio,
+                        feature,
+                        features: n,
+                    });
+                }
+            }
+        }
+        vchecks.push(VehicleCheck {
+            name: v.name.clone(),
+            counters: v.counters.values().copied().collect(),
+            estimate_reports: v.estimates.len(),
+            map_reports: v.maps.len(),
+            last_report_t: v.estimates.iter().map(|e| e.0).fold(f64::NAN, f64::max),
+            final_map_features: v.last_map.as_ref().map_or(0, |m| m.1.len()),
+            map_sizes: v.maps.iter().map(|(t, f)| (*t, f.len())).collect(),
+            initialisations: v.initialisations,
+        });
+    }
+    // Links: both ends' counters at every record time.
+    let mut links = Vec::new();
+    let record_dt = s.run.record_interval_s;
+    for l in effective_links(s) {
+        let (a, b) = (l.a, l.b);
+        let mut rec = LinkRecord {
+            a: m.names[&a].clone(),
+            b: m.names[&b].clone(),
+            transport: match l.transport {
+                TransportKind::Shm => "shm".into(),
+                TransportKind::Net => "net".into(),
+            },
+            ci: false,
+            naive_bytes: 0,
+            samples: Vec::new(),
+        };
+        let sa = m.link_streams.get(&(a, b));
+        let sb = m.link_streams.get(&(b, a));
+        let mut k = 0u64;
+        loop {
+            let t = (k as f64 * record_dt).min(end);
+            let ra = sa.and_then(|x| x.at(t)).copied().unwrap_or_default();
+            let rb = sb.and_then(|x| x.at(t)).copied().unwrap_or_default();
+            rec.ci |= ra.ci || rb.ci;
+            rec.naive_bytes = ra.naive_bytes + rb.naive_bytes;
+            rec.samples.push(LinkSample {
+                t,
+                bytes_ab: ra.sent_bytes,
+                bytes_ba: rb.sent_bytes,
+                messages: ra.sent_messages + rb.sent_messages,
+                drops: ra.dropped_send + rb.dropped_send + ra.dropped_faults + rb.dropped_faults,
+                rejections: ra.rejected_transport
+                    + rb.rejected_transport
+                    + ra.rejected_channel
+                    + rb.rejected_channel,
+                up: ra.up && rb.up,
+            });
+            if t >= end {
+                break;
+            }
+            k += 1;
+        }
+        links.push(rec);
+    }
+    // Events: configured outages and partitions, then what happened.
+    let mut events = Vec::new();
+    for l in effective_links(s) {
+        for w in &l.faults.outages {
+            if w[0] < end {
+                events.push(EventRecord {
+                    t: w[0],
+                    until: Some(w[1].min(end)),
+                    kind: "outage".into(),
+                    subject: l.label(&m.names),
+                });
+            }
+        }
+    }
+    for p in &s.partitions {
+        if p.start_s < end {
+            let side: Vec<String> = p
+                .side
+                .iter()
+                .map(|id| m.names.get(id).cloned().unwrap_or_default())
+                .collect();
+            events.push(EventRecord {
+                t: p.start_s,
+                until: Some(p.end_s.min(end)),
+                kind: "partition".into(),
+                subject: side.join("+"),
+            });
+        }
+    }
+    events.extend(m.events.iter().cloned());
+    events.sort_by(|a, b| a.t.total_cmp(&b.t));
+    let record = RunRecord {
+        scenario: s.run.name.clone().unwrap_or_else(|| "scenario".into()),
+        mode: s.fusion.mode.to_string(),
+        frame: world.frame().to_string(),
+        seed: s.world.seed,
+        duration: end,
+        wall_time: started.elapsed().as_secs_f64(),
+        vehicles,
+        links,
+        events,
+        baseline: baseline.map(|b| {
+            let mut v = b.vehicles;
+            for r in &mut v {
+                r.samples.retain(|x| x.t <= end + 1e-6);
+            }
+            v
+        }),
+        truth_features: world
+            .features()
+            .iter()
+            .map(|f| (f.id, [f.position_ned.x, f.position_ned.y, f.position_ned.z]))
+            .collect(),
+    };
+    let processes = m
+        .procs
+        .iter()
+        .map(|p| {
+            use std::os::unix::process::ExitStatusExt;
+            let log = std::fs::read_to_string(&p.log).unwrap_or_default();
+            ProcessRecord {
+                name: p.name.clone(),
+                incarnation: p.incarnation,
+                pid: p.child.id(),
+                exit_code: p.status.and_then(|s| s.code()),
+                signal: p.status.and_then(|s| s.signal()),
+                killed_by_monitor: p.planned_kill,
+                panicked: log.contains("panicked at"),
+                ended_at: p.ended_at,
+                log: p.log.clone(),
+            }
+        })
+        .collect();
+    let max_confidence_ratio = confidence.iter().map(|c| c.ratio).reduce(f64::max);
+    let link_ends = m
+        .link_streams
+        .iter()
+        .filter_map(|((node, peer), st)| {
+            Some(LinkEndCheck {
+                node: m.names.get(node)?.clone(),
+                peer: m.names.get(peer)?.clone(),
+                incarnation: st.incarnation,
+                report: st.samples.last()?.1,
+            })
+        })
+        .collect();
+    let checks = RunChecks {
+        processes,
+        confidence,
+        max_confidence_ratio,
+        lead_s: lead,
+        vehicles: vchecks,
+        link_ends,
+        hub_rejected: m.hub_rejected,
+        interrupted,
+        failure: m.failure.clone(),
+        prefix: m.prefix.clone(),
+    };
+    (record, checks)
+}
+
+/// Association counts of one vehicle.
+#[derive(Clone, Copy, Debug, Default)]
+struct AuditCounts {
+    observations: u64,
+    wrong: u64,
+    duplicates: u64,
+}
+
+/// Audits every vehicle's association outcomes against the world's true ids, in time order
+/// over the whole team (the same rules as [`crate::agent::AssociationAudit`]: a feature stands
+/// for the true feature of the observation that created it; an observation associated to a
+/// feature standing for another true feature is wrong; a feature created for a true feature
+/// the vehicle already represents is a duplicate). What a vehicle "already represents" is its
+/// last map report before the frame plus the features it created since.
+fn audit(m: &Monitor) -> BTreeMap<u32, AuditCounts> {
+    use std::collections::{HashMap, HashSet};
+    let mut origin: HashMap<FeatureId, FeatureId> = HashMap::new();
+    let mut tracks: HashMap<(u32, u64), FeatureId> = HashMap::new();
+    let mut frames: Vec<(f64, u32, &FrameAssociations)> = m
+        .vehicles
+        .iter()
+        .flat_map(|(&id, v)| v.associations.iter().map(move |a| (a.t, id, a)))
+        .collect();
+    frames.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
+    let mut maps: BTreeMap<u32, (usize, HashSet<FeatureId>, HashSet<FeatureId>)> = m
+        .vehicles
+        .keys()
+        .map(|&id| (id, (0, HashSet::new(), HashSet::new())))
+        .collect();
+    let mut out: BTreeMap<u32, AuditCounts> = BTreeMap::new();
+    for (t, id, fa) in frames {
+        let v = &m.vehicles[&id];
+        let (next, current, created) = maps.get_mut(&id).expect("every vehicle has an entry");
+        while *next < v.maps.len() && v.maps[*next].0 <= t + 1e-9 {
+            *current = v.maps[*next].1.iter().map(|f| f.id).collect();
+            created.clear();
+            *next += 1;
+        }
+        let c = out.entry(id).or_default();
+        c.observations += fa.outcomes.len() as u64;
+        let Some(ids) = m.true_ids.get(&(id, ms(t))) else {
+            continue;
+        };
+        let stands_for = |origin: &HashMap<FeatureId, FeatureId>, f: FeatureId| {
+            origin.get(&f).copied().unwrap_or(f)
+        };
+        let initialized = |c: &mut AuditCounts,
+                           origin: &mut HashMap<FeatureId, FeatureId>,
+                           created: &mut HashSet<FeatureId>,
+                           feature: FeatureId,
+                           truth: FeatureId| {
+            let already = current
+                .iter()
+                .chain(created.iter())
+                .any(|&g| g != feature && stands_for(origin, g) == truth);
+            if already {
+                c.duplicates += 1;
+            }
+            origin.entry(feature).or_insert(truth);
+            created.insert(feature);
+        };
+        for (o, &truth) in fa.outcomes.iter().zip(ids) {
+            match *o {
+                Outcome::Associated(f) => {
+                    if stands_for(&origin, f) != truth {
+                        c.wrong += 1;
+                    }
+                }
+                Outcome::Initialized(f) => initialized(c, &mut origin, created, f, truth),
+                Outcome::Stored(track) => {
+                    if *tracks.entry((id, track)).or_insert(truth) != truth {
+                        c.wrong += 1;
+                    }
+                }
+                Outcome::Rejected => {}
+            }
+        }
+        for &(track, feature) in &fa.initialized_tracks {
+            if let Some(&truth) = tracks.get(&(id, track)) {
+                initialized(c, &mut origin, created, feature, truth);
+            }
+        }
+    }
+    out
+}
+
+fn truth_sample(world: &World, r: &TruthReport) -> TruthSample {
+    let x = VehicleState::from_vector(&VehicleVector::from_column_slice(&r.nav));
+    let v3 = |k: usize| Vector3::new(r.launch[3 * k], r.launch[3 * k + 1], r.launch[3 * k + 2]);
+    TruthSample {
+        time: r.t,
+        frame: world.frame(),
+        position: x.position,
+        velocity: x.velocity,
+        attitude: x.attitude,
+        accel_bias: x.accel_bias,
+        gyro_bias: x.gyro_bias,
+        launch_position: v3(0),
+        launch_velocity: v3(1),
+        launch_attitude: v3(2),
+    }
+}
+
+/// Writes `checks.json` into `dir`.
+pub fn write_checks(checks: &RunChecks, dir: &Path) -> Result<()> {
+    let p = dir.join("checks.json");
+    let text = serde_json::to_string_pretty(checks).context("serialising checks.json")?;
+    std::fs::write(&p, text).with_context(|| format!("writing {}", p.display()))
+}

@@ -1,0 +1,172 @@
+#!/usr/bin/env bash
+# canopy's benchmark suite (issue 7; not part of CI). Runs, on this machine:
+#   1. fusion/benches/slam.rs         prediction / update / fusion round vs map size
+#   2. transport/benches/links.rs     canopy links vs raw iceoryx2 and raw zenoh
+#   3. `canopy run` on generated tree teams (`canopy team N`) of 4, 8, 16, 24 vehicle
+#      processes: real-time factor, link bytes / naive dense (Y, y), and the fusion stall
+#      each vehicle measured (docs/benchmarks.md explains every column);
+#   4. the tree-8 bandwidth ratio with f64 and with f32 deltas,
+# and prints ONE markdown table (the raw outputs stay in $OUT, default target/bench).
+#
+# Usage: scripts/bench.sh [--quick]     (--quick: shorter runs, noisier figures)
+# Environment: BENCH_DURATION (simulated seconds per team run, default 60),
+#              BENCH_TEAMS (default "4 8 16 24"), BENCH_BASELINE=1 (also run the
+#              centralized reference in the monitor; off by default, as the table says).
+set -euo pipefail
+cd "$(dirname "$0")/.."
+ROOT=$PWD
+OUT=${OUT:-$ROOT/target/bench}
+QUICK=0
+[[ "${1:-}" == "--quick" ]] && QUICK=1
+DURATION=${BENCH_DURATION:-60}
+TEAMS=${BENCH_TEAMS:-"4 8 16 24"}
+BASELINE_FLAG=--no-baseline
+[[ "${BENCH_BASELINE:-0}" == "1" ]] && BASELINE_FLAG=
+if [[ $QUICK == 1 ]]; then DURATION=${BENCH_DURATION:-30}; fi
+mkdir -p "$OUT"
+START=$(date +%s)
+
+echo "building (release)…" >&2
+cargo build --release -p canopy-node >&2
+cargo bench --no-run -p canopy-fusion --bench slam >&2
+cargo bench --no-run -p canopy-transport --bench links >&2
+CANOPY=$ROOT/target/release/canopy
+
+echo "1/4 fusion/benches/slam.rs …" >&2
+cargo bench -q -p canopy-fusion --bench slam 2>/dev/null >"$OUT/slam.md"
+
+echo "2/4 transport/benches/links.rs …" >&2
+if [[ $QUICK == 1 ]]; then LINKARGS=(--quick); else LINKARGS=(); fi
+cargo bench -q -p canopy-transport --bench links -- "${LINKARGS[@]}" 2>/dev/null >"$OUT/links.md"
+
+echo "3/4 canopy run, teams: $TEAMS ($DURATION s simulated each) …" >&2
+# World feature counts chosen so each vehicle (which holds the team's map) ends with ~150
+# features after 60 s: the team covers ~29 % (4), ~51 % (8), ~81 % (16), ~67 % (24) of the
+# world in that time (measured with the built-in 400-feature world).
+features_for() {
+  case $1 in
+    4) echo 520 ;; 8) echo 295 ;; 16) echo 185 ;; 24) echo 225 ;; *) echo 400 ;;
+  esac
+}
+for n in $TEAMS; do
+  "$CANOPY" team "$n" --duration "$DURATION" --features "$(features_for "$n")" >"$OUT/team$n.toml"
+  rm -rf "$OUT/run$n"
+  # shellcheck disable=SC2086
+  "$CANOPY" run "$OUT/team$n.toml" --out "$OUT/run$n" --quiet $BASELINE_FLAG >"$OUT/run$n.txt" 2>&1
+done
+
+echo "4/4 tree-8 bandwidth, f64 and f32 deltas …" >&2
+for prec in f64 f32; do
+  "$CANOPY" team 8 --duration "$DURATION" --features "$(features_for 8)" |
+    sed "s/^delta_precision = .*/delta_precision = \"$prec\"/" >"$OUT/bw-$prec.toml"
+  grep -q "^delta_precision = \"$prec\"" "$OUT/bw-$prec.toml"
+  rm -rf "$OUT/bw-$prec"
+  "$CANOPY" run "$OUT/bw-$prec.toml" --out "$OUT/bw-$prec" --quiet --no-baseline \
+    >"$OUT/bw-$prec.txt" 2>&1
+done
+
+python3 - "$OUT" "$TEAMS" "$DURATION" "$BASELINE_FLAG" "$(($(date +%s) - START))" <<'EOF'
+import json, re, sys, pathlib, statistics
+out, teams, duration, baseline_flag, elapsed = sys.argv[1:6]
+out = pathlib.Path(out)
+
+def tables(text):
+    """Markdown tables of a bench output: list of (heading, header, rows)."""
+    res, head, cur = [], "", None
+    for line in text.splitlines():
+        if line.startswith("#"):
+            head = line.lstrip("# ").strip()
+        elif line.startswith("|"):
+            cells = [c.strip() for c in line.strip().strip("|").split("|")]
+            if cur is None:
+                cur = (head, cells, [])
+                res.append(cur)
+            elif not set("".join(cells)) <= set("-: "):
+                cur[2].append(cells)
+        else:
+            cur = None
+    return res
+
+rows = []
+def row(what, size, value, ratio="", note=""):
+    rows.append((what, size, value, ratio, note))
+
+slam = tables((out / "slam.md").read_text())
+for head, hdr, body in slam:
+    if head.startswith("IMU prediction"):
+        for r in body:
+            row("IMU prediction per sample (lazy)", f"N={r[0]}", f"{r[2]} µs",
+                f"naive dense / canopy = {r[5]}", "naive: dense ∇F P ∇Fᵀ + ∇G Q ∇Gᵀ")
+    elif head.startswith("EKF update per observation"):
+        for r in body:
+            row("EKF update per observation", f"N={r[0]}", f"{r[3]} ms", "",
+                "10 observations per frame, stacked Joseph")
+    elif head.startswith("One fusion round"):
+        for r in body:
+            row("fusion round, 10-feature delta", f"N={r[0]}", f"{r[2]} ms",
+                f"/ raw faer Cholesky inverse = {r[3]}", f"inverse {r[1]} ms")
+            row("fusion round, whole-map delta", f"N={r[0]}", f"{r[4]} ms",
+                f"/ raw faer Cholesky inverse = {r[5]}", f"inverse {r[1]} ms")
+
+for head, hdr, body in tables((out / "links.md").read_text()):
+    for r in body:
+        row("iceoryx2 link latency p50", r[0], f"{r[2]} µs", f"canopy / raw iceoryx2 = {r[3]}",
+            f"raw {r[1]} µs")
+        row("zenoh link throughput", r[0], f"{r[5]} MB/s", f"canopy / raw zenoh = {r[6]}",
+            f"raw {r[4]} MB/s")
+
+def team_ratio(s):
+    """Team link bytes / naive dense bytes, from the per-link figures of summary.json."""
+    sent = naive = 0.0
+    for l in s.get("links", []):
+        b, r = l["bytes_ab"] + l["bytes_ba"], l.get("bandwidth_ratio")
+        if r:
+            sent, naive = sent + b, naive + b / r
+    return sent / naive if naive else None
+
+def stall_stats(run):
+    lines = []
+    for log in sorted((run / "logs").glob("uav*.log")):
+        for line in log.read_text().splitlines():
+            if line.startswith("fusion stall:"):
+                lines.append(dict(kv.split("=") for kv in line.split(":", 1)[1].split()))
+    return lines
+
+for n in teams.split():
+    run = out / f"run{n}"
+    try:
+        s = json.loads((run / "summary.json").read_text())
+    except FileNotFoundError:
+        row(f"end-to-end {n} vehicle processes", "-", "FAILED", "", f"see {out}/run{n}.txt")
+        continue
+    feats = [v["map_features"] for v in s["vehicles"] if v.get("map_features") is not None]
+    ratio = team_ratio(s)
+    row(f"end-to-end RTF, {n} vehicle processes", f"~{round(statistics.mean(feats))} features",
+        f"{s['real_time_factor']:.2f}", f"sim {s['duration_s']:.0f} s / wall {s['wall_time_s']:.1f} s",
+        ("reference off" if baseline_flag else "reference on")
+        + (f"; link bytes / naive dense = {ratio:.3f}" if ratio is not None else ""))
+    st = stall_stats(run)
+    if st:
+        f = lambda k: max(float(x[k]) for x in st)
+        med = statistics.median(float(x["cpu_p50_ms"]) for x in st)
+        over = sum(int(x["cpu_over_imu_period"]) for x in st)
+        tot = sum(int(x["n"]) for x in st)
+        row(f"fusion stall, {n} vehicles", f"~{round(statistics.mean(int(x['features']) for x in st))} features",
+            f"CPU max {f('cpu_max_ms'):.1f} ms", f"p99 {f('cpu_p99_ms'):.1f} / p50 {med:.2f} ms",
+            f"{over}/{tot} intervals > 10 ms IMU period; wall max {f('wall_max_ms'):.1f} ms")
+
+for prec in ("f64", "f32"):
+    try:
+        s = json.loads((out / f"bw-{prec}" / "summary.json").read_text())
+        row(f"bandwidth tree-8, {prec} deltas", f"{s['duration_s']:.0f} s",
+            f"{team_ratio(s):.3f}", "link bytes / naive dense (Y, y) f64",
+            f"team map ANEES {s['team']['map_anees']:.2f}, pose ANEES {s['team']['pose_anees']:.2f}")
+    except FileNotFoundError:
+        row(f"bandwidth tree-8, {prec} deltas", "-", "FAILED", "", "")
+
+print(f"| measurement | size | value | ratio | notes |")
+print("|---|---|---|---|---|")
+for r in rows:
+    print("| " + " | ".join(str(c) for c in r) + " |")
+print(f"\n(total bench time {elapsed} s; raw outputs in {out})")
+EOF
