@@ -188,6 +188,12 @@ pub fn run_with(mut cmd: Command, scenario: &Path, args: &[&str]) -> Run {
         .args(args)
         .output()
         .expect("the canopy binary runs");
+    collect(dir, output, scenario)
+}
+
+/// Reads what a finished `canopy run SCENARIO --out DIR` left in `dir`. Panics (with the
+/// launcher's output) if it failed or an output is missing.
+pub fn collect(dir: tempfile::TempDir, output: Output, scenario: &Path) -> Run {
     let text = format!(
         "{}{}",
         String::from_utf8_lossy(&output.stdout),
