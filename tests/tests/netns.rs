@@ -104,6 +104,10 @@ const SCENARIO: &str = r#"
 [run]
 name = "netns"
 duration_s = 150.0
+# Paced at 3 simulated s per wall s (at most): the cut is timed in wall time (it must outlast
+# zenoh's 3 s lease), so an idle machine must not finish the run during the cut (unpaced, this
+# team runs 150 s in ~14 s). 12 s wall ≈ 36 s simulated, leaving ≥ 90 s to recover.
+real_time_factor = 3.0
 
 [world]
 seed = 1
