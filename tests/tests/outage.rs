@@ -19,7 +19,12 @@ use std::path::PathBuf;
 use std::sync::OnceLock;
 
 use canopy_node::scenario::{FaultSpec, Scenario};
-use procs::{Run, Standing, assert_sound, run, serial, topology};
+use procs::{Run, Standing, assert_in_band, assert_sound, run, serial, topology};
+
+/// Two-sided band fraction for the exact-fusion runs: 95 % for an ideal filter; consecutive
+/// samples are correlated and EKF-SLAM is mildly over-confident (the reference itself reaches
+/// 87–100 % on these scenarios), so 80 %.
+const IN_BAND: f64 = 0.8;
 
 /// The fault-free run of the tree-4 team the outage scenarios share (their faults, partitions
 /// and events removed), run once per suite.
@@ -28,6 +33,7 @@ fn clean() -> &'static BTreeMap<String, Standing> {
     CLEAN.get_or_init(|| {
         let r = run(&clean_scenario(), &["--quiet"]);
         assert_sound(&r);
+        assert_in_band(&r, IN_BAND);
         r.map_standing()
     })
 }
@@ -140,6 +146,7 @@ fn outage_long() {
     let _g = serial();
     let r = run(&topology("outage-long.toml"), &["--quiet"]);
     assert_sound(&r);
+    assert_in_band(&r, IN_BAND);
     // The sample at 55 s may see either side of the edge; by 57 s both ends are up.
     assert_down_between(&r, "uav1-uav3", 20.0, 55.0, 2.0);
     // Nothing fused across the cut link during the outage: uav1's map at 50 s is its own,
@@ -170,6 +177,7 @@ fn outage_flapping() {
     let _g = serial();
     let r = run(&topology("outage-flapping.toml"), &["--quiet"]);
     assert_sound(&r);
+    assert_in_band(&r, IN_BAND);
     for (a, b) in [
         (15.0, 20.0),
         (25.0, 30.0),
@@ -197,6 +205,7 @@ fn partition_heal() {
     let _g = serial();
     let r = run(&topology("partition-heal.toml"), &["--quiet"]);
     assert_sound(&r);
+    assert_in_band(&r, IN_BAND);
     assert_down_between(&r, "uav2-uav3", 20.0, 55.0, 2.0);
     assert_down_between(&r, "uav3-uav4", 20.0, 55.0, 2.0);
     assert!(
@@ -217,6 +226,7 @@ fn lossy() {
     let _g = serial();
     let r = run(&topology("lossy.toml"), &["--quiet"]);
     assert_sound(&r);
+    assert_in_band(&r, IN_BAND);
     let c = &channel(&r, "uav3", "uav4").report.channel;
     assert!(
         c.nacks_sent + c.nacks_received > 0,
@@ -245,6 +255,9 @@ fn bandwidth_ci() {
     let _g = serial();
     let r = run(&topology("bandwidth-ci.toml"), &["--quiet"]);
     assert_sound(&r);
+    // No two-sided NEES band here: CI is conservative by design, its samples fall *below* the
+    // band (uav3, fusing CI submaps, measured 26 % below and 0 % above); `assert_sound`
+    // still bounds the over-confident samples.
     for l in &r.summary.links {
         assert_eq!(l.ci, l.link == "uav3-uav4", "CI state of {}", l.link);
     }
@@ -275,6 +288,7 @@ fn crash_restart() {
     let _g = serial();
     let r = run(&topology("crash-restart.toml"), &["--quiet"]);
     assert_sound(&r);
+    assert_in_band(&r, IN_BAND);
     let uav3: Vec<_> = r
         .checks
         .processes
@@ -296,12 +310,20 @@ fn crash_restart() {
         v3.last_report_t >= 89.0,
         "the restarted uav3 stopped reporting"
     );
+    // Every neighbour saw the new epoch and, holding history, initiated the new pair's Sync
+    // (the side with history initiates); the new uav3 applied one Sync per neighbour (its link
+    // ends report the new incarnation's counters) and initiated none.
     for n in ["uav1", "uav2", "uav4"] {
         let c = &channel(&r, n, "uav3").report.channel;
         assert!(c.peer_restarts >= 1, "{n} did not see uav3 restart");
         assert!(
-            c.syncs_initiated >= 2,
+            c.syncs_initiated >= 1,
             "{n} did not resynchronise with the new uav3"
+        );
+        let back = &channel(&r, "uav3", n).report.channel;
+        assert!(
+            back.syncs_applied >= 1 && back.syncs_initiated == 0,
+            "the new uav3 did not take {n}'s Sync: {back:?}"
         );
     }
     assert!(r.text().contains("uav3 killed with SIGKILL") || r.summary.events > 0);
@@ -333,6 +355,7 @@ fn hub_loss() {
     let _g = serial();
     let r = run(&topology("hub-loss.toml"), &["--quiet"]);
     assert_sound(&r);
+    assert_in_band(&r, IN_BAND);
     let hub: Vec<_> = r
         .checks
         .processes

@@ -46,6 +46,11 @@ pub struct VehicleSummary {
     /// Fraction of samples whose pose NEES lies inside the per-sample χ²₆ 95 % interval.
     #[serde(deserialize_with = "null_as_nan")]
     pub pose_nees_in_band: f64,
+    /// Fraction of samples whose pose NEES lies above that interval's upper bound (χ²₆ 97.5 %
+    /// quantile): the over-confident samples (0.025 for an ideal filter). Samples below the
+    /// band are conservative ones (e.g. after covariance intersection).
+    #[serde(default, deserialize_with = "null_as_nan")]
+    pub pose_nees_above_band: f64,
     /// Features in the vehicle's final map.
     pub map_features: usize,
     /// RMS error of the final map's features that have a truth [m].
@@ -153,6 +158,16 @@ fn mean(v: impl Iterator<Item = f64>) -> f64 {
     if n == 0 { f64::NAN } else { s / n as f64 }
 }
 
+/// 1 or 0 for a per-sample test, NaN when the sample's NEES is unavailable (no truth), so the
+/// fraction of a vehicle without truth is NaN (`null` in JSON) rather than 0.
+fn flag(nees: f64, test: bool) -> f64 {
+    if nees.is_nan() {
+        f64::NAN
+    } else {
+        f64::from(u8::from(test))
+    }
+}
+
 /// Figures of one vehicle record.
 pub fn summarize_vehicle(v: &VehicleRecord) -> VehicleSummary {
     let (lo, hi) = chi2_band(6.0);
@@ -163,7 +178,12 @@ pub fn summarize_vehicle(v: &VehicleRecord) -> VehicleSummary {
     let pose_nees_in_band = mean(
         v.samples
             .iter()
-            .map(|s| f64::from(u8::from(s.nees_pose >= lo && s.nees_pose <= hi))),
+            .map(|s| flag(s.nees_pose, s.nees_pose >= lo && s.nees_pose <= hi)),
+    );
+    let pose_nees_above_band = mean(
+        v.samples
+            .iter()
+            .map(|s| flag(s.nees_pose, s.nees_pose > hi)),
     );
     let with_truth: Vec<_> = v
         .map
@@ -190,6 +210,7 @@ pub fn summarize_vehicle(v: &VehicleRecord) -> VehicleSummary {
         position_anees,
         pose_anees,
         pose_nees_in_band,
+        pose_nees_above_band,
         map_features: v.map.len(),
         map_rmse_m,
         map_anees,

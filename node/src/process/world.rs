@@ -285,7 +285,13 @@ pub fn run(c: &RoleCommon) -> Result<()> {
             limit = limit.min(slowest + s.run.max_lead_s);
         }
         if let Some(r) = s.run.real_time_factor.filter(|r| *r > 0.0) {
-            limit = limit.min(r * wall_start.elapsed().as_secs_f64());
+            // Quantized to whole batches: a limit that stops the world flushes a partial batch,
+            // and the wall-clock limit moves every pass, so unquantized it sent one tiny batch
+            // per pass and a vehicle that fell a second behind (a zenoh put blocking on a cut
+            // network link) overflowed its stream buffer, sized for max_lead_s / BATCH_S + 1
+            // batches.
+            let paced = r * wall_start.elapsed().as_secs_f64();
+            limit = limit.min((paced / BATCH_S).floor() * BATCH_S);
         }
 
         // Step up to the limit, at most one batch per pass so links stay serviced.

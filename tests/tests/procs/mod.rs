@@ -188,6 +188,12 @@ pub fn run_with(mut cmd: Command, scenario: &Path, args: &[&str]) -> Run {
         .args(args)
         .output()
         .expect("the canopy binary runs");
+    collect(dir, output, scenario)
+}
+
+/// Reads what a finished `canopy run SCENARIO --out DIR` left in `dir`. Panics (with the
+/// launcher's output) if it failed or an output is missing.
+pub fn collect(dir: tempfile::TempDir, output: Output, scenario: &Path) -> Run {
     let text = format!(
         "{}{}",
         String::from_utf8_lossy(&output.stdout),
@@ -305,14 +311,22 @@ pub fn assert_sound(r: &Run) {
             v.pose_anees,
             b.pose_anees
         );
-        // Per-sample pose NEES inside the two-sided 95 % χ²₆ band at least 80 % of the time
-        // (95 % for an ideal filter; consecutive samples are correlated and EKF-SLAM is mildly
-        // over-confident: the reference itself reaches 87–100 % here).
+        // Per-sample pose NEES above the χ²₆ 97.5 % quantile (over-confident samples) at most
+        // 10 % of the time: 2.5 % for an ideal filter; consecutive samples are correlated and
+        // EKF-SLAM is mildly over-confident (the reference reaches 3.3 % on the outage
+        // scenarios). Where the centralized reference itself is over-confident more often on
+        // the same data (the pixel-camera vehicle of bearing-only.toml: 22 % over 40 s, one
+        // excursion of correlated samples), the vehicle may match it plus 0.05 (two samples of
+        // a 40-sample run): the DDF must not add over-confidence, the estimator's own is the
+        // reference's. Samples *below* the band are conservative ones (covariance
+        // intersection); the two-sided test is [`assert_in_band`].
+        let bound = (b.pose_nees_above_band + 0.05).max(0.1);
         assert!(
-            v.pose_nees_in_band >= 0.8,
-            "{}: pose NEES inside the χ² band only {:.0} % of the time",
+            v.pose_nees_above_band <= bound,
+            "{}: pose NEES above the χ² band {:.0} % of the time (reference {:.0} %)",
             v.name,
-            100.0 * v.pose_nees_in_band
+            100.0 * v.pose_nees_above_band,
+            100.0 * b.pose_nees_above_band
         );
         // Map NEES per dof ≤ 2: features are never grossly over-confident (χ²₃ per feature has
         // mean 1 per dof; the team's maps sit at 0.1–0.6, conservative).
@@ -321,6 +335,20 @@ pub fn assert_sound(r: &Run) {
             "{}: map ANEES {:.2}",
             v.name,
             v.map_anees
+        );
+    }
+}
+
+/// Per-sample pose NEES inside the two-sided 95 % χ²₆ band at least `min` of the time, for
+/// every vehicle: neither over- nor under-confident. Runs with exact fusion only: covariance
+/// intersection is conservative by design and leaves samples below the band.
+pub fn assert_in_band(r: &Run, min: f64) {
+    for v in &r.summary.vehicles {
+        assert!(
+            v.pose_nees_in_band >= min,
+            "{}: pose NEES inside the χ² band only {:.0} % of the time",
+            v.name,
+            100.0 * v.pose_nees_in_band
         );
     }
 }

@@ -1,0 +1,198 @@
+//! Short multi-process runs of the shipped scenarios that the outage suite does not cover, and
+//! Ctrl-C: `canopy run` as a user runs it (real processes over iceoryx2), shortened with
+//! `--duration` so the suite stays quick.
+
+mod procs;
+
+use std::io::{BufRead, BufReader};
+use std::process::{Command, Stdio};
+use std::time::{Duration, Instant};
+
+use procs::{assert_sound, canopy_bin, run, serial, topology};
+
+/// central-4.toml for 30 s: the hub process runs the opinion pool with feedback; the run is
+/// sound (no panic, clean exits, the confidence bound at every map report, NEES), the hub and
+/// every vehicle exit cleanly, every vehicle fused the hub's feedback, and the vehicles end
+/// holding the team map (coverage ≥ 0.8: features first seen in the last round or two have not
+/// been fed back yet; share within 0.05 of the reference: the hub's sum is the centralized
+/// information up to linearisation).
+#[test]
+fn central_4_runs_with_a_hub() {
+    let _g = serial();
+    let r = run(
+        &topology("central-4.toml"),
+        &["--quiet", "--duration", "30"],
+    );
+    assert_sound(&r);
+    let hub: Vec<_> = r
+        .checks
+        .processes
+        .iter()
+        .filter(|p| p.name == "hub")
+        .collect();
+    assert_eq!(hub.len(), 1, "one hub process");
+    assert!(hub[0].clean_exit(), "the hub did not exit cleanly");
+    for v in &r.checks.vehicles {
+        assert!(
+            v.counters[0].fused > 0,
+            "{} never fused the hub's feedback",
+            v.name
+        );
+    }
+    for (name, s) in r.map_standing() {
+        println!(
+            "{name}: coverage {:.2}, share {:.2}, map RMSE {:.2} m",
+            s.coverage, s.share, s.rmse
+        );
+        assert!(s.coverage >= 0.8, "{name}: coverage {:.2}", s.coverage);
+        assert!(
+            (s.share - 1.0).abs() <= 0.05,
+            "{name}: share {:.2}",
+            s.share
+        );
+    }
+}
+
+/// bearing-only.toml for 40 s: range-bearing, bearing-only and pixel vehicles run as processes
+/// and fuse over the tree. Sound (as above: bearing-only vehicles are held to the same NEES and
+/// confidence bounds), no wrong association, and every vehicle, including the bearing-only
+/// ones, ends with a map (fused from the team and initialised by triangulation).
+#[test]
+fn bearing_only_team_runs() {
+    let _g = serial();
+    let r = run(
+        &topology("bearing-only.toml"),
+        &["--quiet", "--duration", "40"],
+    );
+    assert_sound(&r);
+    for v in &r.summary.vehicles {
+        assert_eq!(v.wrong_associations, 0, "{}: wrong associations", v.name);
+        assert!(v.map_features > 0, "{}: empty map", v.name);
+    }
+    for (name, s) in r.map_standing() {
+        println!(
+            "{name}: coverage {:.2}, share {:.2}, map RMSE {:.2} m",
+            s.coverage, s.share, s.rmse
+        );
+        // The tree delivers the team's features to every vehicle (measured ≥ 0.9).
+        assert!(s.coverage >= 0.8, "{name}: coverage {:.2}", s.coverage);
+    }
+}
+
+/// Processes whose command line mentions `needle` (the run's output directory is in every
+/// role's `--scenario` argument).
+fn processes_mentioning(needle: &str) -> Vec<u32> {
+    let mut out = Vec::new();
+    for e in std::fs::read_dir("/proc").expect("/proc").flatten() {
+        let Some(pid) = e.file_name().to_str().and_then(|n| n.parse::<u32>().ok()) else {
+            continue;
+        };
+        if pid == std::process::id() {
+            continue;
+        }
+        if let Ok(cmd) = std::fs::read(e.path().join("cmdline"))
+            && String::from_utf8_lossy(&cmd).contains(needle)
+        {
+            out.push(pid);
+        }
+    }
+    out
+}
+
+/// Ctrl-C: SIGINT to `canopy run` (the default tree-4, 300 s) once it is 10 s in. The launcher
+/// stops every process, still writes every output with what was gathered (summary.json,
+/// checks.json marked interrupted, TUM files, CSVs, report.html), exits successfully, and no
+/// process of the run is left behind.
+#[test]
+fn ctrl_c_stops_every_process_and_writes_the_outputs() {
+    let _g = serial();
+    let out = tempfile::tempdir().expect("output dir");
+    let mut child = Command::new(canopy_bin())
+        .arg("run")
+        .arg("--out")
+        .arg(out.path())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("canopy run starts");
+    let stderr = child.stderr.take().expect("piped");
+    let (tx, rx) = std::sync::mpsc::channel::<String>();
+    let reader = std::thread::spawn(move || {
+        for line in BufReader::new(stderr).lines().map_while(Result::ok) {
+            let _ = tx.send(line);
+        }
+    });
+    let start = Instant::now();
+    let mut text = String::new();
+    loop {
+        assert!(
+            start.elapsed() < Duration::from_secs(300),
+            "no progress within 300 s:\n{text}"
+        );
+        if let Ok(line) = rx.recv_timeout(Duration::from_millis(200)) {
+            text.push_str(&line);
+            text.push('\n');
+            if line.starts_with("progress: t = ") {
+                break;
+            }
+        }
+    }
+    let needle = out.path().display().to_string();
+    let running = processes_mentioning(&needle);
+    // The world and four vehicles (their --scenario lives in the output directory), and the
+    // launcher (its --out).
+    assert!(running.len() >= 6, "run processes: {running:?}");
+    let st = Command::new("kill")
+        .args(["-INT", &child.id().to_string()])
+        .status()
+        .expect("kill");
+    assert!(st.success());
+    let status = child.wait().expect("launcher exits");
+    reader.join().expect("reader");
+    text.extend(rx.try_iter().map(|l| l + "\n"));
+    let mut stdout = String::new();
+    if let Some(mut s) = child.stdout.take() {
+        std::io::Read::read_to_string(&mut s, &mut stdout).expect("stdout");
+    }
+    assert!(status.success(), "launcher: {status}\n{text}{stdout}");
+    assert!(
+        text.contains("interrupted: writing what was gathered"),
+        "{text}"
+    );
+    let left = processes_mentioning(&needle);
+    assert!(left.is_empty(), "processes left behind: {left:?}");
+    for f in [
+        "summary.json",
+        "checks.json",
+        "metrics.csv",
+        "map.csv",
+        "links.csv",
+        "report.html",
+        "uav1.est.tum",
+        "uav1.truth.tum",
+        "uav4.est.tum",
+    ] {
+        let p = out.path().join(f);
+        let len = std::fs::metadata(&p).map(|m| m.len()).unwrap_or(0);
+        assert!(len > 0, "{f} missing or empty");
+    }
+    let checks: canopy_node::process::monitor::RunChecks = serde_json::from_str(
+        &std::fs::read_to_string(out.path().join("checks.json")).expect("checks.json"),
+    )
+    .expect("checks.json parses");
+    assert!(checks.interrupted, "checks.json does not say interrupted");
+    let summary: canopy_node::output::Summary = serde_json::from_str(
+        &std::fs::read_to_string(out.path().join("summary.json")).expect("summary.json"),
+    )
+    .expect("summary.json parses");
+    // What was gathered: at least the 10 s seen, not the 300 s scheduled.
+    assert!(
+        summary.duration_s >= 9.0 && summary.duration_s < 300.0,
+        "summary covers {} s",
+        summary.duration_s
+    );
+    // Every process was stopped by the launcher, none crashed.
+    for p in &checks.processes {
+        assert!(!p.panicked, "{} panicked", p.name);
+    }
+}
