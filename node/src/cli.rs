@@ -358,6 +358,7 @@ fn cmd_compare(dirs: &[PathBuf]) -> Result<()> {
 
 /// Runs the parsed command line.
 pub fn run_cli(cli: Cli) -> Result<()> {
+    crate::process::tune_allocator();
     match cli.command {
         Command::Sim(args) => cmd_sim(&args),
         Command::Run(args) => cmd_run(&args),

@@ -65,6 +65,8 @@ struct Vehicle<'s> {
     naive_bytes: u64,
     /// Stall of the estimator by fusion work (see [`StallMeter`]).
     stall: StallMeter,
+    /// A round whose fusion half ran at the previous IMU sample and whose exchange half is due.
+    round_due: Option<f64>,
 }
 
 /// How long fusion work (rounds, fusing received deltas) holds up the estimator: the time
@@ -319,18 +321,29 @@ impl Vehicle<'_> {
     fn on_imu(&mut self, imu: &canopy_fusion::sensor::ImuSample) {
         let eps = 1e-9;
         let round_dt = 1.0 / self.s.fusion.rate_hz;
-        // Rounds due before this sample, as in `canopy sim`.
+        // A round is split over two IMU intervals so that its two costly halves never hold up
+        // the same sample: at the first sample at or after the round time the received
+        // information is fused into the EKF (`flush_fusion`); at the next sample the map
+        // information is formed and the DDF's deltas are computed and sent (`on_round`, whose
+        // own flush then has nothing, or only what arrived in between, to fuse).
+        if let Some(now) = self.round_due.take() {
+            self.exchange(now.max(self.t));
+        }
+        // Rounds due before this sample (rate as in `canopy sim`).
         while self.next_round <= imu.time + eps {
             let now = self.next_round;
+            if let Some(prev) = self.round_due.take() {
+                // Only when rounds are closer than one IMU period: no interval to spare.
+                self.exchange(prev);
+            }
             self.t = self.t.max(now);
             self.links.clock.set(now);
             self.service_links();
             self.naive_bytes += naive_round_bytes(self.agent.filter().num_features());
             let start = StallMeter::mark();
-            let out = self.agent.on_round(now).unwrap_or_default();
-            self.links.send(now, out);
+            self.agent.flush_fusion();
             self.stall.add(start);
-            self.service_links();
+            self.round_due = Some(now);
             self.next_round += round_dt;
         }
         self.t = imu.time;
@@ -339,6 +352,15 @@ impl Vehicle<'_> {
         if self.agent.on_imu(imu).is_err() {
             self.counters.inputs_rejected += 1;
         }
+    }
+
+    /// The second half of a round (see `on_imu`): the deltas out. Replies are read with the
+    /// links' next service (after every stream batch).
+    fn exchange(&mut self, now: f64) {
+        let start = StallMeter::mark();
+        let out = self.agent.on_round(now).unwrap_or_default();
+        self.links.send(now, out);
+        self.stall.add(start);
     }
 
     fn after_sample(&mut self) {
@@ -376,6 +398,9 @@ impl Vehicle<'_> {
     }
 
     fn finish(&mut self) {
+        if let Some(now) = self.round_due.take() {
+            self.exchange(now.max(self.t));
+        }
         if self.last_report < self.t {
             self.estimate_report();
         }
@@ -449,6 +474,7 @@ pub fn run(c: &RoleCommon, id: WireId, incarnation: u32) -> Result<()> {
         s: &s,
         cfg_imu_rate: cfg.imu.rate_hz,
         stall: StallMeter::default(),
+        round_due: None,
         incarnation,
         agent,
         links,
