@@ -522,9 +522,17 @@ pub fn select_submap(mut candidates: Vec<FeaturePriority>, budget_bytes: usize) 
 }
 
 /// Per-link record of what was sent in submaps, for [`FeaturePriority`].
+///
+/// A send counts once the receiver acknowledges the submap that carried it. Until then it is
+/// *in flight*: it counts for `timeout` after sending (so the feature is not sent again while
+/// its acknowledgement is on its way) and is forgotten after that (a lost or refused submap:
+/// the feature's priority falls back to its last acknowledged send, or to never sent).
 #[derive(Clone, Debug, Default)]
 pub struct SubmapTracker {
-    last: HashMap<FeatureId, (f64, f64)>,
+    /// Acknowledged sends: feature → (ln det P_ff at the send, send time).
+    confirmed: HashMap<FeatureId, (f64, f64)>,
+    /// Latest unacknowledged send: feature → (submap number, ln det P_ff, send time).
+    in_flight: HashMap<FeatureId, (u64, f64, f64)>,
 }
 
 /// ln det of the 3 × 3 block of feature block `b` of a covariance (`None` if not positive).
@@ -535,18 +543,34 @@ fn block_log_det(p: &Mat<f64>, b: usize) -> Option<f64> {
 }
 
 impl SubmapTracker {
-    /// Priorities of every feature of `marginal` whose covariance block is positive definite.
-    pub fn priorities(&self, marginal: &MapMarginal) -> Vec<FeaturePriority> {
+    /// The send that counts for `id` at time `now`: an in-flight one younger than `timeout`,
+    /// else the last acknowledged one.
+    fn counted(&self, id: FeatureId, now: f64, timeout: f64) -> Option<(f64, f64)> {
+        self.in_flight
+            .get(&id)
+            .filter(|&&(_, _, t)| now - t <= timeout)
+            .map(|&(_, l, t)| (l, t))
+            .or_else(|| self.confirmed.get(&id).copied())
+    }
+
+    /// Priorities at time `now` of every feature of `marginal` whose covariance block is
+    /// positive definite (`timeout`: how long an unacknowledged send counts).
+    pub fn priorities(
+        &self,
+        marginal: &MapMarginal,
+        now: f64,
+        timeout: f64,
+    ) -> Vec<FeaturePriority> {
         marginal
             .ids
             .iter()
             .enumerate()
             .filter_map(|(b, &id)| {
-                let now = block_log_det(&marginal.covariance, b)?;
-                Some(match self.last.get(&id) {
-                    Some(&(logdet, t)) => FeaturePriority {
+                let logdet_now = block_log_det(&marginal.covariance, b)?;
+                Some(match self.counted(id, now, timeout) {
+                    Some((logdet, t)) => FeaturePriority {
                         id,
-                        gain: logdet - now,
+                        gain: logdet - logdet_now,
                         last_sent: Some(t),
                     },
                     None => FeaturePriority {
@@ -559,19 +583,36 @@ impl SubmapTracker {
             .collect()
     }
 
-    /// Records that the features of `submap` were sent at `now`.
-    pub fn record_sent(&mut self, submap: &Submap, now: f64) {
+    /// Records that the features of `submap` (number `seq`) were sent at `now`, and forgets
+    /// unacknowledged sends older than `timeout`.
+    pub fn record_sent(&mut self, seq: u64, submap: &Submap, now: f64, timeout: f64) {
+        self.in_flight
+            .retain(|_, &mut (_, _, t)| now - t <= timeout);
         let p = submap.covariance();
         for (b, &id) in submap.ids.iter().enumerate() {
             if let Some(l) = block_log_det(&p, b) {
-                self.last.insert(id, (l, now));
+                self.in_flight.insert(id, (seq, l, now));
             }
         }
     }
 
+    /// The receiver fused submaps `seqs`: their sends count for good.
+    pub fn acknowledge(&mut self, seqs: &[u64]) {
+        let acked: HashSet<u64> = seqs.iter().copied().collect();
+        self.in_flight.retain(|&id, &mut (seq, l, t)| {
+            if acked.contains(&seq) {
+                self.confirmed.insert(id, (l, t));
+                false
+            } else {
+                true
+            }
+        });
+    }
+
     /// Forgets everything (the peer restarted and lost what it had).
     pub fn clear(&mut self) {
-        self.last.clear();
+        self.confirmed.clear();
+        self.in_flight.clear();
     }
 }
 
@@ -989,24 +1030,55 @@ mod tests {
             mean: Col::zeros(6),
             covariance: diag(&[s, s, s, 1.0, 1.0, 1.0]),
         };
+        // Unacknowledged sends count for this long.
+        let timeout = 3.0;
         let mut t = SubmapTracker::default();
-        let p0 = t.priorities(&cov(4.0));
+        let p0 = t.priorities(&cov(4.0), 0.0, timeout);
         assert!(
             p0.iter()
                 .all(|p| p.gain == f64::INFINITY && p.last_sent.is_none())
         );
         t.record_sent(
+            1,
             &Submap::from_marginal(&cov(4.0), &[1, 2], Vector3::zeros()),
             3.0,
+            timeout,
         );
-        let p1 = t.priorities(&cov(1.0));
+        let p1 = t.priorities(&cov(1.0), 4.0, timeout);
         // Feature 1: ln det went from 3 ln 4 to 0 → gain 3 ln 4; feature 2 unchanged → 0.
         assert!((p1[0].gain - 3.0 * 4f64.ln()).abs() < 1e-12);
         assert_eq!(p1[1].gain, 0.0);
         assert_eq!(p1[0].last_sent, Some(3.0));
+        // Never acknowledged: after the timeout both count as never sent again.
+        assert!(
+            t.priorities(&cov(1.0), 6.5, timeout)
+                .iter()
+                .all(|p| p.gain == f64::INFINITY && p.last_sent.is_none())
+        );
+        // Acknowledged (an unknown number changes nothing): counts for good.
+        t.acknowledge(&[7, 1]);
+        let p2 = t.priorities(&cov(1.0), 100.0, timeout);
+        assert!((p2[0].gain - 3.0 * 4f64.ln()).abs() < 1e-12);
+        assert_eq!(p2[1].last_sent, Some(3.0));
+        // A later send of feature 2 whose submap is lost: feature 2 falls back to the
+        // acknowledged send once the timeout passes.
+        t.record_sent(
+            2,
+            &Submap::from_marginal(&cov(1.0), &[2], Vector3::zeros()),
+            101.0,
+            timeout,
+        );
+        assert_eq!(
+            t.priorities(&cov(1.0), 102.0, timeout)[1].last_sent,
+            Some(101.0)
+        );
+        assert_eq!(
+            t.priorities(&cov(1.0), 105.0, timeout)[1].last_sent,
+            Some(3.0)
+        );
         t.clear();
         assert!(
-            t.priorities(&cov(1.0))
+            t.priorities(&cov(1.0), 105.0, timeout)
                 .iter()
                 .all(|p| p.gain == f64::INFINITY)
         );

@@ -597,12 +597,109 @@ fn tight_budget_switches_the_link_to_ci_in_both_directions() {
     // Submaps respect the budget (A's side).
     let out = net.round(A, 9.0);
     for (_, o) in &out {
-        if let Body::Submap(s) = &o.message.body {
+        if let Body::Submap { submap: s, .. } = &o.message.body {
             assert!(
                 s.ids.len() <= 2 && s.wire_bytes() <= canopy_fusion::ci::Submap::wire_bytes_for(2)
             );
         }
     }
+}
+
+/// Every submap on a CI link reaches the receiver: two submaps that arrive between two of its
+/// rounds are both fused (in arrival order) and acknowledged, and the features of a submap
+/// that is lost are sent again once its acknowledgement is overdue (`submap_ack_timeout`),
+/// so the receiver ends up holding every feature of the sender.
+#[test]
+fn ci_submaps_are_all_fused_and_lost_ones_resent() {
+    let mut rng = ChaCha8Rng::seed_from_u64(11);
+    let feats = features(6, &mut rng);
+    let config = DdfConfig::default();
+    let timeout = config.submap_ack_timeout;
+    let mut net = Net::new(&[(A, B)], config);
+    // Room for 2 features per submap on A's side: 3 submaps carry A's 6 features.
+    net.nodes
+        .get_mut(&A)
+        .unwrap()
+        .0
+        .set_link_budget(B, Some(canopy_fusion::ci::Submap::wire_bytes_for(2)))
+        .unwrap();
+    net.link_up_all(0.0);
+    for &(id, ref p) in &feats {
+        let o = direct_observation(id, p, &mut rng);
+        net.observe(A, &o);
+    }
+    let submaps = |q: &Queue| -> Vec<(u64, Vec<u64>)> {
+        q.iter()
+            .filter_map(|(_, o)| match &o.message.body {
+                Body::Submap { seq, submap } => Some((*seq, submap.ids.clone())),
+                _ => None,
+            })
+            .collect()
+    };
+    // Two rounds of A before B hears anything: A switches to CI, submaps 1 and 2 carry four
+    // different features (the first two are in flight, so not chosen again).
+    let mut q = net.round(A, 1.0);
+    q.extend(net.round(A, 2.0));
+    let sent = submaps(&q);
+    assert_eq!(sent.len(), 2, "{sent:?}");
+    let first_four: std::collections::BTreeSet<u64> =
+        sent.iter().flat_map(|s| s.1.clone()).collect();
+    assert_eq!(first_four.len(), 4);
+    net.deliver(2.0, q);
+    // B's round fuses both and acknowledges both.
+    let q = net.round(B, 2.5);
+    assert_eq!(net.stats(B, A).submaps_fused, 2);
+    let acked: Vec<u64> = q
+        .iter()
+        .filter_map(|(_, o)| match &o.message.body {
+            Body::SubmapAck { seqs } => Some(seqs.clone()),
+            _ => None,
+        })
+        .flatten()
+        .collect();
+    assert_eq!(acked, vec![1, 2]);
+    assert_eq!(net.est(B).ids.len(), 4);
+    net.deliver(2.5, q);
+    assert_eq!(net.stats(A, B).submap_acks, 2);
+    // Submap 3, with the last two features, is lost.
+    let lost = submaps(&net.round(A, 3.0));
+    assert_eq!(lost.len(), 1);
+    let last_two = lost[0].1.clone();
+    assert!(last_two.iter().all(|id| !first_four.contains(id)));
+    // A keeps improving the first four features (they gain information, so they outrank
+    // unchanged features). While the lost submap's acknowledgement may still come, its
+    // features count as sent (no gain) and are not chosen; once it is overdue they count as
+    // never sent (first in priority) and go out again.
+    let mut resent_at = None;
+    for k in 1..=6 {
+        let t = 3.0 + f64::from(k);
+        for &(id, ref p) in feats.iter().filter(|f| first_four.contains(&f.0)) {
+            let o = direct_observation(id, p, &mut rng);
+            net.observe(A, &o);
+        }
+        let q = net.round(A, t);
+        let s = submaps(&q);
+        if s.iter().any(|x| x.1 == last_two) {
+            resent_at.get_or_insert(t);
+        }
+        net.deliver(t, q);
+        let q = net.round(B, t + 0.5);
+        net.deliver(t + 0.5, q);
+    }
+    let resent_at = resent_at.expect("the lost submap's features were never sent again");
+    assert!(
+        resent_at > 3.0 + timeout,
+        "resent at {resent_at} s, before the acknowledgement was overdue"
+    );
+    // B holds every feature of A, positive definite, never above A's information.
+    let (a, b) = (net.est(A), net.est(B));
+    let mut ids_a = a.ids.clone();
+    let mut ids_b = b.ids.clone();
+    ids_a.sort_unstable();
+    ids_b.sort_unstable();
+    assert_eq!(ids_a, ids_b);
+    assert!(b.min_eigenvalue().unwrap() > 0.0);
+    assert!(b.psd_excess_over(a).unwrap() <= 1e-9 * a.matrix_norm_max());
 }
 
 /// A message addressed to a different epoch of the receiver is dropped as stale.

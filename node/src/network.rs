@@ -193,6 +193,8 @@ impl FusionConfig {
             gap_timeout: self.gap_timeout_s,
             sync_resend_interval: self.hello_interval_s,
             byte_budget: self.byte_budget,
+            // Three rounds: a submap is acknowledged with the receiver's next round.
+            submap_ack_timeout: 3.0 / self.rate_hz,
             delta_precision: self.delta_precision,
             ci_criterion: match self.ci_criterion {
                 CiCriterionConfig::Trace => CiCriterion::Trace,

@@ -4,7 +4,7 @@
 //! implement the transport's [`Validate`]; the DDF state machine and the estimator validate the
 //! numbers again (finite, symmetric, positive definite where needed) before anything changes.
 
-use canopy_fusion::ddf::{Body, DdfMessage};
+use canopy_fusion::ddf::{Body, DdfMessage, MAX_SUBMAP_ACKS};
 use canopy_transport::link::{Link, LinkError, Received};
 use canopy_transport::wire::{Validate, ValidationError};
 use canopy_transport::{CodecError, MessageKind, SendMeta};
@@ -20,9 +20,15 @@ impl Validate for DdfBody {
         // Map information decodes through its validating block-sparse serde form (sizes, ids,
         // finiteness, symmetry); submaps are checked here.
         match &self.0.body {
-            Body::Submap(s) => s
+            Body::Submap { submap, .. } => submap
                 .validate()
                 .map_err(|e| ValidationError::Other(e.to_string())),
+            Body::SubmapAck { seqs } if seqs.len() > MAX_SUBMAP_ACKS => {
+                Err(ValidationError::Other(format!(
+                    "{} submap acknowledgements (at most {MAX_SUBMAP_ACKS})",
+                    seqs.len()
+                )))
+            }
             _ => Ok(()),
         }
     }
@@ -32,7 +38,7 @@ impl Validate for DdfBody {
 /// `DDF_DELTA`, heartbeats and Nacks `DDF_CONTROL`.
 pub fn ddf_kind(msg: &DdfMessage) -> MessageKind {
     match msg.body {
-        Body::Hello(_) | Body::Nack { .. } => MessageKind::DDF_CONTROL,
+        Body::Hello(_) | Body::Nack { .. } | Body::SubmapAck { .. } => MessageKind::DDF_CONTROL,
         _ => MessageKind::DDF_DELTA,
     }
 }

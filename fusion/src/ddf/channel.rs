@@ -1,7 +1,7 @@
 //! One channel filter: node i's record of what it shares with neighbour k, and the per-link
 //! protocol state (sequence numbers, reorder buffer, epochs, sync, CI fallback).
 
-use super::message::{Body, DdfMessage, Header, Hello};
+use super::message::{Body, DdfMessage, Header, Hello, MAX_SUBMAP_ACKS};
 use super::node::{DdfConfig, DdfError};
 use super::{FuseTarget, LinkMode};
 use crate::ci::{self, Submap, SubmapTracker};
@@ -53,6 +53,13 @@ pub struct ChannelStats {
     pub submaps_sent: u64,
     /// Submaps fused by CI.
     pub submaps_fused: u64,
+    /// Received submaps dropped unfused because more than `max_buffer` waited for one round
+    /// (the sender resends their features when no acknowledgement comes).
+    #[serde(default)]
+    pub submaps_dropped: u64,
+    /// Submap acknowledgements received (each names one fused submap).
+    #[serde(default)]
+    pub submap_acks: u64,
     /// Submaps that could not be fused (CI error, e.g. a receiver map that is not positive
     /// definite) or not built (the sender's map not positive definite).
     pub ci_failures: u64,
@@ -114,7 +121,12 @@ pub(crate) struct Channel {
     /// R_total: everything ever received from the peer and applied, over all epochs.
     received_total: MapInformation,
     tracker: SubmapTracker,
-    pending_submap: Option<Submap>,
+    /// Number of the last submap sent on this link.
+    submap_seq: u64,
+    /// Submaps received since the last round, in arrival order (fused at the next round).
+    pending_submaps: VecDeque<(u64, Submap)>,
+    /// Numbers of the submaps fused since the last acknowledgement sent.
+    submap_acks: Vec<u64>,
     pub(crate) stats: ChannelStats,
 }
 
@@ -155,7 +167,9 @@ impl Channel {
             last_sync: None,
             received_total: MapInformation::zero(origin),
             tracker: SubmapTracker::default(),
-            pending_submap: None,
+            submap_seq: 0,
+            pending_submaps: VecDeque::new(),
+            submap_acks: Vec::new(),
             stats: ChannelStats::default(),
         }
     }
@@ -176,8 +190,17 @@ impl Channel {
         self.budget = budget;
     }
 
-    pub(crate) fn take_pending_submap(&mut self) -> Option<Submap> {
-        self.pending_submap.take()
+    /// The submaps received since the last round, in arrival order.
+    pub(crate) fn take_pending_submaps(&mut self) -> VecDeque<(u64, Submap)> {
+        std::mem::take(&mut self.pending_submaps)
+    }
+
+    /// Submap `seq` was fused: acknowledged with the next round's messages.
+    pub(crate) fn submap_fused(&mut self, seq: u64) {
+        self.stats.submaps_fused += 1;
+        if self.submap_acks.len() < MAX_SUBMAP_ACKS {
+            self.submap_acks.push(seq);
+        }
     }
 
     fn header(&self, ctx: &NodeCtx<'_>) -> Header {
@@ -238,7 +261,8 @@ impl Channel {
         self.reset_pair(ctx.origin);
         // The restarted peer lost what it had from us.
         self.tracker.clear();
-        self.pending_submap = None;
+        self.pending_submaps.clear();
+        self.submap_acks.clear();
     }
 
     /// Decides this node's role in an undecided epoch pair, and initiates if it is ours:
@@ -444,9 +468,18 @@ impl Channel {
                 self.on_hello(now, hello, addressed, ctx);
                 Ok(())
             }
-            Body::Submap(submap) => {
+            Body::Submap { seq, submap } => {
                 self.switch_to_ci(ctx.origin);
-                self.pending_submap = Some(submap);
+                if self.pending_submaps.len() >= ctx.config.max_buffer {
+                    self.pending_submaps.pop_front();
+                    self.stats.submaps_dropped += 1;
+                }
+                self.pending_submaps.push_back((seq, submap));
+                Ok(())
+            }
+            Body::SubmapAck { seqs } => {
+                self.stats.submap_acks += seqs.len() as u64;
+                self.tracker.acknowledge(&seqs);
                 Ok(())
             }
             _ if self.mode == LinkMode::Ci || !addressed => {
@@ -688,6 +721,11 @@ impl Channel {
             return out;
         }
         if self.mode == LinkMode::Ci {
+            if !self.submap_acks.is_empty() {
+                let seqs = std::mem::take(&mut self.submap_acks);
+                let ack = self.msg(ctx, Body::SubmapAck { seqs });
+                out.push(ack);
+            }
             self.send_submap(now, marginal, ctx, &mut out);
         }
         if self
@@ -760,15 +798,18 @@ impl Channel {
             return;
         }
         let budget = self.budget.unwrap_or(usize::MAX);
-        let ids = ci::select_submap(self.tracker.priorities(marginal), budget);
+        let timeout = ctx.config.submap_ack_timeout;
+        let ids = ci::select_submap(self.tracker.priorities(marginal, now, timeout), budget);
         if ids.is_empty() {
             self.stats.budget_starved += 1;
             return;
         }
         let submap = Submap::from_marginal(marginal, &ids, ctx.origin);
-        self.tracker.record_sent(&submap, now);
+        self.submap_seq += 1;
+        let seq = self.submap_seq;
+        self.tracker.record_sent(seq, &submap, now, timeout);
         self.stats.submaps_sent += 1;
-        let msg = self.msg(ctx, Body::Submap(submap));
+        let msg = self.msg(ctx, Body::Submap { seq, submap });
         out.push(msg);
     }
 
@@ -803,9 +844,19 @@ impl Channel {
         };
         match &msg.body {
             Body::Hello(_) | Body::Nack { .. } => Ok(()),
+            Body::SubmapAck { seqs } => {
+                if seqs.len() > MAX_SUBMAP_ACKS {
+                    return Err(InfoError::Dimension {
+                        what: "submap acknowledgements",
+                        expected: MAX_SUBMAP_ACKS,
+                        found: seqs.len(),
+                    });
+                }
+                Ok(())
+            }
             Body::Delta { info, .. } | Body::Cumulative { info, .. } => check(info),
             Body::Sync { baseline, .. } => check(baseline),
-            Body::Submap(s) => {
+            Body::Submap { submap: s, .. } => {
                 s.validate()?;
                 if Vector3::from(s.origin) != origin {
                     return Err(InfoError::OriginMismatch {

@@ -90,8 +90,23 @@ pub enum Body {
         baseline: MapInformation,
     },
     /// A covariance-form submap on a link that has fallen back to covariance intersection.
-    Submap(Submap),
+    Submap {
+        /// Number of the submap on this link, from 1 (acknowledged by [`Body::SubmapAck`]).
+        seq: u64,
+        /// The submap.
+        submap: Submap,
+    },
+    /// Receiver → sender on a CI link: the submaps fused since the last acknowledgement. The
+    /// features of a submap never acknowledged (lost, dropped on arrival, refused by CI) are
+    /// sent again once [`DdfConfig::submap_ack_timeout`](super::DdfConfig) passes.
+    SubmapAck {
+        /// Numbers of the fused submaps (at most [`MAX_SUBMAP_ACKS`]).
+        seqs: Vec<u64>,
+    },
 }
+
+/// Most submap numbers one [`Body::SubmapAck`] carries (more is rejected as malformed).
+pub const MAX_SUBMAP_ACKS: usize = 256;
 
 /// A protocol message.
 #[derive(Clone, Debug, Serialize, Deserialize)]
@@ -111,7 +126,8 @@ impl DdfMessage {
             Body::Nack { .. } => "nack",
             Body::Cumulative { .. } => "cumulative",
             Body::Sync { .. } => "sync",
-            Body::Submap(_) => "submap",
+            Body::Submap { .. } => "submap",
+            Body::SubmapAck { .. } => "submap-ack",
         }
     }
 
@@ -127,7 +143,8 @@ impl DdfMessage {
                 }
                 Body::Nack { .. } => 9,
                 Body::Sync { baseline, .. } => 9 + 1 + baseline.block_sparse_wire_bytes(),
-                Body::Submap(s) => s.wire_bytes(),
+                Body::Submap { submap, .. } => 9 + submap.wire_bytes(),
+                Body::SubmapAck { seqs } => 9 + 9 * seqs.len(),
             }
     }
 }

@@ -64,7 +64,11 @@
 //! When a link's byte budget cannot carry the delta, the link switches to CI for good, in both
 //! directions (the peer switches on the first submap or on a Hello with `ci` set): its channel
 //! filter is retired, and each round a budgeted [`Submap`](crate::ci::Submap) of the
-//! highest-priority features is sent and fused by [`crate::ci::fuse_submap`]. Exact-protocol
+//! highest-priority features is sent and fused by [`crate::ci::fuse_submap`]. Submaps are
+//! numbered and the receiver acknowledges those it fused (`SubmapAck`); a feature whose submap
+//! was never acknowledged (lost, or refused) counts as unsent again after
+//! `submap_ack_timeout`, so every feature eventually crosses the link. Every submap received
+//! between two rounds is fused, in arrival order. Exact-protocol
 //! messages still in flight on that link are dropped (information lost, never double counted).
 //! The CI change of the estimate reaches the node's exact links as part of Y_i − C_ij, so
 //! deltas there may be indefinite: payloads are validated as finite and symmetric, positive
@@ -75,7 +79,7 @@ mod message;
 mod node;
 
 pub use channel::ChannelStats;
-pub use message::{Body, DdfMessage, Header, Hello, Outgoing};
+pub use message::{Body, DdfMessage, Header, Hello, MAX_SUBMAP_ACKS, Outgoing};
 pub use node::{ChannelView, DdfConfig, DdfError, DdfNode, DeltaPrecision, NodeStats, RoundOutput};
 
 use crate::info::MapInformation;

@@ -34,6 +34,10 @@ pub struct DdfConfig {
     pub byte_budget: Option<usize>,
     /// What CI's ω minimises.
     pub ci_criterion: CiCriterion,
+    /// On a CI link, how long a sent submap may stay unacknowledged before its features count
+    /// as unsent again (and are resent by priority).
+    #[serde(default = "default_submap_ack_timeout")]
+    pub submap_ack_timeout: f64,
     /// Precision of the Y blocks of deltas on the wire: exact f64, or f32 made conservative
     /// (Y_q ⪯ Y, [`MapInformation::quantized_f32_conservative`]) — half the bytes per block;
     /// what is held back stays in Y − C and goes out with later deltas.
@@ -54,10 +58,16 @@ impl Default for DdfConfig {
             block_threshold_rel: 1e-12,
             byte_budget: None,
             ci_criterion: CiCriterion::Trace,
+            submap_ack_timeout: default_submap_ack_timeout(),
             delta_precision: DeltaPrecision::F64,
             retired_epochs: 64,
         }
     }
+}
+
+/// Three rounds at the default 1 Hz: the receiver acknowledges at its next round.
+fn default_submap_ack_timeout() -> f64 {
+    3.0
 }
 
 /// Precision of the information blocks of deltas.
@@ -295,11 +305,13 @@ impl DdfNode {
         let mut fused: Option<MapInformation> = None;
         let criterion = self.config.ci_criterion;
         for channel in self.channels.values_mut() {
-            if let Some(submap) = channel.take_pending_submap() {
+            // Every submap of the round, in arrival order: each CI fusion is consistent
+            // whatever the correlation with what was fused before it.
+            for (seq, submap) in channel.take_pending_submaps() {
                 let base = fused.as_ref().unwrap_or(current);
                 match ci::fuse_submap(base, &submap, criterion) {
                     Ok(r) => {
-                        channel.stats.submaps_fused += 1;
+                        channel.submap_fused(seq);
                         fused = Some(r.fused);
                     }
                     Err(_) => channel.stats.ci_failures += 1,
