@@ -18,7 +18,7 @@ use canopy_fusion::slam::{
 use nalgebra::{Matrix3, Vector3};
 
 use crate::agent::AssociationAudit;
-use crate::metrics::{estimate_sample, map_records, pose_sample};
+use crate::metrics::{HeldSince, estimate_sample, map_records, pose_sample};
 use crate::record::VehicleRecord;
 use crate::replay::{ReplayError, SensorSource};
 use crate::scenario::{Scenario, VehicleConfig};
@@ -279,7 +279,12 @@ pub fn run_reference(
         .map(SensorSource::time)
         .fold(f64::INFINITY, f64::min)
         .min(duration);
-    let map = map_records(&world, &filter);
+    let mut map = map_records(&world, &filter);
+    let mut held = HeldSince::default();
+    for snap in &run.snapshots {
+        held.observe(snap.t, snap.covariances.keys().copied());
+    }
+    held.stamp(run.duration, &mut map);
     for r in &mut run.vehicles {
         r.map = map.clone();
     }

@@ -2,6 +2,8 @@
 //! per-feature confidence check against the centralized reference. Used by the simulation and
 //! by the monitor of multi-process runs.
 
+use std::collections::{HashMap, HashSet};
+
 use canopy_fusion::consistency::vehicle_error;
 use canopy_fusion::geodesy::{ecef_from_ned, ecef_to_geodetic};
 use canopy_fusion::ins::{VehicleCovariance, VehicleState};
@@ -139,6 +141,33 @@ pub fn feature_record(
         est: arr(&world.to_launch(mean)),
         cov: arr9(&(r * cov * r.transpose())),
         truth: world.feature(id).map(|f| arr(&f.position_ned)),
+        held_since: None,
+    }
+}
+
+/// Since when a map has held each of its features, from the maps of consecutive record
+/// times: a feature's time is the first record time of its latest unbroken stretch in the map
+/// (a feature removed and later fused again starts a new stretch).
+#[derive(Clone, Debug, Default)]
+pub struct HeldSince(HashMap<FeatureId, f64>);
+
+impl HeldSince {
+    /// The map at record time `t` held exactly `ids`.
+    pub fn observe(&mut self, t: f64, ids: impl IntoIterator<Item = FeatureId>) {
+        let now: HashSet<FeatureId> = ids.into_iter().collect();
+        self.0.retain(|id, _| now.contains(id));
+        for id in now {
+            self.0.entry(id).or_insert(t);
+        }
+    }
+
+    /// Fills `held_since` of a final map taken at time `end` (a feature not seen at any
+    /// earlier record time gets `end`).
+    pub fn stamp(&mut self, end: f64, map: &mut [MapFeatureRecord]) {
+        self.observe(end, map.iter().map(|f| f.id));
+        for f in map {
+            f.held_since = self.0.get(&f.id).copied();
+        }
     }
 }
 

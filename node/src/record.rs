@@ -55,6 +55,12 @@ pub struct MapFeatureRecord {
     pub cov: [f64; 9],
     /// True position, launch NED [m], when the id names a real feature.
     pub truth: Option<[f64; 3]>,
+    /// Since when this map has held the feature [s]: the first record time of the latest
+    /// unbroken stretch of record times at which it was in the map (the end of the run for a
+    /// feature that arrived after the last record time). Against the reference's figure it
+    /// says how long the feature took to reach this vehicle.
+    #[serde(default)]
+    pub held_since: Option<f64>,
 }
 
 /// A vehicle's record.

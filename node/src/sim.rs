@@ -22,7 +22,7 @@ use canopy_transport::link::{Link, LinkEvent, PeerState};
 use canopy_transport::memory::{InMemoryHub, InMemoryLink};
 
 use crate::agent::{AgentError, AssociationAudit, HubAgent, VehicleAgent};
-use crate::metrics::{confidence_ratio, map_records, pose_sample};
+use crate::metrics::{HeldSince, confidence_ratio, map_records, pose_sample};
 use crate::network::{EventKind, FusionMode, effective_links, node_names, topology};
 use crate::record::{EventRecord, LinkRecord, LinkSample, RunRecord, VehicleRecord};
 use crate::scenario::{Scenario, ScenarioError};
@@ -196,6 +196,10 @@ struct Sim<'s> {
     baseline: Option<SlamFilter>,
     records: Vec<VehicleRecord>,
     baseline_records: Vec<VehicleRecord>,
+    /// Since when each vehicle's map (scenario order) has held its features.
+    held: Vec<HeldSince>,
+    /// The same for the reference's map.
+    baseline_held: HeldSince,
     links: Vec<(NodeId, NodeId, LinkRecord)>,
     checks: SimChecks,
     audit: AssociationAudit,
@@ -322,6 +326,7 @@ impl<'s> Sim<'s> {
             let id = NodeId(self.s.vehicles[i].id);
             if let Some(Agent::Vehicle(a)) = self.nodes.get(&id).and_then(|n| n.agent.as_ref()) {
                 let f = a.filter();
+                self.held[i].observe(now, f.features().into_iter().map(|x| x.0));
                 if let (Ok(est), Ok(cov)) = (f.vehicle_state(0), f.vehicle_covariance(0)) {
                     self.records[i]
                         .samples
@@ -340,6 +345,8 @@ impl<'s> Sim<'s> {
             }
         }
         if let Some(b) = &self.baseline {
+            self.baseline_held
+                .observe(now, b.features().into_iter().map(|x| x.0));
             let worst = self
                 .nodes
                 .values()
@@ -446,6 +453,8 @@ pub fn simulate(s: &Scenario, mut opts: SimOptions<'_>) -> Result<SimOutcome, Si
                 ..Default::default()
             })
             .collect(),
+        held: vec![HeldSince::default(); s.vehicles.len()],
+        baseline_held: HeldSince::default(),
         links: Vec::new(),
         checks: SimChecks::default(),
         audit: AssociationAudit::default(),
@@ -761,7 +770,9 @@ pub fn simulate(s: &Scenario, mut opts: SimOptions<'_>) -> Result<SimOutcome, Si
         if let Some(node) = sim.nodes.get(&NodeId(cfg.id))
             && let Some(Agent::Vehicle(a)) = node.agent.as_ref()
         {
-            sim.records[i].map = map_records(&world, a.filter());
+            let mut map = map_records(&world, a.filter());
+            sim.held[i].stamp(end, &mut map);
+            sim.records[i].map = map;
             let c = a.counters();
             sim.records[i].rejected_messages = c.messages_rejected;
             sim.checks
@@ -771,7 +782,8 @@ pub fn simulate(s: &Scenario, mut opts: SimOptions<'_>) -> Result<SimOutcome, Si
         }
     }
     if let Some(b) = &sim.baseline {
-        let map = map_records(&world, b);
+        let mut map = map_records(&world, b);
+        sim.baseline_held.stamp(end, &mut map);
         for r in &mut sim.baseline_records {
             r.map = map.clone();
         }

@@ -32,6 +32,7 @@ fn clean() -> &'static BTreeMap<String, Standing> {
     static CLEAN: OnceLock<BTreeMap<String, Standing>> = OnceLock::new();
     CLEAN.get_or_init(|| {
         let r = run(&clean_scenario(), &["--quiet"]);
+        r.print_standing("fault-free");
         assert_sound(&r);
         assert_in_band(&r, IN_BAND);
         r.map_standing()
@@ -58,10 +59,12 @@ fn clean_scenario() -> PathBuf {
 }
 
 /// Every vehicle ends within tolerance of the fault-free run: it holds nearly as many of the
-/// reference's features (`coverage`), about as much information on them (`share`, the median
-/// of tr(P_ref)/tr(P_vehicle)), and its map is as accurate.
+/// reference's mature features (`coverage`: those the reference has held for
+/// [`procs::MATURE_S`]), about as much information on them (`share`, the median of
+/// tr(P_ref)/tr(P_vehicle)), and its map is as accurate or better.
 fn assert_converged(r: &Run, coverage_tol: f64, share_tol: f64) {
     let clean = clean();
+    r.print_standing(&r.summary.scenario);
     for (name, s) in r.map_standing() {
         let c = clean[&name];
         assert!(
@@ -76,10 +79,11 @@ fn assert_converged(r: &Run, coverage_tol: f64, share_tol: f64) {
             s.share,
             c.share
         );
-        // Map RMS error within 0.5 m of the fault-free run's (≈ 1.9 m): a quarter of it, far
-        // below what a diverged or wrongly fused map shows (several metres).
+        // Map RMS error at most 0.5 m above the fault-free run's (≈ 1.9 m): a quarter of it,
+        // far below what a diverged or wrongly fused map shows (several metres). Below it is
+        // fine (a restart's external fix makes the maps more accurate: measured 1.36 m).
         assert!(
-            (s.rmse - c.rmse).abs() <= 0.5,
+            s.rmse - c.rmse <= 0.5,
             "{name}: map RMSE {:.2} m, the fault-free run {:.2} m",
             s.rmse,
             c.rmse
@@ -127,8 +131,10 @@ fn channel<'a>(
 fn fault_free_team_matches_the_centralized_reference() {
     let _g = serial();
     for (name, s) in clean() {
-        // Features first seen in the last round or two have not crossed the tree yet: a few %.
-        assert!(s.coverage >= 0.9, "{name}: coverage {:.2}", s.coverage);
+        // Every mature feature has crossed the tree; the reference may hold a feature that no
+        // vehicle's own filter initialised (other linearisation points, gates): measured
+        // 0.99–1.00.
+        assert!(s.coverage >= 0.97, "{name}: coverage {:.3}", s.coverage);
         // Same information as the reference (measured 1.00): linearisation differences only.
         assert!(
             (s.share - 1.0).abs() <= 0.05,
@@ -240,10 +246,10 @@ fn lossy() {
         .map(|l| l.report.channel.duplicates)
         .sum();
     assert!(dup > 0, "duplicated deltas should be seen and dropped");
-    // Coverage: with 30 % loss each way a delta needs ~2 rounds on average and a lost one
-    // waits for the 2 s gap timeout, so features first seen in the last seconds may still be
-    // on their way (measured 0.84–0.92 against 0.94–0.99 fault-free).
-    assert_converged(&r, 0.2, 0.05);
+    // With 30 % loss each way a delta needs ~2 rounds on average and a lost one waits for the
+    // 2 s gap timeout (arrival p90 5–17 s against 2–5 s fault-free), yet the mature features
+    // all arrive (coverage measured 0.986–1.00).
+    assert_converged(&r, 0.05, 0.05);
 }
 
 /// bandwidth-ci.toml: the uav3–uav4 link has a 4 kB per-round budget: it falls back to
@@ -269,8 +275,9 @@ fn bandwidth_ci() {
         );
     }
     // CI trades information for consistency: the shares drop (measured 0.17–0.41 against
-    // 1.00), but the features reach every vehicle (coverage as fault-free, measured within
-    // 0.01) and the maps stay as accurate.
+    // 1.00), but the features reach every vehicle (coverage as fault-free: measured 1.00;
+    // every submap received is fused and acknowledged, a lost one is resent) and the maps
+    // stay as accurate.
     assert_converged(&r, 0.05, 0.9);
     for (name, s) in r.map_standing() {
         assert!(s.share > 0.05, "{name}: information share {:.2}", s.share);
@@ -341,7 +348,7 @@ fn crash_restart() {
         "vehicles disagree after the restart: shares {shares:?}"
     );
     // … and stand within tolerance of the fault-free run: the old uav3's own observations are
-    // lost (measured coverage 0.83, share 0.77 against 0.94–0.99 and 1.00), the restart's
+    // lost (measured coverage 0.836 in every run, share 0.77, against 1.00 and 1.00), the restart's
     // external fix makes the maps more accurate rather than less.
     assert_converged(&r, 0.2, 0.3);
 }
@@ -383,11 +390,20 @@ fn hub_loss() {
             v.name
         );
     }
+    // Every hub link goes down after the kill and never comes back. How many simulated
+    // seconds the detection takes depends on how fast the run goes (the liveness check runs
+    // on the wall clock), so no deadline is asserted; it must happen before the end.
     for l in &r.summary.links {
         let ups = r.link_up(&l.link);
+        let down_at = ups
+            .iter()
+            .find(|(t, up)| *t > 40.0 && !up)
+            .map(|x| x.0)
+            .unwrap_or_else(|| panic!("{} never went down after the hub loss", l.link));
+        eprintln!("hub-loss: {} reported down at {down_at} s", l.link);
         assert!(
-            ups.iter().filter(|(t, _)| *t >= 45.0).all(|(_, up)| !up),
-            "{} still up after the hub loss",
+            ups.iter().filter(|(t, _)| *t >= down_at).all(|(_, up)| !up),
+            "{} came back up after the hub loss",
             l.link
         );
     }

@@ -33,7 +33,8 @@ pub fn tum(v: &VehicleRecord, truth: bool) -> String {
 /// Map CSV: one row per feature per vehicle (and per baseline feature, vehicle `baseline`).
 pub fn map_csv(run: &RunRecord) -> String {
     let mut out = String::from(
-        "vehicle,id,x,y,z,cov_xx,cov_xy,cov_xz,cov_yy,cov_yz,cov_zz,truth_x,truth_y,truth_z,error_m\n",
+        "vehicle,id,x,y,z,cov_xx,cov_xy,cov_xz,cov_yy,cov_yz,cov_zz,truth_x,truth_y,truth_z,error_m,\
+         held_since_s\n",
     );
     let baseline_map = run
         .baseline
@@ -59,9 +60,15 @@ pub fn map_csv(run: &RunRecord) -> String {
                         .map(|i| (f.est[i] - t[i]).powi(2))
                         .sum::<f64>()
                         .sqrt();
-                    let _ = writeln!(out, ",{:.6},{:.6},{:.6},{e:.6}", t[0], t[1], t[2]);
+                    let _ = write!(out, ",{:.6},{:.6},{:.6},{e:.6}", t[0], t[1], t[2]);
                 }
-                None => out.push_str(",,,,\n"),
+                None => out.push_str(",,,,"),
+            }
+            match f.held_since {
+                Some(t) => {
+                    let _ = writeln!(out, ",{t:.3}");
+                }
+                None => out.push_str(",\n"),
             }
         }
     }

@@ -40,7 +40,9 @@ use super::protocol::{
 };
 use super::{ENV_ZENOH_PASSWORD, ENV_ZENOH_USER, control_link, decode_body, send_body};
 use crate::baseline::{BaselineRun, run_reference};
-use crate::metrics::{estimate_sample, feature_confidence_ratio, feature_record, pose_sample};
+use crate::metrics::{
+    HeldSince, estimate_sample, feature_confidence_ratio, feature_record, pose_sample,
+};
 use crate::network::{EventKind, FusionMode, TransportKind, effective_links, node_names};
 use crate::record::{EventRecord, LinkRecord, LinkSample, RunRecord, VehicleRecord};
 use crate::scenario::Scenario;
@@ -973,11 +975,18 @@ fn assemble(
                     .push(pose_sample(world, &state, &cov, &truth_sample(world, tr)));
             }
         }
-        if let Some((_, feats)) = &v.last_map {
+        if let Some((t_last, feats)) = &v.last_map {
             rec.map = feats
                 .iter()
                 .map(|f| feature_record(world, f.id, &Vector3::from(f.mean), &f.covariance()))
                 .collect();
+            let mut held = HeldSince::default();
+            let mut reports: Vec<_> = v.maps.iter().collect();
+            reports.sort_by(|a, b| a.0.total_cmp(&b.0));
+            for (t, f) in reports {
+                held.observe(*t, f.iter().map(|x| x.id));
+            }
+            held.stamp(*t_last, &mut rec.map);
         }
         let a = audits.get(&cfg.id).copied().unwrap_or_default();
         rec.observations = a.observations;
