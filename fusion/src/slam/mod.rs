@@ -26,6 +26,7 @@
 
 mod association;
 mod bearing;
+mod deferred;
 mod fuse;
 mod info_cache;
 pub mod layout;
