@@ -102,8 +102,14 @@ pub struct LinkSample {
     pub drops: u64,
     /// Messages rejected by a receiver so far.
     pub rejections: u64,
-    /// Whether the link was up at `t`.
+    /// Whether the link was up at `t` (both ends report it up).
     pub up: bool,
+    /// Whether end a reported the link up at `t`.
+    #[serde(default)]
+    pub a_up: bool,
+    /// Whether end b reported the link up at `t`.
+    #[serde(default)]
+    pub b_up: bool,
 }
 
 /// A link's record.

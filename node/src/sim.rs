@@ -365,7 +365,7 @@ impl<'s> Sim<'s> {
                     .and_then(|node| node.links.get(&y))
                     .map(|l| (l.stats(), l.fault_stats(), l.peer_state()))
             };
-            let (Some((sa, fa, pa)), Some((sb, fb, _))) =
+            let (Some((sa, fa, pa)), Some((sb, fb, pb))) =
                 (sample(&self.nodes, *a, *b), sample(&self.nodes, *b, *a))
             else {
                 continue;
@@ -407,7 +407,10 @@ impl<'s> Sim<'s> {
                     + sb.rejected.total()
                     + chan_rejected(*a, *b)
                     + chan_rejected(*b, *a),
+                // The simulated network's links are symmetric: both ends see the same state.
                 up: pa == PeerState::Up,
+                a_up: pa == PeerState::Up,
+                b_up: pb == PeerState::Up,
             });
         }
     }

@@ -283,14 +283,35 @@ fn vehicles_in_network_namespaces_detect_a_cut_veth_and_recover() {
         window.len() >= 3,
         "the cut was not reported down on ≥ 3 consecutive samples: {down:?}"
     );
-    // The DDF channel stalls: nothing crosses the link inside the window (its edge samples
-    // may count one end's last or first message: the two ends detect at different moments).
-    let (first, last) = (&rows[window[1]], &rows[window[window.len() - 2]]);
-    for k in ["bytes_ab", "bytes_ba"] {
+    // The DDF channel stalls: an end that knows the link is down sends nothing. The two ends
+    // notice the cut at different moments (each end's zenoh lease expires on its own, up to
+    // ~1 s of wall time apart, ~3 samples at this pacing), so each end is checked over its own
+    // down window, by its own column (a_up for bytes_ab, b_up for bytes_ba); the edge samples
+    // may count that end's last or first message.
+    for (flag, bytes) in [("a_up", "bytes_ab"), ("b_up", "bytes_ba")] {
+        let mut own: Vec<usize> = Vec::new();
+        for (i, x) in rows.iter().enumerate() {
+            if x[flag] == "0" && t_of(x) >= t_cut - 10.0 {
+                if own.last().is_some_and(|&l| l + 1 != i) {
+                    own.clear();
+                }
+                own.push(i);
+            }
+        }
+        assert!(
+            own.len() >= 3,
+            "{flag}: the cut was not reported on ≥ 3 consecutive samples"
+        );
+        let (first, last) = (&rows[own[1]], &rows[own[own.len() - 2]]);
+        println!(
+            "{flag} down from {} s to {} s",
+            rows[own[0]]["t"],
+            rows[own[own.len() - 1]]["t"]
+        );
         assert_eq!(
-            num(first, k),
-            num(last, k),
-            "{k} grew while the link was down"
+            num(first, bytes),
+            num(last, bytes),
+            "{bytes} grew while its sender knew the link was down"
         );
     }
     // Recovery: up again after the window and at the end, with fusion traffic flowing again.

@@ -108,12 +108,13 @@ pub fn metrics_csv(run: &RunRecord) -> String {
 
 /// Link CSV: cumulative link statistics over time.
 pub fn links_csv(run: &RunRecord) -> String {
-    let mut out = String::from("link,transport,t,bytes_ab,bytes_ba,messages,drops,rejections,up\n");
+    let mut out =
+        String::from("link,transport,t,bytes_ab,bytes_ba,messages,drops,rejections,up,a_up,b_up\n");
     for l in &run.links {
         for s in &l.samples {
             let _ = writeln!(
                 out,
-                "{}-{},{},{:.3},{},{},{},{},{},{}",
+                "{}-{},{},{:.3},{},{},{},{},{},{},{},{}",
                 l.a,
                 l.b,
                 l.transport,
@@ -123,7 +124,9 @@ pub fn links_csv(run: &RunRecord) -> String {
                 s.messages,
                 s.drops,
                 s.rejections,
-                u8::from(s.up)
+                u8::from(s.up),
+                u8::from(s.a_up),
+                u8::from(s.b_up)
             );
         }
     }

@@ -1073,6 +1073,8 @@ fn assemble(
                     + ra.rejected_channel
                     + rb.rejected_channel,
                 up: ra.up && rb.up,
+                a_up: ra.up,
+                b_up: rb.up,
             });
             if t >= end {
                 break;
