@@ -2,10 +2,13 @@
 //! together, without any I/O. The deterministic simulation ([`crate::sim`]) and the vehicle and
 //! hub processes ([`crate::process`]) drive the same agents; only the transport differs.
 //!
-//! A vehicle agent owns an M = 1 [`SlamFilter`] and, unless the mode is isolated, a
-//! [`DdfNode`]. Each fusion round it reads the filter's map information (Y_i, y_i) (eqs. 21.86,
-//! 21.87), lets the DDF node form the per-link deltas, and fuses what neighbours send back into
-//! the filter (eqs. 21.92, 21.93 as corrected by the channel filters, design.md §4).
+//! A vehicle agent has two halves: a [`VehicleEstimator`] (an M = 1 [`SlamFilter`]) and a
+//! [`VehicleFusion`] (unless the mode is isolated, a [`DdfNode`], and the batch of received
+//! information). Each fusion round the fusion half fuses the batch into the filter, reads its
+//! map information (Y_i, y_i) (eqs. 21.86, 21.87), lets the DDF node form the per-link deltas,
+//! and fuses a CI change (eqs. 21.92, 21.93 as corrected by the channel filters, design.md §4).
+//! [`VehicleAgent`] runs both halves on one thread (`canopy sim`); the vehicle process runs
+//! them on two, the fusion half on copies of the filter the estimator lends it.
 
 use canopy_fusion::ddf::{
     DdfConfig, DdfError, DdfMessage, DdfNode, FuseRejected, FuseTarget, Mode, Outgoing,
@@ -88,36 +91,53 @@ pub enum AgentError {
     Ddf(#[from] DdfError),
 }
 
-/// One vehicle: inertial SLAM plus its DDF node.
+/// Counters of a vehicle's fusion half ([`VehicleFusion`]).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct FusionCounters {
+    /// Fusion rounds run.
+    pub rounds: u64,
+    /// Received deltas fused into the estimator.
+    pub fused: u64,
+    /// Received deltas the estimator refused (non-PD result, …).
+    pub fuse_refused: u64,
+    /// Received DDF messages rejected (unknown sender, invalid payload, bad time).
+    pub messages_rejected: u64,
+    /// CI changes fused (bandwidth-limited links).
+    pub ci_fused: u64,
+    /// Features removed because fused information left them with none.
+    pub features_forgotten: u64,
+}
+
+/// The fusion half of a vehicle: its DDF node and the information received but not yet fused
+/// into the EKF. It works on whichever filter it is handed: the vehicle's own
+/// ([`VehicleAgent`], one thread, as in `canopy sim`) or the snapshot that the vehicle
+/// process lends to its fusion thread (`crate::process::vehicle`, with
+/// [`canopy_fusion::slam::SlamFilter::carry_predictions`] bringing it back).
 #[derive(Debug)]
-pub struct VehicleAgent {
-    id: NodeId,
-    filter: SlamFilter,
+pub struct VehicleFusion {
     ddf: Option<DdfNode>,
-    counters: AgentCounters,
     /// Received information not yet fused into the EKF (see [`EkfTarget`]).
     pending: Option<MapInformation>,
     pending_count: u64,
+    counters: FusionCounters,
 }
 
-impl VehicleAgent {
-    /// A vehicle agent. `epoch` must be fresh for every process start (a random u64).
-    #[allow(clippy::too_many_arguments)]
+impl VehicleFusion {
+    /// The fusion half of vehicle `id` (no DDF node in isolated mode). `epoch` must be fresh
+    /// for every process start (a random u64).
     pub fn new(
         id: NodeId,
         epoch: u64,
-        slam: SlamConfig,
-        setup: VehicleSetup,
+        origin: Vector3<f64>,
         mode: Mode,
         topology: &Topology,
         ddf: DdfConfig,
         link_budgets: &[(NodeId, Option<usize>)],
-    ) -> Result<Self, AgentError> {
-        let filter = SlamFilter::new(slam, &[setup])?;
+    ) -> Result<Self, DdfError> {
         let ddf = match mode {
             Mode::Isolated => None,
             _ => {
-                let mut node = DdfNode::for_mode(mode, id, epoch, topology, slam.origin, ddf)?;
+                let mut node = DdfNode::for_mode(mode, id, epoch, topology, origin, ddf)?;
                 for &(peer, budget) in link_budgets {
                     if budget.is_some() {
                         node.set_link_budget(peer, budget)?;
@@ -127,24 +147,31 @@ impl VehicleAgent {
             }
         };
         Ok(Self {
-            id,
-            filter,
             ddf,
-            counters: AgentCounters::default(),
             pending: None,
             pending_count: 0,
+            counters: FusionCounters::default(),
         })
     }
 
-    /// Fuses the received information batched since the last call into the EKF (done at the
-    /// start of every round; call it before reading a final map).
-    pub fn flush_fusion(&mut self) {
+    /// The DDF node (None in isolated mode).
+    pub fn ddf(&self) -> Option<&DdfNode> {
+        self.ddf.as_ref()
+    }
+
+    /// Counters.
+    pub fn counters(&self) -> FusionCounters {
+        self.counters
+    }
+
+    /// Fuses the received information batched since the last call into `filter`.
+    pub fn flush(&mut self, filter: &mut SlamFilter) {
         if let Some(sum) = self.pending.take() {
             let n = std::mem::take(&mut self.pending_count);
             // Features whose information the batch cancels exactly (a resynchronisation after a
             // neighbour restarted) are removed, not refused
             // (`SlamFilter::fuse_map_information_forgetting`).
-            match self.filter.fuse_map_information_forgetting(&sum) {
+            match filter.fuse_map_information_forgetting(&sum) {
                 Ok(r) => {
                     self.counters.fused += n;
                     self.counters.features_forgotten += r.forgotten.len() as u64;
@@ -154,66 +181,19 @@ impl VehicleAgent {
         }
     }
 
-    /// This node's id.
-    pub fn id(&self) -> NodeId {
-        self.id
-    }
-
-    /// The estimator.
-    pub fn filter(&self) -> &SlamFilter {
-        &self.filter
-    }
-
-    /// The DDF node (None in isolated mode).
-    pub fn ddf(&self) -> Option<&DdfNode> {
-        self.ddf.as_ref()
-    }
-
-    /// Counters.
-    pub fn counters(&self) -> AgentCounters {
-        self.counters
-    }
-
-    /// One IMU sample (eqs. 21.46/21.47). A rejected sample leaves the estimate unchanged.
-    pub fn on_imu(&mut self, imu: &ImuSample) -> Result<(), SlamError> {
-        match self.filter.predict(0, imu) {
-            Ok(()) => {
-                self.counters.imu_samples += 1;
-                Ok(())
-            }
-            Err(e) => {
-                self.counters.imu_rejected += 1;
-                Err(e)
-            }
-        }
-    }
-
-    /// One terrain-sensor frame (association, update, initialization).
-    pub fn on_frame(&mut self, frame: &ObservationFrame) -> Result<FrameReport, SlamError> {
-        match self.filter.process_frame(0, frame) {
-            Ok(report) => {
-                self.counters.frames += 1;
-                self.counters.observations += report.outcomes.len() as u64;
-                self.counters.associated += report.associated() as u64;
-                self.counters.initialized += report.initialized() as u64;
-                self.counters.rejected_observations += report.rejected() as u64;
-                Ok(report)
-            }
-            Err(e) => {
-                self.counters.frames_rejected += 1;
-                Err(e)
-            }
-        }
-    }
-
-    /// A fusion round at time `now`: the messages to send.
-    pub fn on_round(&mut self, now: f64) -> Result<Vec<Outgoing>, AgentError> {
+    /// A fusion round at time `now` on `filter`: the batch fused in, the map information read
+    /// (eqs. 21.86, 21.87), the DDF's deltas formed, a CI change fused. The messages to send.
+    pub fn round(
+        &mut self,
+        filter: &mut SlamFilter,
+        now: f64,
+    ) -> Result<Vec<Outgoing>, AgentError> {
         if self.ddf.is_none() {
             return Ok(Vec::new());
         }
         self.counters.rounds += 1;
-        self.flush_fusion();
-        let info = self.filter.map_information().map_err(AgentError::Slam)?;
+        self.flush(filter);
+        let info = filter.map_information().map_err(AgentError::Slam)?;
         let out = self
             .ddf
             .as_mut()
@@ -222,7 +202,7 @@ impl VehicleAgent {
         if let Some(ci) = out.ci_delta {
             // The CI change of the map (possibly indefinite); a refusal leaves the map as it was
             // (conservative: the CI information is not used).
-            match self.filter.fuse_map_information(&ci) {
+            match filter.fuse_map_information(&ci) {
                 Ok(_) => self.counters.ci_fused += 1,
                 Err(_) => self.counters.fuse_refused += 1,
             }
@@ -230,8 +210,8 @@ impl VehicleAgent {
         Ok(out.messages)
     }
 
-    /// A DDF message from `from`: fuses what it carries, returns replies. An error means the
-    /// message was rejected and counted; the estimate is unchanged.
+    /// A DDF message from `from`: what it carries joins the batch; returns replies. An error
+    /// means the message was rejected and counted; nothing changed.
     pub fn on_message(
         &mut self,
         now: f64,
@@ -268,6 +248,214 @@ impl VehicleAgent {
             Some(d) => Ok(d.on_link_down(peer)?),
             None => Ok(()),
         }
+    }
+}
+
+/// The estimator half of a vehicle: its M = 1 filter and what it counted.
+#[derive(Debug)]
+pub struct VehicleEstimator {
+    filter: SlamFilter,
+    counters: AgentCounters,
+    /// The vehicle part taken when a copy was lent out.
+    lent: Option<SlamFilter>,
+}
+
+impl VehicleEstimator {
+    /// An estimator with an empty map.
+    pub fn new(slam: SlamConfig, setup: VehicleSetup) -> Result<Self, SlamError> {
+        Ok(Self {
+            filter: SlamFilter::new(slam, &[setup])?,
+            counters: AgentCounters::default(),
+            lent: None,
+        })
+    }
+
+    /// The filter.
+    pub fn filter(&self) -> &SlamFilter {
+        &self.filter
+    }
+
+    /// The filter, to fuse into.
+    pub fn filter_mut(&mut self) -> &mut SlamFilter {
+        &mut self.filter
+    }
+
+    /// Counters of the estimator's own inputs (the fusion fields are left at zero).
+    pub fn counters(&self) -> AgentCounters {
+        self.counters
+    }
+
+    /// One IMU sample (eqs. 21.46/21.47). A rejected sample leaves the estimate unchanged.
+    pub fn on_imu(&mut self, imu: &ImuSample) -> Result<(), SlamError> {
+        match self.filter.predict(0, imu) {
+            Ok(()) => {
+                self.counters.imu_samples += 1;
+                Ok(())
+            }
+            Err(e) => {
+                self.counters.imu_rejected += 1;
+                Err(e)
+            }
+        }
+    }
+
+    /// A copy of the filter for fusion work elsewhere (deferred fusion,
+    /// `canopy_fusion::slam::SlamFilter::carry_predictions`). IMU samples go on meanwhile;
+    /// frames must wait for [`give_back`](Self::give_back) (a frame in between makes the give
+    /// back fail safe: the fused copy is dropped).
+    pub fn lend(&mut self) -> SlamFilter {
+        self.lent = Some(self.filter.vehicle_part());
+        self.filter.clone()
+    }
+
+    /// Whether a copy is out ([`lend`](Self::lend)).
+    pub fn is_lent(&self) -> bool {
+        self.lent.is_some()
+    }
+
+    /// Takes the fused copy back, with the predictions made since it was lent carried over.
+    /// On an error the filter stays as it is (the fusion's result is lost, never applied
+    /// twice).
+    pub fn give_back(&mut self, mut fused: SlamFilter) -> Result<(), SlamError> {
+        let before = self
+            .lent
+            .take()
+            .ok_or_else(|| SlamError::InvalidConfig("give_back without a lent filter".into()))?;
+        fused.carry_predictions(&before, &self.filter)?;
+        self.filter = fused;
+        Ok(())
+    }
+
+    /// One terrain-sensor frame (association, update, initialization).
+    pub fn on_frame(&mut self, frame: &ObservationFrame) -> Result<FrameReport, SlamError> {
+        match self.filter.process_frame(0, frame) {
+            Ok(report) => {
+                self.counters.frames += 1;
+                self.counters.observations += report.outcomes.len() as u64;
+                self.counters.associated += report.associated() as u64;
+                self.counters.initialized += report.initialized() as u64;
+                self.counters.rejected_observations += report.rejected() as u64;
+                Ok(report)
+            }
+            Err(e) => {
+                self.counters.frames_rejected += 1;
+                Err(e)
+            }
+        }
+    }
+}
+
+/// One vehicle in one thread: the estimator and the fusion half side by side (`canopy sim`).
+#[derive(Debug)]
+pub struct VehicleAgent {
+    id: NodeId,
+    estimator: VehicleEstimator,
+    fusion: VehicleFusion,
+}
+
+impl VehicleAgent {
+    /// A vehicle agent. `epoch` must be fresh for every process start (a random u64).
+    #[allow(clippy::too_many_arguments)]
+    pub fn new(
+        id: NodeId,
+        epoch: u64,
+        slam: SlamConfig,
+        setup: VehicleSetup,
+        mode: Mode,
+        topology: &Topology,
+        ddf: DdfConfig,
+        link_budgets: &[(NodeId, Option<usize>)],
+    ) -> Result<Self, AgentError> {
+        let estimator = VehicleEstimator::new(slam, setup)?;
+        let fusion = VehicleFusion::new(id, epoch, slam.origin, mode, topology, ddf, link_budgets)?;
+        Ok(Self {
+            id,
+            estimator,
+            fusion,
+        })
+    }
+
+    /// Splits the agent into its estimator and fusion halves (the vehicle process runs them on
+    /// two threads).
+    pub fn into_parts(self) -> (VehicleEstimator, VehicleFusion) {
+        (self.estimator, self.fusion)
+    }
+
+    /// Fuses the received information batched since the last call into the EKF (done at the
+    /// start of every round; call it before reading a final map).
+    pub fn flush_fusion(&mut self) {
+        self.fusion.flush(self.estimator.filter_mut());
+    }
+
+    /// This node's id.
+    pub fn id(&self) -> NodeId {
+        self.id
+    }
+
+    /// The estimator.
+    pub fn filter(&self) -> &SlamFilter {
+        self.estimator.filter()
+    }
+
+    /// The DDF node (None in isolated mode).
+    pub fn ddf(&self) -> Option<&DdfNode> {
+        self.fusion.ddf()
+    }
+
+    /// Counters of both halves.
+    pub fn counters(&self) -> AgentCounters {
+        self.estimator
+            .counters()
+            .with_fusion(self.fusion.counters())
+    }
+
+    /// One IMU sample (eqs. 21.46/21.47). A rejected sample leaves the estimate unchanged.
+    pub fn on_imu(&mut self, imu: &ImuSample) -> Result<(), SlamError> {
+        self.estimator.on_imu(imu)
+    }
+
+    /// One terrain-sensor frame (association, update, initialization).
+    pub fn on_frame(&mut self, frame: &ObservationFrame) -> Result<FrameReport, SlamError> {
+        self.estimator.on_frame(frame)
+    }
+
+    /// A fusion round at time `now`: the messages to send.
+    pub fn on_round(&mut self, now: f64) -> Result<Vec<Outgoing>, AgentError> {
+        self.fusion.round(self.estimator.filter_mut(), now)
+    }
+
+    /// A DDF message from `from`: fuses what it carries, returns replies. An error means the
+    /// message was rejected and counted; the estimate is unchanged.
+    pub fn on_message(
+        &mut self,
+        now: f64,
+        from: NodeId,
+        msg: DdfMessage,
+    ) -> Result<Vec<Outgoing>, AgentError> {
+        self.fusion.on_message(now, from, msg)
+    }
+
+    /// The link to `peer` came up.
+    pub fn on_link_up(&mut self, now: f64, peer: NodeId) -> Result<Vec<Outgoing>, AgentError> {
+        self.fusion.on_link_up(now, peer)
+    }
+
+    /// The link to `peer` went down.
+    pub fn on_link_down(&mut self, peer: NodeId) -> Result<(), AgentError> {
+        self.fusion.on_link_down(peer)
+    }
+}
+
+impl AgentCounters {
+    /// These estimator counters with the fusion half's.
+    pub fn with_fusion(mut self, f: FusionCounters) -> Self {
+        self.rounds = f.rounds;
+        self.fused = f.fused;
+        self.fuse_refused = f.fuse_refused;
+        self.messages_rejected = f.messages_rejected;
+        self.ci_fused = f.ci_fused;
+        self.features_forgotten = f.features_forgotten;
+        self
     }
 }
 

@@ -1,5 +1,13 @@
-//! The vehicle process: one [`VehicleAgent`] (inertial SLAM + DDF node) fed by its sensor
-//! stream from the world, fusing over its configured links.
+//! The vehicle process: one [`VehicleEstimator`] (inertial SLAM) fed by its sensor stream from
+//! the world, and its [`crate::agent::VehicleFusion`] (DDF node) on a fusion thread, fusing over its
+//! configured links.
+//!
+//! Threads: the estimator thread (this one) applies IMU samples and frames, owns the links and
+//! reports; at each round time it lends a copy of its filter to the fusion thread and goes on
+//! predicting, and takes the fused copy back when it is done (`fusion_thread` module docs). A
+//! frame that arrives while a round is out waits for it (a frame changes the map, which the
+//! round's copy must not miss). Rounds of the vehicles of a team are spread over the round
+//! period (`round_phase`).
 //!
 //! Time is the vehicle's simulation time: the time of the last IMU sample applied. It drives
 //! the fusion rounds (`[fusion].rate_hz`), the record times (`[run].record_interval_s`), the DDF
@@ -17,7 +25,6 @@ use std::sync::atomic::Ordering;
 use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result, bail};
-use canopy_fusion::ddf::DdfMessage;
 use canopy_fusion::ins::{VehicleState, VehicleVector};
 use canopy_fusion::slam::{ObservationOutcome, SlamConfig};
 use canopy_fusion::state::VEHICLE_DIM;
@@ -26,6 +33,7 @@ use canopy_transport::link::{Link, LinkEvent};
 use canopy_transport::{MessageKind, NodeId as WireId};
 use nalgebra::{SMatrix, Vector3};
 
+use super::fusion_thread::{Done, FusionThread, FusionView, Job};
 use super::protocol::{
     Control, EstimateReport, FeatureReport, FrameAssociations, InitMsg, MONITOR_ID, MapReport,
     Outcome, Progress, Report, SensorItem, VehicleCounters, WORLD_ID, WorldMsg,
@@ -35,7 +43,7 @@ use super::{
     FusionLinks, RoleCommon, control_link, decode_body, fresh_epoch, link_report, load_resolved,
     naive_round_bytes, send_body, stop_flag,
 };
-use crate::agent::VehicleAgent;
+use crate::agent::{VehicleAgent, VehicleEstimator};
 use crate::baseline::estimator_setup;
 use crate::network::{effective_links, topology};
 use crate::scenario::{Scenario, VehicleConfig};
@@ -52,7 +60,10 @@ struct Vehicle<'s> {
     /// This vehicle's IMU rate [Hz].
     cfg_imu_rate: f64,
     incarnation: u32,
-    agent: VehicleAgent,
+    estimator: VehicleEstimator,
+    fusion: FusionThread,
+    /// The fusion thread's counters and channels, as of its last finished job.
+    view: FusionView,
     links: FusionLinks,
     monitor: canopy_transport::iceoryx::IceoryxLink,
     counters: VehicleCounters,
@@ -65,21 +76,39 @@ struct Vehicle<'s> {
     naive_bytes: u64,
     /// Stall of the estimator by fusion work (see [`StallMeter`]).
     stall: StallMeter,
-    /// A round whose fusion half ran at the previous IMU sample and whose exchange half is due.
+    /// Fused copies the estimator could not take back (the contract of deferred fusion broken;
+    /// the round's fusion is lost, never applied twice).
+    give_back_failed: u64,
+    /// A round found due at the last IMU sample, not yet sent to the fusion thread.
     round_due: Option<f64>,
 }
 
-/// How long fusion work (rounds, fusing received deltas) holds up the estimator: the time
-/// spent in it between two consecutive IMU samples, one figure per IMU interval that saw any,
-/// as wall time (includes waiting for a core while other processes run) and as this thread's
-/// CPU time (the work itself). Printed to the vehicle's log at the end (`fusion stall: …`,
-/// read by `scripts/bench.sh`).
+/// How long fusion work holds up the estimator thread: the time spent on it between two
+/// consecutive IMU samples, one figure per IMU interval that saw any, as wall time (includes
+/// waiting for a core while other processes run, and waiting for the fusion thread) and as this
+/// thread's CPU time (the work itself). The estimator thread's share of fusion is moving
+/// messages between the links and the fusion thread, lending a copy of the filter and taking
+/// the fused copy back, and waiting for a round a frame needs. Printed to the vehicle's log at
+/// the end (`fusion stall: …`, read by `scripts/bench.sh`).
 #[derive(Debug, Default)]
 struct StallMeter {
     /// Fusion (wall, CPU) time since the last IMU sample [s].
     pending: (f64, f64),
     /// One (wall, CPU) entry per IMU interval with fusion work [s].
     stalls: Vec<(f64, f64)>,
+    /// CPU time of every piece of fusion work, by kind [s] (where the stall goes).
+    pieces: [Vec<f64>; 3],
+}
+
+/// What a piece of fusion work on the estimator thread was, for [`StallMeter`]'s breakdown.
+#[derive(Debug, Clone, Copy)]
+enum Work {
+    /// Link events and DDF messages to and from the fusion thread (decoding, encoding).
+    Messages = 0,
+    /// Lending a copy of the filter for a round, and taking the fused copy back.
+    Lend = 1,
+    /// Waiting for a round that a frame (or the end of the stream) needs.
+    Wait = 2,
 }
 
 /// A start mark: wall clock and this thread's CPU clock.
@@ -98,9 +127,11 @@ impl StallMeter {
     fn mark() -> Mark {
         Mark(Instant::now(), thread_cpu_s())
     }
-    fn add(&mut self, since: Mark) {
+    fn add(&mut self, since: Mark, work: Work) {
+        let cpu = (thread_cpu_s() - since.1).max(0.0);
         self.pending.0 += since.0.elapsed().as_secs_f64();
-        self.pending.1 += (thread_cpu_s() - since.1).max(0.0);
+        self.pending.1 += cpu;
+        self.pieces[work as usize].push(cpu);
     }
     fn on_imu(&mut self) {
         if self.pending.0 > 0.0 {
@@ -131,10 +162,27 @@ impl StallMeter {
         };
         let c = stats(|x| x.1);
         let w = stats(|x| x.0);
+        let pieces: Vec<String> = ["messages", "lend", "wait"]
+            .iter()
+            .zip(&self.pieces)
+            .map(|(name, v)| {
+                let mut v = v.clone();
+                v.sort_by(f64::total_cmp);
+                let q = |p: f64| {
+                    v.get(((v.len().max(1) - 1) as f64 * p).round() as usize)
+                        .map_or(0.0, |x| x * 1e3)
+                };
+                format!(
+                    "{name}_cpu_max_ms={:.3} {name}_cpu_p99_ms={:.3}",
+                    q(1.0),
+                    q(0.99)
+                )
+            })
+            .collect();
         format!(
             "fusion stall: n={} cpu_max_ms={:.3} cpu_p99_ms={:.3} cpu_p50_ms={:.3} \
              cpu_over_imu_period={} wall_max_ms={:.3} wall_p99_ms={:.3} wall_p50_ms={:.3} \
-             wall_over_imu_period={} imu_period_ms={:.1} features={features}",
+             wall_over_imu_period={} imu_period_ms={:.1} features={features} {}",
             self.stalls.len(),
             c.0,
             c.1,
@@ -145,8 +193,22 @@ impl StallMeter {
             w.2,
             w.3,
             imu_period * 1e3,
+            pieces.join(" "),
         )
     }
+}
+
+/// Where in the round period this vehicle's rounds fall, as a fraction of the period: the
+/// vehicles of a scenario spread evenly over it (scenario order). Rounds at the same instant
+/// would make every vehicle process want a core at once; spread out, the processes of a
+/// team take turns (measured with rounds still on the estimator thread, 1 Hz, four vehicles on
+/// two cores at real time: the longest wall-clock stall of the estimator by fusion work fell
+/// from ~12 ms, twice its CPU time, to its CPU time). The DDF does not care when a node's
+/// round falls: deltas commute.
+fn round_phase(s: &Scenario, id: WireId) -> f64 {
+    let n = s.vehicles.len().max(1);
+    let i = s.vehicles.iter().position(|v| v.id == id).unwrap_or(0);
+    i as f64 / n as f64
 }
 
 fn initial_from(m: &InitMsg) -> InitialEstimate {
@@ -206,7 +268,8 @@ impl Vehicle<'_> {
         let _ = send_body(&mut self.monitor, r.kind(), 0, self.t, r);
     }
 
-    /// Link events and DDF messages waiting now.
+    /// Link events and DDF messages waiting now go to the fusion thread; what it has finished
+    /// comes back (replies sent, a fused round taken back).
     fn service_links(&mut self) {
         let now = self.t;
         let polled = self.links.poll();
@@ -214,37 +277,74 @@ impl Vehicle<'_> {
         let busy = !polled.is_empty();
         for (peer, events, msgs) in polled {
             for ev in events {
-                let out = match ev {
-                    LinkEvent::PeerUp => {
-                        self.agent.on_link_up(now, NodeId(peer)).unwrap_or_default()
-                    }
-                    LinkEvent::PeerDown => {
-                        let _ = self.agent.on_link_down(NodeId(peer));
-                        Vec::new()
-                    }
-                };
-                self.links.send(now, out);
+                self.fusion.submit(match ev {
+                    LinkEvent::PeerUp => Job::LinkUp {
+                        now,
+                        peer: NodeId(peer),
+                    },
+                    LinkEvent::PeerDown => Job::LinkDown { peer: NodeId(peer) },
+                });
             }
             for msg in msgs {
-                self.on_message(now, peer, msg);
+                self.fusion.submit(Job::Message {
+                    now,
+                    from: NodeId(peer),
+                    msg: Box::new(msg),
+                });
             }
         }
         if busy {
-            self.stall.add(start);
+            self.stall.add(start, Work::Messages);
+        }
+        while let Some(done) = self.fusion.try_done() {
+            self.on_done(done);
         }
     }
 
-    fn on_message(&mut self, now: f64, peer: WireId, msg: DdfMessage) {
-        // A rejected message is counted by the agent; the estimate is unchanged.
-        let out = self
-            .agent
-            .on_message(now, NodeId(peer), msg)
-            .unwrap_or_default();
-        self.links.send(now, out);
+    /// A finished job of the fusion thread.
+    fn on_done(&mut self, done: Done) {
+        let start = StallMeter::mark();
+        match done {
+            Done::Replies { now, out, view } => {
+                self.view = view;
+                self.links
+                    .send(if now.is_finite() { now } else { self.t }, out);
+                self.stall.add(start, Work::Messages);
+            }
+            Done::Round {
+                now,
+                filter,
+                out,
+                view,
+            } => {
+                self.view = view;
+                if self.estimator.give_back(*filter).is_err() {
+                    self.give_back_failed += 1;
+                }
+                self.stall.add(start, Work::Lend);
+                let start = StallMeter::mark();
+                self.links.send(now, out);
+                self.stall.add(start, Work::Messages);
+            }
+        }
+    }
+
+    /// Waits until the round lent out (if any) is back.
+    fn wait_for_round(&mut self) {
+        while self.estimator.is_lent() {
+            let start = StallMeter::mark();
+            let done = self.fusion.wait_done();
+            self.stall.add(start, Work::Wait);
+            match done {
+                Some(d) => self.on_done(d),
+                // The fusion thread is gone (it cannot be, short of a bug): keep estimating.
+                None => break,
+            }
+        }
     }
 
     fn counters(&self) -> VehicleCounters {
-        let c = self.agent.counters();
+        let c = self.estimator.counters().with_fusion(self.view.counters);
         VehicleCounters {
             imu_samples: c.imu_samples,
             inputs_rejected: self.counters.inputs_rejected,
@@ -252,7 +352,7 @@ impl Vehicle<'_> {
             observations: c.observations,
             rounds: c.rounds,
             fused: c.fused,
-            fuse_refused: c.fuse_refused,
+            fuse_refused: c.fuse_refused + self.give_back_failed,
             messages_rejected: c.messages_rejected,
             ci_fused: c.ci_fused,
             stream_gaps: self.counters.stream_gaps,
@@ -260,7 +360,7 @@ impl Vehicle<'_> {
     }
 
     fn estimate_report(&mut self) {
-        let f = self.agent.filter();
+        let f = self.estimator.filter();
         let (Ok(x), Ok(p)) = (f.vehicle_state(0), f.vehicle_covariance(0)) else {
             return;
         };
@@ -269,12 +369,7 @@ impl Vehicle<'_> {
             .links
             .iter()
             .map(|(&peer, l)| {
-                link_report(
-                    peer,
-                    l,
-                    self.agent.ddf().and_then(|d| d.channel(NodeId(peer))),
-                    self.naive_bytes,
-                )
+                link_report(peer, l, self.view.channel(NodeId(peer)), self.naive_bytes)
             })
             .collect();
         let r = Report::Estimate(EstimateReport {
@@ -290,7 +385,7 @@ impl Vehicle<'_> {
     }
 
     fn map_report(&mut self, last: bool) {
-        let f = self.agent.filter();
+        let f = self.estimator.filter();
         let features = f
             .features()
             .into_iter()
@@ -318,49 +413,43 @@ impl Vehicle<'_> {
         self.report(&r);
     }
 
+    /// Sends the round due at `now` to the fusion thread with a copy of the filter.
+    fn dispatch_round(&mut self, now: f64) {
+        // Rounds closer than the fusion thread takes: one at a time.
+        self.wait_for_round();
+        self.links.clock.set(now.max(self.t));
+        self.service_links();
+        self.naive_bytes += naive_round_bytes(self.estimator.filter().num_features());
+        let start = StallMeter::mark();
+        let filter = Box::new(self.estimator.lend());
+        self.fusion.submit(Job::Round { now, filter });
+        self.stall.add(start, Work::Lend);
+    }
+
     fn on_imu(&mut self, imu: &canopy_fusion::sensor::ImuSample) {
         let eps = 1e-9;
         let round_dt = 1.0 / self.s.fusion.rate_hz;
-        // A round is split over two IMU intervals so that its two costly halves never hold up
-        // the same sample: at the first sample at or after the round time the received
-        // information is fused into the EKF (`flush_fusion`); at the next sample the map
-        // information is formed and the DDF's deltas are computed and sent (`on_round`, whose
-        // own flush then has nothing, or only what arrived in between, to fuse).
+        // A round found due at the previous sample goes out now (no frame followed it).
         if let Some(now) = self.round_due.take() {
-            self.exchange(now.max(self.t));
+            self.dispatch_round(now);
         }
-        // Rounds due before this sample (rate as in `canopy sim`).
+        // Rounds due before this sample (rate as in `canopy sim`, phase per vehicle). The last
+        // one goes out after this sample's frame, if it has one (`on_frame`), else with the
+        // next sample: a frame right after the round would otherwise wait for it.
         while self.next_round <= imu.time + eps {
-            let now = self.next_round;
-            if let Some(prev) = self.round_due.take() {
-                // Only when rounds are closer than one IMU period: no interval to spare.
-                self.exchange(prev);
+            if let Some(now) = self.round_due.take() {
+                self.dispatch_round(now);
             }
-            self.t = self.t.max(now);
-            self.links.clock.set(now);
-            self.service_links();
-            self.naive_bytes += naive_round_bytes(self.agent.filter().num_features());
-            let start = StallMeter::mark();
-            self.agent.flush_fusion();
-            self.stall.add(start);
-            self.round_due = Some(now);
+            self.t = self.t.max(self.next_round);
+            self.round_due = Some(self.next_round);
             self.next_round += round_dt;
         }
         self.t = imu.time;
         self.links.clock.set(imu.time);
         self.stall.on_imu();
-        if self.agent.on_imu(imu).is_err() {
+        if self.estimator.on_imu(imu).is_err() {
             self.counters.inputs_rejected += 1;
         }
-    }
-
-    /// The second half of a round (see `on_imu`): the deltas out. Replies are read with the
-    /// links' next service (after every stream batch).
-    fn exchange(&mut self, now: f64) {
-        let start = StallMeter::mark();
-        let out = self.agent.on_round(now).unwrap_or_default();
-        self.links.send(now, out);
-        self.stall.add(start);
     }
 
     fn after_sample(&mut self) {
@@ -374,7 +463,9 @@ impl Vehicle<'_> {
     }
 
     fn on_frame(&mut self, frame: &canopy_fusion::sensor::ObservationFrame) {
-        match self.agent.on_frame(frame) {
+        // The frame changes the map: the round lent out must be back first.
+        self.wait_for_round();
+        match self.estimator.on_frame(frame) {
             Ok(rep) => self.associations.push(FrameAssociations {
                 t: frame.time,
                 outcomes: rep
@@ -395,12 +486,16 @@ impl Vehicle<'_> {
             }),
             Err(_) => self.counters.inputs_rejected += 1,
         }
+        if let Some(now) = self.round_due.take() {
+            self.dispatch_round(now);
+        }
     }
 
     fn finish(&mut self) {
         if let Some(now) = self.round_due.take() {
-            self.exchange(now.max(self.t));
+            self.dispatch_round(now);
         }
+        self.wait_for_round();
         if self.last_report < self.t {
             self.estimate_report();
         }
@@ -409,8 +504,10 @@ impl Vehicle<'_> {
         self.report(&Report::Finished { t });
         eprintln!(
             "{}",
-            self.stall
-                .summary(1.0 / self.cfg_imu_rate, self.agent.filter().num_features())
+            self.stall.summary(
+                1.0 / self.cfg_imu_rate,
+                self.estimator.filter().num_features()
+            )
         );
     }
 }
@@ -467,23 +564,30 @@ pub fn run(c: &RoleCommon, id: WireId, incarnation: u32) -> Result<()> {
             break i;
         }
     };
-    let agent = build_agent(&s, &cfg, &world, &init, epoch)?;
+    let (estimator, fusion) = build_agent(&s, &cfg, &world, &init, epoch)?.into_parts();
+    let fusion = FusionThread::spawn(fusion).context("starting the fusion thread")?;
     let record_dt = s.run.record_interval_s;
     let round_dt = 1.0 / s.fusion.rate_hz;
     let mut v = Vehicle {
         s: &s,
         cfg_imu_rate: cfg.imu.rate_hz,
         stall: StallMeter::default(),
+        give_back_failed: 0,
         round_due: None,
         incarnation,
-        agent,
+        estimator,
+        fusion,
+        view: FusionView::default(),
         links,
         monitor,
         counters: VehicleCounters::default(),
         associations: Vec::new(),
         t: init.time,
         // The first round and record times at or after the start.
-        next_round: ((init.time / round_dt).floor() + 1.0) * round_dt,
+        next_round: {
+            let phase = round_phase(&s, id) * round_dt;
+            (((init.time - phase) / round_dt).floor() + 1.0) * round_dt + phase
+        },
         naive_bytes: 0,
         next_record: (init.time / record_dt - 1e-9).ceil() * record_dt,
         last_report: f64::NEG_INFINITY,

@@ -1,0 +1,191 @@
+//! The vehicle process's fusion thread: the vehicle's [`VehicleFusion`] (DDF node and the
+//! batch of received information) runs here, so that channel bookkeeping, fusing received
+//! deltas into the EKF and forming the next deltas never hold up the estimator thread's IMU
+//! processing.
+//!
+//! The estimator thread keeps the links (iceoryx2 ports stay on the thread that opened them)
+//! and forwards what they deliver as [`Job`]s; for a round it lends the fusion thread a copy of
+//! its filter ([`VehicleEstimator::lend`](crate::agent::VehicleEstimator::lend)) and keeps
+//! predicting; the fusion thread fuses the batch into the copy, forms the map information and
+//! the deltas, and hands the copy back ([`Done::Round`]), which the estimator takes back with
+//! the predictions made meanwhile carried over
+//! ([`SlamFilter::carry_predictions`](canopy_fusion::slam::SlamFilter::carry_predictions)).
+//! Messages for the links come back as [`Done`] too, with the DDF's counters and channel
+//! views for the reports.
+
+use std::sync::mpsc::{Receiver, Sender, channel};
+use std::thread::JoinHandle;
+
+use canopy_fusion::ddf::{ChannelView, DdfMessage, Outgoing};
+use canopy_fusion::slam::SlamFilter;
+use canopy_fusion::topology::NodeId;
+
+use crate::agent::{FusionCounters, VehicleFusion};
+
+/// Work for the fusion thread.
+#[derive(Debug)]
+pub enum Job {
+    /// A DDF message from a neighbour.
+    Message {
+        /// Simulation time of receipt [s].
+        now: f64,
+        /// Sender.
+        from: NodeId,
+        /// The message (boxed: deltas are large, link events small).
+        msg: Box<DdfMessage>,
+    },
+    /// The link to `peer` came up.
+    LinkUp {
+        /// Simulation time [s].
+        now: f64,
+        /// The neighbour.
+        peer: NodeId,
+    },
+    /// The link to `peer` went down.
+    LinkDown {
+        /// The neighbour.
+        peer: NodeId,
+    },
+    /// A fusion round on a lent copy of the filter.
+    Round {
+        /// Round time [s].
+        now: f64,
+        /// The copy.
+        filter: Box<SlamFilter>,
+    },
+}
+
+/// The DDF's counters and channels after a job (for the estimator thread's reports).
+#[derive(Clone, Debug, Default)]
+pub struct FusionView {
+    /// Counters of the fusion half.
+    pub counters: FusionCounters,
+    /// Every channel of the DDF node.
+    pub channels: Vec<ChannelView>,
+}
+
+impl FusionView {
+    fn of(f: &VehicleFusion) -> Self {
+        Self {
+            counters: f.counters(),
+            channels: f.ddf().map(|d| d.channels().collect()).unwrap_or_default(),
+        }
+    }
+
+    /// The channel to `peer`.
+    pub fn channel(&self, peer: NodeId) -> Option<ChannelView> {
+        self.channels.iter().find(|c| c.peer == peer).copied()
+    }
+}
+
+/// What the fusion thread finished.
+#[derive(Debug)]
+pub enum Done {
+    /// A message or link event handled: replies to send at `now`.
+    Replies {
+        /// Time of the job [s].
+        now: f64,
+        /// Messages to send.
+        out: Vec<Outgoing>,
+        /// Counters and channels now.
+        view: FusionView,
+    },
+    /// A round done: the fused copy and the round's messages.
+    Round {
+        /// Round time [s].
+        now: f64,
+        /// The lent copy, fused.
+        filter: Box<SlamFilter>,
+        /// Messages to send.
+        out: Vec<Outgoing>,
+        /// Counters and channels now.
+        view: FusionView,
+    },
+}
+
+/// The estimator thread's handle on the fusion thread.
+#[derive(Debug)]
+pub struct FusionThread {
+    jobs: Option<Sender<Job>>,
+    done: Receiver<Done>,
+    handle: Option<JoinHandle<()>>,
+}
+
+impl FusionThread {
+    /// Starts the thread with the vehicle's fusion half.
+    pub fn spawn(mut fusion: VehicleFusion) -> std::io::Result<Self> {
+        let (jobs, job_rx) = channel::<Job>();
+        let (done_tx, done) = channel::<Done>();
+        let handle = std::thread::Builder::new()
+            .name("fusion".into())
+            .spawn(move || {
+                for job in job_rx {
+                    let msg = match job {
+                        Job::Message { now, from, msg } => Done::Replies {
+                            now,
+                            // A rejected message is counted by the fusion half.
+                            out: fusion.on_message(now, from, *msg).unwrap_or_default(),
+                            view: FusionView::of(&fusion),
+                        },
+                        Job::LinkUp { now, peer } => Done::Replies {
+                            now,
+                            out: fusion.on_link_up(now, peer).unwrap_or_default(),
+                            view: FusionView::of(&fusion),
+                        },
+                        Job::LinkDown { peer } => {
+                            let _ = fusion.on_link_down(peer);
+                            Done::Replies {
+                                now: f64::NAN,
+                                out: Vec::new(),
+                                view: FusionView::of(&fusion),
+                            }
+                        }
+                        Job::Round { now, mut filter } => {
+                            let out = fusion.round(&mut filter, now).unwrap_or_default();
+                            Done::Round {
+                                now,
+                                filter,
+                                out,
+                                view: FusionView::of(&fusion),
+                            }
+                        }
+                    };
+                    if done_tx.send(msg).is_err() {
+                        break;
+                    }
+                }
+            })?;
+        Ok(Self {
+            jobs: Some(jobs),
+            done,
+            handle: Some(handle),
+        })
+    }
+
+    /// Queues a job (a no-op once the thread has ended).
+    pub fn submit(&self, job: Job) {
+        if let Some(j) = &self.jobs {
+            let _ = j.send(job);
+        }
+    }
+
+    /// A finished job, if one is waiting.
+    pub fn try_done(&self) -> Option<Done> {
+        self.done.try_recv().ok()
+    }
+
+    /// The next finished job, waiting for it (`None` if the thread has ended).
+    pub fn wait_done(&self) -> Option<Done> {
+        self.done.recv().ok()
+    }
+}
+
+impl Drop for FusionThread {
+    fn drop(&mut self) {
+        // Closing the job channel ends the thread's loop.
+        self.jobs.take();
+        if let Some(h) = self.handle.take() {
+            let _ = h.join();
+        }
+    }
+}
