@@ -5,7 +5,7 @@
 #   3. `canopy run` on generated tree teams (`canopy team N`) of 4, 8, 16, 24 vehicle
 #      processes: real-time factor, link bytes / naive dense (Y, y), and the fusion stall
 #      each vehicle measured (docs/benchmarks.md explains every column);
-#   4. the tree-8 bandwidth ratio with f64 and with f32 deltas,
+#   4. the tree-8 bandwidth ratio with f64 and f32 deltas, each plain and zstd-compressed,
 # and prints ONE markdown table (the raw outputs stay in $OUT, default target/bench).
 #
 # Usage: scripts/bench.sh [--quick]     (--quick: shorter runs, noisier figures)
@@ -55,14 +55,19 @@ for n in $TEAMS; do
   "$CANOPY" run "$OUT/team$n.toml" --out "$OUT/run$n" --quiet $BASELINE_FLAG >"$OUT/run$n.txt" 2>&1
 done
 
-echo "4/4 tree-8 bandwidth, f64 and f32 deltas …" >&2
+echo "4/4 tree-8 bandwidth, f64 and f32 deltas, plain and zstd …" >&2
 for prec in f64 f32; do
-  "$CANOPY" team 8 --duration "$DURATION" --features "$(features_for 8)" |
-    sed "s/^delta_precision = .*/delta_precision = \"$prec\"/" >"$OUT/bw-$prec.toml"
-  grep -q "^delta_precision = \"$prec\"" "$OUT/bw-$prec.toml"
-  rm -rf "$OUT/bw-$prec"
-  "$CANOPY" run "$OUT/bw-$prec.toml" --out "$OUT/bw-$prec" --quiet --no-baseline \
-    >"$OUT/bw-$prec.txt" 2>&1
+  for comp in none zstd; do
+    name="bw-$prec-$comp"
+    "$CANOPY" team 8 --duration "$DURATION" --features "$(features_for 8)" |
+      sed -e "s/^delta_precision = .*/delta_precision = \"$prec\"/" \
+        -e "s/^delta_compression = .*/delta_compression = \"$comp\"/" >"$OUT/$name.toml"
+    grep -q "^delta_precision = \"$prec\"" "$OUT/$name.toml"
+    grep -q "^delta_compression = \"$comp\"" "$OUT/$name.toml"
+    rm -rf "$OUT/$name"
+    "$CANOPY" run "$OUT/$name.toml" --out "$OUT/$name" --quiet --no-baseline \
+      >"$OUT/$name.txt" 2>&1
+  done
 done
 
 python3 - "$OUT" "$TEAMS" "$DURATION" "$BASELINE_FLAG" "$(($(date +%s) - START))" <<'EOF'
@@ -156,13 +161,15 @@ for n in teams.split():
             f"{over}/{tot} intervals > 10 ms IMU period; wall max {f('wall_max_ms'):.1f} ms")
 
 for prec in ("f64", "f32"):
-    try:
-        s = json.loads((out / f"bw-{prec}" / "summary.json").read_text())
-        row(f"bandwidth tree-8, {prec} deltas", f"{s['duration_s']:.0f} s",
-            f"{team_ratio(s):.3f}", "link bytes / naive dense (Y, y) f64",
-            f"team map ANEES {s['team']['map_anees']:.2f}, pose ANEES {s['team']['pose_anees']:.2f}")
-    except FileNotFoundError:
-        row(f"bandwidth tree-8, {prec} deltas", "-", "FAILED", "", "")
+    for comp in ("none", "zstd"):
+        label = f"bandwidth tree-8, {prec} deltas" + (", zstd" if comp == "zstd" else "")
+        try:
+            s = json.loads((out / f"bw-{prec}-{comp}" / "summary.json").read_text())
+            row(label, f"{s['duration_s']:.0f} s",
+                f"{team_ratio(s):.3f}", "link bytes / naive dense (Y, y) f64",
+                f"team map ANEES {s['team']['map_anees']:.2f}, pose ANEES {s['team']['pose_anees']:.2f}")
+        except FileNotFoundError:
+            row(label, "-", "FAILED", "", "")
 
 print(f"| measurement | size | value | ratio | notes |")
 print("|---|---|---|---|---|")

@@ -144,6 +144,9 @@ pub struct FusionConfig {
     /// Precision of delta information blocks on the wire: `f64` (exact, default) or `f32`
     /// (half the bytes per block, deflated so it never carries more information than exact).
     pub delta_precision: DeltaPrecision,
+    /// Compression of information-carrying DDF messages on the wire: `none` (default) or
+    /// `zstd`.
+    pub delta_compression: crate::wire::Compression,
     /// Node id of the hub in central mode (default 0; must differ from every vehicle id).
     pub hub_id: u32,
     /// Interval between DDF Hellos on each link [s] (default 1).
@@ -163,6 +166,7 @@ impl Default for FusionConfig {
             byte_budget: None,
             ci_criterion: CiCriterionConfig::Trace,
             delta_precision: DeltaPrecision::F64,
+            delta_compression: crate::wire::Compression::None,
             hub_id: 0,
             hello_interval_s: 1.0,
             gap_timeout_s: 2.0,

@@ -114,6 +114,8 @@ struct Node {
     agent: Option<Agent>,
     links: BTreeMap<NodeId, SimLink>,
     restarts: u32,
+    /// Compression of information-carrying messages (`[fusion] delta_compression`).
+    compression: crate::wire::Compression,
 }
 
 impl Node {
@@ -148,7 +150,7 @@ impl Node {
         for o in out {
             if let Some(link) = self.links.get_mut(&o.to) {
                 // Undeliverable messages are counted by the link; the DDF recovers losses.
-                let _ = send_ddf(link, now, o.message);
+                let _ = send_ddf(link, now, o.message, self.compression);
             }
         }
     }
@@ -475,6 +477,7 @@ pub fn simulate(s: &Scenario, mut opts: SimOptions<'_>) -> Result<SimOutcome, Si
                 agent: Some(Agent::Vehicle(Box::new(agent))),
                 links: BTreeMap::new(),
                 restarts: 0,
+                compression: s.fusion.delta_compression,
             },
         );
     }
@@ -498,6 +501,7 @@ pub fn simulate(s: &Scenario, mut opts: SimOptions<'_>) -> Result<SimOutcome, Si
                 agent: Some(Agent::Hub(Box::new(hub))),
                 links: BTreeMap::new(),
                 restarts: 0,
+                compression: s.fusion.delta_compression,
             },
         );
     }

@@ -5,6 +5,7 @@
 //! numbers again (finite, symmetric, positive definite where needed) before anything changes.
 
 use canopy_fusion::ddf::{Body, DdfMessage, MAX_SUBMAP_ACKS};
+use canopy_transport::codec::PreEncoded;
 use canopy_transport::link::{Link, LinkError, Received};
 use canopy_transport::wire::{Validate, ValidationError};
 use canopy_transport::{CodecError, MessageKind, SendMeta};
@@ -43,26 +44,54 @@ pub fn ddf_kind(msg: &DdfMessage) -> MessageKind {
     }
 }
 
-/// Sends a DDF message over a link.
-pub fn send_ddf(link: &mut dyn Link, now: f64, msg: DdfMessage) -> Result<(), LinkError> {
+/// Compression of the information-carrying DDF messages on the wire (`[fusion]
+/// delta_compression`).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Compression {
+    /// As encoded (default).
+    #[default]
+    None,
+    /// One zstd frame per message (level [`canopy_transport::codec::ZSTD_LEVEL`]), flagged in
+    /// the envelope; measured 0.94 of the bytes on f64 information deltas (mantissas are
+    /// nearly incompressible).
+    Zstd,
+}
+
+/// Sends a DDF message over a link, compressed when `compression` asks for it and the message
+/// carries information (control messages are a few bytes).
+pub fn send_ddf(
+    link: &mut dyn Link,
+    now: f64,
+    msg: DdfMessage,
+    compression: Compression,
+) -> Result<(), LinkError> {
     let seq = match &msg.body {
         Body::Delta { seq, .. } => *seq,
         Body::Cumulative { upto, .. } => *upto,
         _ => 0,
     };
-    let meta = SendMeta {
-        kind: ddf_kind(&msg),
+    let kind = ddf_kind(&msg);
+    let mut meta = SendMeta {
+        kind,
         sender_epoch: msg.header.from_epoch,
         receiver_epoch: msg.header.to_epoch.unwrap_or(0),
         seq,
         sim_time: now,
+        compressed: false,
     };
-    link.send(&meta, &DdfBody(msg))
+    let body = DdfBody(msg);
+    if compression == Compression::Zstd && kind == MessageKind::DDF_DELTA {
+        let frame = canopy_transport::codec::compress_body(&body).map_err(LinkError::Encode)?;
+        meta.compressed = true;
+        return link.send(&meta, &PreEncoded(&frame));
+    }
+    link.send(&meta, &body)
 }
 
 /// Decodes a received DDF message (None for other kinds).
 pub fn decode_ddf(m: &Received) -> Option<Result<DdfMessage, CodecError>> {
     let k = m.header().kind;
     (k == MessageKind::DDF_DELTA || k == MessageKind::DDF_CONTROL)
-        .then(|| m.decode::<DdfBody>().map(|b| b.0))
+        .then(|| m.decode_owned::<DdfBody>().map(|b| b.0))
 }

@@ -143,6 +143,14 @@ fn cases() -> Vec<Case> {
             expect: Parse("pigeon", "unknown variant"),
         },
         Case {
+            kind: "unknown compression",
+            edit: (
+                "rate_hz = 1.0                 # fusion rounds per simulated second",
+                "rate_hz = 1.0\ndelta_compression = \"gzip\"",
+            ),
+            expect: Parse("gzip", "unknown variant"),
+        },
+        Case {
             kind: "negative duration",
             edit: ("duration_s = 300.0", "duration_s = -5.0"),
             expect: Invalid("run.duration_s", "must be a finite number > 0"),

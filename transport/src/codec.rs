@@ -96,6 +96,14 @@ pub enum CodecError {
         /// Bytes available.
         have: u64,
     },
+    /// A compressed body (FLAG_ZSTD) that is not a valid zstd frame, does not declare its
+    /// size, or would decompress beyond the limit.
+    #[error("compressed body: {0}")]
+    Decompress(String),
+    /// A compressed body asked for as a borrowed decode ([`decode_body`]); use
+    /// [`decode_body_owned`].
+    #[error("the body is compressed: decode it into an owned value")]
+    CompressedBorrow,
     /// The body serialised to a different length in the second pass (non-deterministic
     /// `Serialize` impl).
     #[error("body measured {measured} bytes but encoded to {written}")]
@@ -409,6 +417,57 @@ pub fn encode_body_to_vec(body: &dyn WireBody) -> Result<Vec<u8>, CodecError> {
     Ok(out)
 }
 
+/// The zstd level of [`compress_body`]: level 1 compresses an f64 information delta at
+/// ~600 MB/s on the development machine; higher levels gained < 1 % on such data.
+pub const ZSTD_LEVEL: i32 = 1;
+
+/// Encodes `body` and compresses it into one zstd frame (its content size declared, so the
+/// receiver can bound it before decompressing). Send the result as [`PreEncoded`] with
+/// [`SendMeta::compressed`] set.
+pub fn compress_body(body: &dyn WireBody) -> Result<Vec<u8>, CodecError> {
+    let raw = encode_body_to_vec(body)?;
+    zstd::bulk::compress(&raw, ZSTD_LEVEL).map_err(|e| CodecError::Encode(e.to_string()))
+}
+
+/// Decompresses a [`FLAG_ZSTD`](crate::envelope::FLAG_ZSTD) body: one zstd frame whose
+/// declared content size is at most `max_len` (a frame without a declared size, or declaring
+/// more, is rejected before any allocation: no decompression bomb gets through).
+pub fn decompress_body(frame: &[u8], max_len: u64) -> Result<Vec<u8>, CodecError> {
+    let size = match zstd::zstd_safe::get_frame_content_size(frame) {
+        Ok(Some(n)) => n,
+        Ok(None) => return Err(CodecError::Decompress("no declared content size".into())),
+        Err(_) => return Err(CodecError::Decompress("not a zstd frame".into())),
+    };
+    let max = max_len.min(HARD_MAX_BODY_LEN);
+    if size > max {
+        return Err(CodecError::TooLarge { len: size, max });
+    }
+    let out = zstd::bulk::decompress(frame, size as usize)
+        .map_err(|e| CodecError::Decompress(e.to_string()))?;
+    if out.len() as u64 != size {
+        return Err(CodecError::Decompress(format!(
+            "declared {size} bytes, decompressed {}",
+            out.len()
+        )));
+    }
+    Ok(out)
+}
+
+/// Decodes a body into an owned `B`, decompressing it first when the header says it is
+/// compressed (then at most `max_len` bytes once decompressed), and validates it.
+pub fn decode_body_owned<B: serde::de::DeserializeOwned + Validate>(
+    header: &Header,
+    body: &[u8],
+    max_len: u64,
+) -> Result<B, CodecError> {
+    if header.compressed {
+        let raw = decompress_body(body, max_len)?;
+        decode_body(&raw)
+    } else {
+        decode_body(body)
+    }
+}
+
 /// Incremental envelope CRC over a message arriving in pieces: covers bytes `0..60` and
 /// `64..`, i.e. everything but the checksum field itself.
 #[derive(Debug, Clone, Default)]
@@ -499,13 +558,28 @@ pub fn decode_body<'a, B: Deserialize<'a> + Validate>(body: &'a [u8]) -> Result<
     Ok(value)
 }
 
-/// [`open_envelope`] then [`decode_body`].
+/// [`open_envelope`] then [`decode_body`] (a compressed body is [`CodecError::CompressedBorrow`]:
+/// use [`decode_owned`]).
 pub fn decode<'a, B: Deserialize<'a> + Validate>(
     bytes: &'a [u8],
     max_body_len: u64,
 ) -> Result<(Header, B), CodecError> {
     let (header, body) = open_envelope(bytes, max_body_len)?;
+    if header.compressed {
+        return Err(CodecError::CompressedBorrow);
+    }
     Ok((header, decode_body(body)?))
+}
+
+/// [`open_envelope`] then [`decode_body_owned`]: compressed bodies are decompressed (to at
+/// most `max_body_len` bytes).
+pub fn decode_owned<B: serde::de::DeserializeOwned + Validate>(
+    bytes: &[u8],
+    max_body_len: u64,
+) -> Result<(Header, B), CodecError> {
+    let (header, body) = open_envelope(bytes, max_body_len)?;
+    let value = decode_body_owned(&header, body, max_body_len)?;
+    Ok((header, value))
 }
 
 fn decode_error(e: DecodeError) -> CodecError {
@@ -525,6 +599,7 @@ mod tests {
             receiver_epoch: 4,
             seq: 99,
             sim_time: 12.25,
+            compressed: false,
         }
     }
 

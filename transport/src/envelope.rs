@@ -10,7 +10,8 @@
 //!  4      2   format version   u16  (FORMAT_VERSION; any other value is rejected)
 //!  6      2   kind             u16  (MessageKind; open set, unknown kinds are passed up)
 //!  8      4   sender           u32  (NodeId of the sending node)
-//! 12      4   flags            u32  (must be 0 in version 1; reserved for e.g. compression)
+//! 12      4   flags            u32  (bit 0: the body is a zstd frame of the encoded body,
+//!                                   FLAG_ZSTD; every other bit must be 0)
 //! 16      8   sender epoch     u64  (incarnation of the sender)
 //! 24      8   receiver epoch   u64  (incarnation of the receiver as known by the sender)
 //! 32      8   sequence         u64
@@ -29,8 +30,10 @@ pub type NodeId = u32;
 
 /// First four bytes of every canopy message.
 pub const MAGIC: [u8; 4] = *b"CNPY";
-/// The only envelope/body format version this build understands.
-pub const FORMAT_VERSION: u16 = 1;
+/// The only envelope/body format version this build understands (2: flags bit 0 defined).
+pub const FORMAT_VERSION: u16 = 2;
+/// Flags bit: the body is a zstd frame of the encoded body ([`crate::codec::compress_body`]).
+pub const FLAG_ZSTD: u32 = 1;
 /// Size of the fixed header in bytes.
 pub const HEADER_LEN: usize = 64;
 
@@ -110,6 +113,8 @@ pub struct SendMeta {
     pub seq: u64,
     /// Simulation time stamp in seconds; must be finite.
     pub sim_time: f64,
+    /// The body passed to `send` is a zstd frame of the encoded body (sets [`FLAG_ZSTD`]).
+    pub compressed: bool,
 }
 
 impl SendMeta {
@@ -121,6 +126,7 @@ impl SendMeta {
             receiver_epoch: 0,
             seq,
             sim_time,
+            compressed: false,
         }
     }
 }
@@ -144,6 +150,8 @@ pub struct Header {
     pub body_len: u64,
     /// CRC-32 over header bytes 0..60 and the body.
     pub checksum: u32,
+    /// The body is a zstd frame ([`FLAG_ZSTD`]).
+    pub compressed: bool,
 }
 
 impl Header {
@@ -158,6 +166,7 @@ impl Header {
             sim_time: meta.sim_time,
             body_len,
             checksum: 0,
+            compressed: meta.compressed,
         }
     }
 
@@ -169,6 +178,7 @@ impl Header {
             receiver_epoch: self.receiver_epoch,
             seq: self.seq,
             sim_time: self.sim_time,
+            compressed: self.compressed,
         }
     }
 
@@ -178,7 +188,8 @@ impl Header {
         out[OFF_VERSION..OFF_VERSION + 2].copy_from_slice(&FORMAT_VERSION.to_le_bytes());
         out[OFF_KIND..OFF_KIND + 2].copy_from_slice(&self.kind.0.to_le_bytes());
         out[OFF_SENDER..OFF_SENDER + 4].copy_from_slice(&self.sender.to_le_bytes());
-        out[OFF_FLAGS..OFF_FLAGS + 4].copy_from_slice(&0u32.to_le_bytes());
+        let flags = if self.compressed { FLAG_ZSTD } else { 0 };
+        out[OFF_FLAGS..OFF_FLAGS + 4].copy_from_slice(&flags.to_le_bytes());
         out[OFF_SENDER_EPOCH..OFF_SENDER_EPOCH + 8]
             .copy_from_slice(&self.sender_epoch.to_le_bytes());
         out[OFF_RECEIVER_EPOCH..OFF_RECEIVER_EPOCH + 8]
@@ -255,7 +266,7 @@ pub fn parse_header(bytes: &[u8]) -> Result<Header, HeaderError> {
     }
     let flags = le_u32(bytes, OFF_FLAGS);
     let reserved = le_u32(bytes, OFF_RESERVED);
-    if flags != 0 || reserved != 0 {
+    if flags & !FLAG_ZSTD != 0 || reserved != 0 {
         return Err(HeaderError::ReservedBits { flags, reserved });
     }
     let sim_time = f64::from_bits(le_u64(bytes, OFF_SIM_TIME));
@@ -271,6 +282,7 @@ pub fn parse_header(bytes: &[u8]) -> Result<Header, HeaderError> {
         sim_time,
         body_len: le_u64(bytes, OFF_BODY_LEN),
         checksum: le_u32(bytes, OFF_CHECKSUM),
+        compressed: flags & FLAG_ZSTD != 0,
     })
 }
 
@@ -289,6 +301,7 @@ mod tests {
             sim_time: -12.5,
             body_len: 123_456,
             checksum: 0x0102_0304,
+            compressed: true,
         };
         let mut buf = [0u8; HEADER_LEN];
         h.write_to(&mut buf);
@@ -312,17 +325,21 @@ mod tests {
             Err(HeaderError::BadMagic { .. })
         ));
         let mut b = buf;
-        b[OFF_VERSION] = 2;
+        b[OFF_VERSION] = 1;
         assert_eq!(
             parse_header(&b),
-            Err(HeaderError::UnsupportedVersion { found: 2 })
+            Err(HeaderError::UnsupportedVersion { found: 1 })
         );
         let mut b = buf;
-        b[OFF_FLAGS] = 1;
+        b[OFF_FLAGS] = 2;
         assert!(matches!(
             parse_header(&b),
             Err(HeaderError::ReservedBits { .. })
         ));
+        // The compression flag is the one defined bit.
+        let mut b = buf;
+        b[OFF_FLAGS] = 1;
+        assert!(parse_header(&b).unwrap().compressed);
         let mut b = buf;
         b[OFF_SIM_TIME..OFF_SIM_TIME + 8].copy_from_slice(&f64::NAN.to_le_bytes());
         assert_eq!(parse_header(&b), Err(HeaderError::NonFiniteTime));

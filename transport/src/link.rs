@@ -269,6 +269,8 @@ pub struct Received {
     header: Header,
     storage: Box<dyn MessageBytes>,
     stats: Arc<StatsCell>,
+    /// The link's body limit, also the limit of a decompressed body.
+    max_body_len: u64,
 }
 
 impl fmt::Debug for Received {
@@ -303,6 +305,7 @@ impl Received {
             header: self.header,
             storage: Box::new(bytes),
             stats: self.stats,
+            max_body_len: self.max_body_len,
         }
     }
     /// An owned copy of this message (used by the fault layer to duplicate).
@@ -311,14 +314,33 @@ impl Received {
             header: self.header,
             storage: Box::new(self.storage.bytes().to_vec()),
             stats: self.stats.clone(),
+            max_body_len: self.max_body_len,
         }
     }
     /// Decodes the body as `B` and validates it. A failure is counted as a body rejection on the
     /// link that received the message.
+    /// A compressed body cannot be borrowed from: it is [`CodecError::CompressedBorrow`]
+    /// (use [`Received::decode_owned`]).
     pub fn decode<'a, B: Deserialize<'a> + Validate>(&'a self) -> Result<B, CodecError> {
-        codec::decode_body(self.body_bytes()).inspect_err(|_| {
+        let r = if self.header.compressed {
+            Err(CodecError::CompressedBorrow)
+        } else {
+            codec::decode_body(self.body_bytes())
+        };
+        r.inspect_err(|_| {
             self.stats.on_rejected(RejectReason::Body);
         })
+    }
+
+    /// Decodes the body as an owned `B`, decompressing it first if it was sent compressed (to
+    /// at most the link's body limit), and validates it. A failure is counted as a body
+    /// rejection.
+    pub fn decode_owned<B: serde::de::DeserializeOwned + Validate>(&self) -> Result<B, CodecError> {
+        codec::decode_body_owned(&self.header, self.body_bytes(), self.max_body_len).inspect_err(
+            |_| {
+                self.stats.on_rejected(RejectReason::Body);
+            },
+        )
     }
 }
 
@@ -364,6 +386,7 @@ pub fn admit_with_crc<S: MessageBytes + 'static>(
         header,
         storage: Box::new(storage),
         stats: stats.clone(),
+        max_body_len: cfg.max_body_len,
     })
 }
 

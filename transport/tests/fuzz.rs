@@ -1,4 +1,4 @@
-//! Decoder robustness: ≥ 100,000 random and mutated messages, zero panics, every input either
+//! Decoder robustness: ≥ 100,000 random and mutated messages (plain and zstd-compressed), zero panics, every input either
 //! decoded into a valid body or rejected with a typed `CodecError` (each outcome counted and
 //! printed). Plus property tests: every container round-trips exactly.
 
@@ -69,6 +69,7 @@ fn meta(rng: &mut ChaCha8Rng) -> SendMeta {
         receiver_epoch: rng.random(),
         seq: rng.random(),
         sim_time: rng.random_range(-1e3..1e3),
+        compressed: false,
     }
 }
 
@@ -98,27 +99,29 @@ fn variant(e: &CodecError) -> String {
     }
 }
 
-/// Decodes as the type tagged `t`; returns Ok if it decoded *and* validated.
+/// Decodes as the type tagged `t` (decompressing a flagged body first); returns Ok if it
+/// decoded *and* validated.
 fn decode_as(t: u8, msg: &[u8]) -> Result<(), CodecError> {
     match t {
-        0 => codec::decode::<WireSymMatrix>(msg, MAX).map(|_| ()),
-        1 => codec::decode::<WireMatrix>(msg, MAX).map(|_| ()),
-        2 => codec::decode::<WireVector>(msg, MAX).map(|_| ()),
-        3 => codec::decode::<WireBlockSymMatrix>(msg, MAX).map(|_| ()),
-        4 => codec::decode::<WireBytes>(msg, MAX).map(|_| ()),
-        _ => codec::decode::<Delta>(msg, MAX).map(|_| ()),
+        0 => codec::decode_owned::<WireSymMatrix>(msg, MAX).map(|_| ()),
+        1 => codec::decode_owned::<WireMatrix>(msg, MAX).map(|_| ()),
+        2 => codec::decode_owned::<WireVector>(msg, MAX).map(|_| ()),
+        3 => codec::decode_owned::<WireBlockSymMatrix>(msg, MAX).map(|_| ()),
+        4 => codec::decode_owned::<WireBytes>(msg, MAX).map(|_| ()),
+        _ => codec::decode_owned::<Delta>(msg, MAX).map(|_| ()),
     }
 }
 
-/// 120,000 inputs in 8 families. Every decode runs under `catch_unwind`; the test fails on any
-/// panic, and on a family that never reaches the outcome it exists to exercise.
+/// 150,000 inputs in 10 families (two of them zstd-compressed bodies, intact and mutated).
+/// Every decode runs under `catch_unwind`; the test fails on any panic, and on a family that
+/// never reaches the outcome it exists to exercise.
 #[test]
-fn decoder_survives_120k_random_and_mutated_messages() {
+fn decoder_survives_150k_random_and_mutated_messages() {
     let mut rng = ChaCha8Rng::seed_from_u64(0x5eed_cafe);
     let mut outcomes: BTreeMap<String, u64> = BTreeMap::new();
     let mut per_family: BTreeMap<&str, BTreeMap<String, u64>> = BTreeMap::new();
     let mut panics = 0u64;
-    const N: usize = 120_000;
+    const N: usize = 150_000;
     for i in 0..N {
         let bodies = sample_bodies(&mut rng);
         let (t, body) = bodies[rng.random_range(0..bodies.len())].clone();
@@ -126,7 +129,14 @@ fn decoder_survives_120k_random_and_mutated_messages() {
         let valid = codec::encode_to_vec(&m, rng.random(), &PreEncoded(&body), MAX).unwrap();
         let family = [
             "valid", "random", "bitflip", "truncate", "extend", "header", "body", "junkbody",
-        ][i % 8];
+            "zstd", "zstdmut",
+        ][i % 10];
+        let compressed = || {
+            let frame = codec::compress_body(&PreEncoded(&body)).unwrap();
+            let mut cm = m;
+            cm.compressed = true;
+            codec::encode_to_vec(&cm, 2, &PreEncoded(&frame), MAX).unwrap()
+        };
         let msg: Vec<u8> = match family {
             "valid" => valid,
             "random" => {
@@ -175,6 +185,18 @@ fn decoder_survives_120k_random_and_mutated_messages() {
                 reseal(&mut v);
                 v
             }
+            "zstd" => compressed(),
+            "zstdmut" => {
+                // A compressed body with 1–3 bytes of the frame edited, re-sealed: reaches the
+                // frame parser, the declared-size check and the decompressor.
+                let mut v = compressed();
+                for _ in 0..rng.random_range(1..4) {
+                    let k = rng.random_range(HEADER_LEN..v.len());
+                    v[k] = rng.random();
+                }
+                reseal(&mut v);
+                v
+            }
             _ => {
                 // A well-formed envelope around random body bytes.
                 let len = rng.random_range(0..200);
@@ -209,7 +231,9 @@ fn decoder_survives_120k_random_and_mutated_messages() {
     // Each family must reach what it is designed to exercise (so the test cannot silently
     // degrade into feeding only garbage).
     let fam = |f: &str, k: &str| per_family[f].get(k).copied().unwrap_or(0);
-    assert_eq!(fam("valid", "decoded+valid"), (N / 8) as u64);
+    assert_eq!(fam("valid", "decoded+valid"), (N / 10) as u64);
+    assert_eq!(fam("zstd", "decoded+valid"), (N / 10) as u64);
+    assert!(fam("zstdmut", "Decompress") > 0);
     assert!(fam("random", "Header::BadMagic") > 0);
     assert!(fam("bitflip", "Checksum") > 0);
     assert!(fam("truncate", "Truncated") + fam("truncate", "Header::Truncated") > 0);

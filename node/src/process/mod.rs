@@ -206,6 +206,8 @@ pub(crate) struct FusionLinks {
     pub links: BTreeMap<NodeId, FusionLink>,
     /// Simulation clock of the fault layer.
     pub clock: Arc<ManualClock>,
+    /// Compression of information-carrying messages (`[fusion] delta_compression`).
+    compression: crate::wire::Compression,
     _zenoh: Option<ZenohTransport>,
 }
 
@@ -291,6 +293,7 @@ impl FusionLinks {
         Ok(Self {
             links,
             clock,
+            compression: s.fusion.delta_compression,
             _zenoh: zenoh,
         })
     }
@@ -299,7 +302,7 @@ impl FusionLinks {
     pub fn send(&mut self, now: f64, out: Vec<Outgoing>) {
         for o in out {
             if let Some(link) = self.links.get_mut(&o.to.0) {
-                let _ = send_ddf(link, now, o.message);
+                let _ = send_ddf(link, now, o.message, self.compression);
             }
         }
     }
