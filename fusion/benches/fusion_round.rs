@@ -148,6 +148,9 @@ fn median_seconds(mut f: impl FnMut(), reps: usize) -> f64 {
 }
 
 fn main() {
+    // The process set-up of every canopy process, for both sides of the comparison.
+    canopy_fusion::runtime::tune_allocator();
+    canopy_fusion::runtime::flush_subnormals_to_zero();
     let cases: Vec<Case> = [100, 300].into_iter().map(case).collect();
     let mut criterion = Criterion::default().configure_from_args().sample_size(20);
     for c in &cases {

@@ -9,7 +9,9 @@
 //!    covariance, for a delta on 10 features and on the whole map, and one fusion round
 //!    (map information from the filter → delta → fuse back), for both delta sizes.
 //!
-//! Run: `cargo bench -p canopy-fusion --bench slam`. Times are medians of repeated runs.
+//! Run: `cargo bench -p canopy-fusion --bench slam`. Times are medians of repeated runs, with
+//! the process set-up of every canopy process (`canopy_fusion::runtime`: subnormals flushed to
+//! zero, heap kept mapped) for both sides of each ratio.
 
 use canopy_fusion::ddf::{DdfConfig, DdfNode, FuseTarget, Outgoing};
 use canopy_fusion::imu::ImuGrade;
@@ -153,6 +155,10 @@ fn imu() -> ImuSample {
 }
 
 fn main() {
+    // As every canopy process does (`canopy_fusion::runtime`), for canopy's code and the raw
+    // faer reference alike.
+    canopy_fusion::runtime::tune_allocator();
+    canopy_fusion::runtime::flush_subnormals_to_zero();
     let sizes = [50usize, 100, 200, 400];
     println!("## IMU prediction per sample (N features, n = 15 + 3N states)");
     println!(

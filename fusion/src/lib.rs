@@ -19,6 +19,7 @@
 //! - [`ci`]: covariance intersection for bandwidth-limited links (full and submap forms).
 //! - [`ddf`]: the channel-filter protocol as a sans-IO state machine (decentralized, central).
 //! - [`topology`]: fusion-network graphs and tree validation (channel filters need a tree).
+//! - [`runtime`]: process set-up for this maths (subnormals flushed to zero, heap kept mapped).
 
 pub mod ci;
 pub mod consistency;
@@ -29,6 +30,7 @@ pub mod info;
 pub mod ins;
 pub mod observation;
 pub mod rotation;
+pub mod runtime;
 pub mod sensor;
 pub mod slam;
 pub mod state;

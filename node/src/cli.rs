@@ -358,8 +358,8 @@ fn cmd_compare(dirs: &[PathBuf]) -> Result<()> {
 
 /// Runs the parsed command line.
 pub fn run_cli(cli: Cli) -> Result<()> {
-    crate::process::tune_allocator();
-    crate::process::flush_subnormals_to_zero();
+    canopy_fusion::runtime::tune_allocator();
+    canopy_fusion::runtime::flush_subnormals_to_zero();
     match cli.command {
         Command::Sim(args) => cmd_sim(&args),
         Command::Run(args) => cmd_run(&args),

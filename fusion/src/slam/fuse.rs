@@ -327,7 +327,10 @@ impl SlamFilter {
                 post,
             }) => {
                 report.method = FuseMethod::MapInformation;
-                let r = self.apply_map_route(&known_state, &p_aa_post, &y_aa, &dx_a);
+                let r = match y_aa.as_ref().or(info_before.as_ref()) {
+                    Some(y_aa) => self.apply_map_route(&known_state, &p_aa_post, y_aa, &dx_a),
+                    None => Err(SlamError::NumericalFailure("map-information cache")),
+                };
                 // Y_aa⁺ in delta order: the whole map's new information when the delta covers
                 // every feature in map order (no permutation needed).
                 map_route_post = Some(post);
@@ -496,10 +499,11 @@ impl SlamFilter {
                 return None;
             }
             if a.len() == y.nrows() {
+                // The whole map in map order is the cache itself (borrowed, not copied).
                 return Some(if a.iter().enumerate().all(|(i, &p)| i == p) {
-                    y.clone()
+                    None
                 } else {
-                    gather(y.as_ref(), &a, &a)
+                    Some(gather(y.as_ref(), &a, &a))
                 });
             }
             let mut in_a = vec![false; y.nrows()];
@@ -524,25 +528,33 @@ impl SlamFilter {
                 -1.0,
                 Par::Seq,
             );
-            Some(y_aa)
+            Some(Some(y_aa))
         });
-        let y_aa = match from_cache {
+        // `None`: Y_aa is the maintained cache itself (whole map, map order).
+        let y_aa: Option<Mat<f64>> = match from_cache {
             Some(y) => y,
-            None => gather(self.p.as_ref(), known_state, known_state)
-                .llt(Side::Lower)
-                .map_err(|_| SlamError::NotPositiveDefinite("filter map covariance"))?
-                .inverse(),
+            None => Some(
+                gather(self.p.as_ref(), known_state, known_state)
+                    .llt(Side::Lower)
+                    .map_err(|_| SlamError::NotPositiveDefinite("filter map covariance"))?
+                    .inverse(),
+            ),
+        };
+        let y_aa_ref = match (&y_aa, cached) {
+            (Some(y), _) => y,
+            (None, Some(c)) => c,
+            (None, None) => return Err(SlamError::NumericalFailure("map-information cache")),
         };
         // In place: a fresh k×k allocation per round costs page faults comparable to the sum.
         let mut post = schur;
-        post += &y_aa;
+        post += y_aa_ref;
         let p_aa_post = post
             .llt(Side::Lower)
             .map_err(|_| SlamError::NotPositiveDefinite("fused information"))?
             .inverse();
         let dx_a = &p_aa_post * &g;
         if !all_finite(p_aa_post.as_ref())
-            || !all_finite(y_aa.as_ref())
+            || !all_finite(y_aa_ref.as_ref())
             || !all_finite(dx_a.as_mat())
         {
             return Err(SlamError::NumericalFailure("map-information fusion"));
@@ -637,7 +649,8 @@ enum Route {
     /// Map-information route quantities.
     Map {
         p_aa_post: Mat<f64>,
-        y_aa: Mat<f64>,
+        /// Y_aa, or `None` when it is the maintained map information itself.
+        y_aa: Option<Mat<f64>>,
         dx_a: Col<f64>,
         /// Y_aa + Ȳ: the fused marginal information of the delta's features.
         post: Mat<f64>,
