@@ -55,8 +55,8 @@ pub struct RunConfig {
     /// Pacing of the multi-process run: simulated seconds per wall second; absent or 0 = as fast
     /// as the slowest vehicle allows (default).
     pub real_time_factor: Option<f64>,
-    /// How far the world may run ahead of the slowest live vehicle [simulated s] (default 2):
-    /// the flow-control window of the multi-process run.
+    /// How far the world may run ahead of the slowest live vehicle, and of a live hub
+    /// [simulated s] (default 2): the flow-control window of the multi-process run.
     pub max_lead_s: f64,
 }
 

@@ -163,6 +163,9 @@ pub fn run(c: &RoleCommon) -> Result<()> {
     let mut next_batch = BATCH_S;
     let mut finished_sent = false;
     let mut hub_time_sent = f64::NEG_INFINITY;
+    // The hub's acknowledged time (central mode): it paces the world like a vehicle's while
+    // the hub is alive.
+    let mut hub_acked = 0.0_f64;
     // Scheduled restarts: the world holds every stream at the restart time until the new
     // process asks for initialisation, so the restart happens at exactly that time (as in
     // `canopy sim`, and as the reference assumes).
@@ -244,7 +247,11 @@ pub fn run(c: &RoleCommon) -> Result<()> {
         }
         if let Some(h) = hub.as_mut() {
             while h.poll_event().is_some() {}
-            while let Ok(Some(_)) = h.try_recv() {}
+            while let Ok(Some(m)) = h.try_recv() {
+                if let Some(p) = decode_body::<Progress>(&m) {
+                    hub_acked = hub_acked.max(p.time);
+                }
+            }
         }
         if !started {
             let all = slots.iter().all(|s| s.active)
@@ -273,8 +280,14 @@ pub fn run(c: &RoleCommon) -> Result<()> {
             }
         }
 
-        // The stepping limit.
-        let active: Vec<f64> = slots.iter().filter(|s| s.active).map(|s| s.acked).collect();
+        // The stepping limit: the slowest live vehicle, and the hub while it is alive.
+        let mut active: Vec<f64> = slots.iter().filter(|s| s.active).map(|s| s.acked).collect();
+        if let Some(h) = hub.as_ref()
+            && h.peer_state() == PeerState::Up
+            && !active.is_empty()
+        {
+            active.push(hub_acked);
+        }
         let mut limit = duration;
         if active.is_empty() {
             let (since, t0) = *idle_since.get_or_insert((Instant::now(), t_world));
