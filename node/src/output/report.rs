@@ -75,7 +75,7 @@ fn trajectories(run: &RunRecord) -> String {
             let (x0, x1) = range(xs.chain(fx));
             let (y0, y1) = range(ys.chain(fy));
             let mut c = ChartBuilder::on(&root)
-                .caption("Trajectories and map (east–north, launch frame): solid = estimate, thin = truth; + = true feature, o = estimated feature", ("sans-serif", 14))
+                .caption("Trajectories and map (east–north, launch frame): solid = estimate, thin = truth; × = true feature, o = estimated feature", ("sans-serif", 14))
                 .margin(10)
                 .x_label_area_size(35)
                 .y_label_area_size(55)
@@ -320,9 +320,15 @@ fn timeline(run: &RunRecord) -> String {
             let labels = rows.clone();
             c.configure_mesh()
                 .x_desc("t [s]")
-                .y_labels(rows.len().max(1))
+                // Ticks every half row; a row's name goes on the tick at its centre (y + 0.5),
+                // where its bar is drawn.
+                .y_labels(2 * rows.len().max(1) + 1)
                 .y_label_formatter(&move |y| {
-                    labels.get(y.floor() as usize).cloned().unwrap_or_default()
+                    let centre = (y - y.floor() - 0.5).abs() < 1e-6;
+                    match (centre, labels.get(y.floor() as usize)) {
+                        (true, Some(l)) => l.clone(),
+                        _ => String::new(),
+                    }
                 })
                 .disable_y_mesh()
                 .draw()?;
