@@ -5,7 +5,9 @@
 #   3. `canopy run` on generated tree teams (`canopy team N`) of 4, 8, 16, 24 vehicle
 #      processes: real-time factor, link bytes / naive dense (Y, y), and the fusion stall
 #      each vehicle measured (docs/benchmarks.md explains every column);
-#   4. the tree-8 bandwidth ratio with f64 and f32 deltas, each plain and zstd-compressed,
+#   4. the tree-8 bandwidth ratio with f64 and f32 deltas, each plain and zstd-compressed;
+#   5. the fusion stall at the issue's size (~100 features per vehicle, 4-team, 350-feature
+#      world) paced at wall-clock speed (real_time_factor = 1: 60 s of wall time),
 # and prints ONE markdown table (the raw outputs stay in $OUT, default target/bench).
 #
 # Usage: scripts/bench.sh [--quick]     (--quick: shorter runs, noisier figures)
@@ -32,14 +34,14 @@ cargo bench --no-run -p canopy-fusion --bench slam >&2
 cargo bench --no-run -p canopy-transport --bench links >&2
 CANOPY=$ROOT/target/release/canopy
 
-echo "1/4 fusion/benches/slam.rs …" >&2
+echo "1/5 fusion/benches/slam.rs …" >&2
 cargo bench -q -p canopy-fusion --bench slam 2>/dev/null >"$OUT/slam.md"
 
-echo "2/4 transport/benches/links.rs …" >&2
+echo "2/5 transport/benches/links.rs …" >&2
 if [[ $QUICK == 1 ]]; then LINKARGS=(--quick); else LINKARGS=(); fi
 cargo bench -q -p canopy-transport --bench links -- "${LINKARGS[@]}" 2>/dev/null >"$OUT/links.md"
 
-echo "3/4 canopy run, teams: $TEAMS ($DURATION s simulated each) …" >&2
+echo "3/5 canopy run, teams: $TEAMS ($DURATION s simulated each) …" >&2
 # World feature counts chosen so each vehicle (which holds the team's map) ends with ~150
 # features after 60 s: the team covers ~29 % (4), ~51 % (8), ~81 % (16), ~67 % (24) of the
 # world in that time (measured with the built-in 400-feature world).
@@ -55,7 +57,7 @@ for n in $TEAMS; do
   "$CANOPY" run "$OUT/team$n.toml" --out "$OUT/run$n" --quiet $BASELINE_FLAG >"$OUT/run$n.txt" 2>&1
 done
 
-echo "4/4 tree-8 bandwidth, f64 and f32 deltas, plain and zstd …" >&2
+echo "4/5 tree-8 bandwidth, f64 and f32 deltas, plain and zstd …" >&2
 for prec in f64 f32; do
   for comp in none zstd; do
     name="bw-$prec-$comp"
@@ -69,6 +71,14 @@ for prec in f64 f32; do
       >"$OUT/$name.txt" 2>&1
   done
 done
+
+echo "5/5 fusion stall at ~100 features, real-time pacing ($DURATION s wall) …" >&2
+"$CANOPY" team 4 --duration "$DURATION" --features 350 |
+  sed -e "s/^max_lead_s = .*/&\nreal_time_factor = 1.0/" >"$OUT/stall100.toml"
+grep -q "^real_time_factor = 1.0" "$OUT/stall100.toml"
+rm -rf "$OUT/stall100"
+"$CANOPY" run "$OUT/stall100.toml" --out "$OUT/stall100" --quiet --no-baseline \
+  >"$OUT/stall100.txt" 2>&1
 
 python3 - "$OUT" "$TEAMS" "$DURATION" "$BASELINE_FLAG" "$(($(date +%s) - START))" <<'EOF'
 import json, re, sys, pathlib, statistics
@@ -137,6 +147,19 @@ def stall_stats(run):
                 lines.append(dict(kv.split("=") for kv in line.split(":", 1)[1].split()))
     return lines
 
+def stall_row(label, run):
+    st = stall_stats(run)
+    if st:
+        f = lambda k: max(float(x[k]) for x in st)
+        med = statistics.median(float(x["cpu_p50_ms"]) for x in st)
+        over = sum(int(x["cpu_over_imu_period"]) for x in st)
+        wover = sum(int(x.get("wall_over_imu_period", -1)) for x in st)
+        tot = sum(int(x["n"]) for x in st)
+        row(label, f"~{round(statistics.mean(int(x['features']) for x in st))} features",
+            f"CPU max {f('cpu_max_ms'):.1f} ms", f"p99 {f('cpu_p99_ms'):.1f} / p50 {med:.2f} ms",
+            f"CPU {over}/{tot} intervals > 10 ms IMU period; wall max {f('wall_max_ms'):.1f} ms"
+            + (f", wall {wover}/{tot} > 10 ms" if wover >= 0 else ""))
+
 for n in teams.split():
     run = out / f"run{n}"
     try:
@@ -150,15 +173,9 @@ for n in teams.split():
         f"{s['real_time_factor']:.2f}", f"sim {s['duration_s']:.0f} s / wall {s['wall_time_s']:.1f} s",
         ("reference off" if baseline_flag else "reference on")
         + (f"; link bytes / naive dense = {ratio:.3f}" if ratio is not None else ""))
-    st = stall_stats(run)
-    if st:
-        f = lambda k: max(float(x[k]) for x in st)
-        med = statistics.median(float(x["cpu_p50_ms"]) for x in st)
-        over = sum(int(x["cpu_over_imu_period"]) for x in st)
-        tot = sum(int(x["n"]) for x in st)
-        row(f"fusion stall, {n} vehicles", f"~{round(statistics.mean(int(x['features']) for x in st))} features",
-            f"CPU max {f('cpu_max_ms'):.1f} ms", f"p99 {f('cpu_p99_ms'):.1f} / p50 {med:.2f} ms",
-            f"{over}/{tot} intervals > 10 ms IMU period; wall max {f('wall_max_ms'):.1f} ms")
+    stall_row(f"fusion stall, {n} vehicles", run)
+
+stall_row("fusion stall, 4 vehicles, real-time pacing", out / "stall100")
 
 for prec in ("f64", "f32"):
     for comp in ("none", "zstd"):
