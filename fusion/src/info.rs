@@ -315,8 +315,9 @@ fn check_square_symmetric(what: &'static str, m: &Mat<f64>, n: usize) -> Result<
 }
 
 /// Replaces `m` by (m + mᵀ)/2 (makes a numerically symmetric matrix exactly symmetric), tile
-/// pair by tile pair.
-fn symmetrize(m: &mut Mat<f64>) {
+/// pair by tile pair (both halves of a tile pair stay in L1; the one implementation the crate
+/// uses).
+pub(crate) fn symmetrize(m: &mut Mat<f64>) {
     let n = m.nrows();
     let mut buf = vec![0.0; TILE * TILE];
     for tj in (0..n).step_by(TILE) {

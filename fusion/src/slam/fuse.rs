@@ -108,7 +108,7 @@ fn contiguous(idx: &[usize]) -> Option<usize> {
 fn gather_sym(m: MatRef<'_, f64>, ri: &[usize], ci: &[usize]) -> Mat<f64> {
     if ri == ci {
         let mut a = gather(m, ri, ci);
-        symmetrize_tiled(&mut a);
+        crate::info::symmetrize(&mut a);
         return a;
     }
     let a = gather(m, ri, ci);
@@ -119,22 +119,6 @@ fn gather_sym(m: MatRef<'_, f64>, ri: &[usize], ci: &[usize]) -> Mat<f64> {
 /// Tile edge for transposed access: 64 × 64 f64 tiles (32 KiB) keep both the column-major
 /// reads and the transposed ones in L1/L2.
 const TILE: usize = 64;
-
-/// Replaces a square matrix by its symmetric part, tile by tile (cache-friendly transpose).
-fn symmetrize_tiled(a: &mut Mat<f64>) {
-    let n = a.nrows();
-    for jb in (0..n).step_by(TILE) {
-        for ib in (jb..n).step_by(TILE) {
-            for j in jb..(jb + TILE).min(n) {
-                for i in ib.max(j + 1)..(ib + TILE).min(n) {
-                    let v = 0.5 * (a[(i, j)] + a[(j, i)]);
-                    a[(i, j)] = v;
-                    a[(j, i)] = v;
-                }
-            }
-        }
-    }
-}
 
 /// The first (i, j), i > j, with |a_ij − a_ji| > tol, scanning tile by tile.
 fn asymmetry_beyond(a: MatRef<'_, f64>, tol: f64) -> Option<(usize, usize)> {

@@ -114,7 +114,7 @@ impl SlamFilter {
             1.0,
             Par::Seq,
         );
-        symmetrize(&mut y_new);
+        crate::info::symmetrize(&mut y_new);
         all_finite(&y_new).then_some(y_new)
     }
 
@@ -171,7 +171,7 @@ impl SlamFilter {
             }
         }
         out.as_mut().submatrix_mut(k, k, 3, 3).copy_from(&sigma_inv);
-        symmetrize(&mut out);
+        crate::info::symmetrize(&mut out);
         all_finite(&out).then_some(out)
     }
 
@@ -209,17 +209,6 @@ impl SlamFilter {
         // room for a fresh inverse's cond·ε error while catching accumulated drift.
         let tol = 1e-9 * k as f64 * p_max * max_abs(&yv);
         (max_abs(&r) <= tol.max(1e-12)).then_some(y)
-    }
-}
-
-fn symmetrize(m: &mut Mat<f64>) {
-    let n = m.nrows();
-    for j in 0..n {
-        for i in j + 1..n {
-            let a = 0.5 * (m[(i, j)] + m[(j, i)]);
-            m[(i, j)] = a;
-            m[(j, i)] = a;
-        }
     }
 }
 
