@@ -112,22 +112,27 @@ pub fn load_scenario(path: Option<&Path>) -> Result<Scenario> {
 
 fn out_dir(args: &RunArgs, s: &Scenario) -> PathBuf {
     args.out.clone().unwrap_or_else(|| {
-        let name: String = s
-            .run
-            .name
-            .as_deref()
-            .unwrap_or("default")
-            .chars()
-            .map(|c| {
-                if c.is_ascii_alphanumeric() || c == '-' || c == '_' {
-                    c
-                } else {
-                    '_'
-                }
-            })
-            .collect();
-        PathBuf::from("out").join(name)
+        PathBuf::from("out").join(dir_name(s.run.name.as_deref().unwrap_or("default")))
     })
+}
+
+/// A directory name for a scenario name: ASCII letters, digits, `-` and `_` kept, every run of
+/// other characters one `-`, none at the ends (`default (tree-4)` → `default-tree-4`).
+fn dir_name(name: &str) -> String {
+    let mut out = String::with_capacity(name.len());
+    for c in name.chars() {
+        if c.is_ascii_alphanumeric() || c == '-' || c == '_' {
+            out.push(c);
+        } else if !out.is_empty() && !out.ends_with('-') {
+            out.push('-');
+        }
+    }
+    let out = out.trim_end_matches('-');
+    if out.is_empty() {
+        "run".to_string()
+    } else {
+        out.to_string()
+    }
 }
 
 /// A Ctrl-C flag: the first Ctrl-C asks for a clean stop (outputs are still written).
@@ -380,5 +385,16 @@ pub fn run_cli(cli: Cli) -> Result<()> {
             print!("{}", Scenario::builtin_default().to_toml_string());
             Ok(())
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    #[test]
+    fn output_directory_names_are_tidy() {
+        assert_eq!(super::dir_name("default (tree-4)"), "default-tree-4");
+        assert_eq!(super::dir_name("central-4"), "central-4");
+        assert_eq!(super::dir_name("  ((a b))  "), "a-b");
+        assert_eq!(super::dir_name("→"), "run");
     }
 }
