@@ -40,19 +40,8 @@ pub struct AgentCounters {
     pub initialized: u64,
     /// Observations rejected (gate, ambiguity, …).
     pub rejected_observations: u64,
-    /// Fusion rounds run.
-    pub rounds: u64,
-    /// Received deltas fused into the estimator.
-    pub fused: u64,
-    /// Received deltas the estimator refused (non-PD result, …); the channel keeps them pending.
-    pub fuse_refused: u64,
-    /// Received DDF messages rejected (unknown sender, invalid payload, bad time).
-    pub messages_rejected: u64,
-    /// CI changes fused (bandwidth-limited links).
-    pub ci_fused: u64,
-    /// Features removed because fused information left them with none (a neighbour's restart
-    /// took back what only its lost process had observed).
-    pub features_forgotten: u64,
+    /// The fusion half's counters ([`VehicleFusion`]).
+    pub fusion: FusionCounters,
 }
 
 /// Adapter: the EKF as the DDF's fuse target.
@@ -104,7 +93,8 @@ pub struct FusionCounters {
     pub messages_rejected: u64,
     /// CI changes fused (bandwidth-limited links).
     pub ci_fused: u64,
-    /// Features removed because fused information left them with none.
+    /// Features removed because fused information left them with none (a neighbour's restart
+    /// took back what only its lost process had observed).
     pub features_forgotten: u64,
 }
 
@@ -448,14 +438,8 @@ impl VehicleAgent {
 
 impl AgentCounters {
     /// These estimator counters with the fusion half's.
-    pub fn with_fusion(mut self, f: FusionCounters) -> Self {
-        self.rounds = f.rounds;
-        self.fused = f.fused;
-        self.fuse_refused = f.fuse_refused;
-        self.messages_rejected = f.messages_rejected;
-        self.ci_fused = f.ci_fused;
-        self.features_forgotten = f.features_forgotten;
-        self
+    pub fn with_fusion(self, fusion: FusionCounters) -> Self {
+        Self { fusion, ..self }
     }
 }
 

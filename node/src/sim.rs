@@ -781,11 +781,11 @@ pub fn simulate(s: &Scenario, mut opts: SimOptions<'_>) -> Result<SimOutcome, Si
             sim.held[i].stamp(end, &mut map);
             sim.records[i].map = map;
             let c = a.counters();
-            sim.records[i].rejected_messages = c.messages_rejected;
+            sim.records[i].rejected_messages = c.fusion.messages_rejected;
             sim.checks
                 .rejected_messages
-                .insert(node.name.clone(), c.messages_rejected);
-            sim.checks.fuse_refused += c.fuse_refused;
+                .insert(node.name.clone(), c.fusion.messages_rejected);
+            sim.checks.fuse_refused += c.fusion.fuse_refused;
         }
     }
     if let Some(b) = &sim.baseline {

@@ -350,11 +350,11 @@ impl Vehicle<'_> {
             inputs_rejected: self.counters.inputs_rejected,
             frames: c.frames,
             observations: c.observations,
-            rounds: c.rounds,
-            fused: c.fused,
-            fuse_refused: c.fuse_refused + self.give_back_failed,
-            messages_rejected: c.messages_rejected,
-            ci_fused: c.ci_fused,
+            rounds: c.fusion.rounds,
+            fused: c.fusion.fused,
+            fuse_refused: c.fusion.fuse_refused + self.give_back_failed,
+            messages_rejected: c.fusion.messages_rejected,
+            ci_fused: c.fusion.ci_fused,
             stream_gaps: self.counters.stream_gaps,
         }
     }
