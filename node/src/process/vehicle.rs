@@ -144,19 +144,11 @@ impl StallMeter {
     /// features=…` (`imu_period` in s).
     fn summary(&self, imu_period: f64, features: usize) -> String {
         let stats = |pick: fn(&(f64, f64)) -> f64| {
-            let mut v: Vec<f64> = self.stalls.iter().map(pick).collect();
-            v.sort_by(f64::total_cmp);
-            let q = |p: f64| {
-                if v.is_empty() {
-                    0.0
-                } else {
-                    v[((v.len() - 1) as f64 * p).round() as usize] * 1e3
-                }
-            };
+            let v = sorted(self.stalls.iter().map(pick));
             (
-                q(1.0),
-                q(0.99),
-                q(0.5),
+                quantile_ms(&v, 1.0),
+                quantile_ms(&v, 0.99),
+                quantile_ms(&v, 0.5),
                 v.iter().filter(|&&x| x > imu_period).count(),
             )
         };
@@ -166,16 +158,11 @@ impl StallMeter {
             .iter()
             .zip(&self.pieces)
             .map(|(name, v)| {
-                let mut v = v.clone();
-                v.sort_by(f64::total_cmp);
-                let q = |p: f64| {
-                    v.get(((v.len().max(1) - 1) as f64 * p).round() as usize)
-                        .map_or(0.0, |x| x * 1e3)
-                };
+                let v = sorted(v.iter().copied());
                 format!(
                     "{name}_cpu_max_ms={:.3} {name}_cpu_p99_ms={:.3}",
-                    q(1.0),
-                    q(0.99)
+                    quantile_ms(&v, 1.0),
+                    quantile_ms(&v, 0.99)
                 )
             })
             .collect();
@@ -195,6 +182,22 @@ impl StallMeter {
             imu_period * 1e3,
             pieces.join(" "),
         )
+    }
+}
+
+/// The values in ascending order.
+fn sorted(values: impl Iterator<Item = f64>) -> Vec<f64> {
+    let mut v: Vec<f64> = values.collect();
+    v.sort_by(f64::total_cmp);
+    v
+}
+
+/// The `p` quantile (nearest rank) of ascending times in s, in ms; 0 when there are none.
+fn quantile_ms(sorted: &[f64], p: f64) -> f64 {
+    if sorted.is_empty() {
+        0.0
+    } else {
+        sorted[((sorted.len() - 1) as f64 * p).round() as usize] * 1e3
     }
 }
 
