@@ -28,12 +28,9 @@
 //! the filter the part was taken from, taken right after it.
 
 use super::{SlamError, SlamFilter, VehicleSlot, bearing, info_cache, triangulation};
+use crate::ins::{TransitionJacobian, VehicleCovariance, VehicleVector};
 use crate::rotation::wrap_angle;
 use crate::state::{ATT, VEHICLE_DIM};
-use nalgebra::{SMatrix, SVector};
-
-type Mat15 = SMatrix<f64, VEHICLE_DIM, VEHICLE_DIM>;
-type Vec15 = SVector<f64, VEHICLE_DIM>;
 
 impl SlamFilter {
     /// The vehicles of this filter without its map or stored poses: what
@@ -62,7 +59,7 @@ impl SlamFilter {
                 .vehicles
                 .iter()
                 .map(|s| VehicleSlot {
-                    pending: Mat15::identity(),
+                    pending: TransitionJacobian::identity(),
                     has_pending: false,
                     ..s.clone()
                 })
@@ -111,22 +108,23 @@ impl SlamFilter {
                     .into(),
             ));
         }
-        let block = |f: &SlamFilter, v: usize| -> (Vec15, Mat15) {
-            let off = f.layout.vehicle_block(v);
-            (
-                Vec15::from_fn(|i, _| f.x[off + i]),
-                Mat15::from_fn(|i, j| f.p[(off + i, off + j)]),
-            )
-        };
+        let block =
+            |f: &SlamFilter, v: usize| -> Result<(VehicleVector, VehicleCovariance), SlamError> {
+                let off = f.layout.vehicle_block(v);
+                Ok((
+                    VehicleVector::from_fn(|i, _| f.x[off + i]),
+                    f.vehicle_covariance(v)?,
+                ))
+            };
         let mut out = Vec::with_capacity(m);
         for v in 0..m {
-            let (x_fused, p_fused) = block(self, v);
-            let (x_before, p_before) = block(before, v);
-            let (x_since, p_since) = block(since, v);
+            let (x_fused, p_fused) = block(self, v)?;
+            let (x_before, p_before) = block(before, v)?;
+            let (x_since, p_since) = block(since, v)?;
             let phi = if since.vehicles[v].has_pending {
                 since.vehicles[v].pending
             } else {
-                Mat15::identity()
+                TransitionJacobian::identity()
             };
             let mut dx = x_fused - x_before;
             for a in ATT..ATT + 3 {
@@ -157,7 +155,7 @@ impl SlamFilter {
                 }
             }
             self.vehicles[v].pending = pending;
-            self.vehicles[v].has_pending = pending != Mat15::identity();
+            self.vehicles[v].has_pending = pending != TransitionJacobian::identity();
         }
         Ok(())
     }
