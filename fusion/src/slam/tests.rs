@@ -82,6 +82,18 @@ fn snapshot(f: &SlamFilter) -> Vec<u64> {
     v
 }
 
+/// One vehicle at 100 m altitude in the local frame, with `k` features and a random SPD joint
+/// covariance ([`randomize`]).
+fn random_local_filter(k: usize, rng: &mut ChaCha8Rng) -> SlamFilter {
+    let mut f = SlamFilter::new(
+        config(NavFrame::Local, AssociationMode::Descriptor),
+        &[vehicle(Vector3::new(0.0, 0.0, -100.0))],
+    )
+    .unwrap();
+    randomize(&mut f, k, rng);
+    f
+}
+
 /// Adds `k` features with ids 100.. and replaces (x, P) by a random well-conditioned joint
 /// estimate: P = A Aᵀ + I·0.5 with A of unit-scale normal entries / √n.
 fn randomize(f: &mut SlamFilter, k: usize, rng: &mut ChaCha8Rng) {
@@ -185,12 +197,7 @@ fn lazy_prediction_matches_dense_propagation() {
 
 #[test]
 fn invalid_imu_sample_leaves_the_filter_bit_for_bit_unchanged() {
-    let mut f = SlamFilter::new(
-        config(NavFrame::Local, AssociationMode::Descriptor),
-        &[vehicle(Vector3::new(0.0, 0.0, -100.0))],
-    )
-    .unwrap();
-    randomize(&mut f, 3, &mut ChaCha8Rng::seed_from_u64(2));
+    let mut f = random_local_filter(3, &mut ChaCha8Rng::seed_from_u64(2));
     f.predict(0, &imu(0.0)).unwrap(); // leaves a pending Φ
     let before = snapshot(&f);
     let mut bad = Vec::new();
@@ -239,12 +246,7 @@ fn rb(z: &DVector<f64>) -> Measurement {
 
 #[test]
 fn invalid_observation_frames_leave_the_filter_bit_for_bit_unchanged() {
-    let mut f = SlamFilter::new(
-        config(NavFrame::Local, AssociationMode::Descriptor),
-        &[vehicle(Vector3::new(0.0, 0.0, -100.0))],
-    )
-    .unwrap();
-    randomize(&mut f, 3, &mut ChaCha8Rng::seed_from_u64(3));
+    let mut f = random_local_filter(3, &mut ChaCha8Rng::seed_from_u64(3));
     f.predict(0, &imu(0.0)).unwrap();
     let truth = f.vehicle_state(0).unwrap();
     let good = Observation {
@@ -330,12 +332,7 @@ fn invalid_observation_frames_leave_the_filter_bit_for_bit_unchanged() {
 #[test]
 fn stacked_joseph_update_matches_the_dense_reference() {
     let mut rng = ChaCha8Rng::seed_from_u64(4);
-    let mut f = SlamFilter::new(
-        config(NavFrame::Local, AssociationMode::Descriptor),
-        &[vehicle(Vector3::new(0.0, 0.0, -100.0))],
-    )
-    .unwrap();
-    randomize(&mut f, 6, &mut rng);
+    let mut f = random_local_filter(6, &mut rng);
     let n = f.dim();
     let x0 = col_to_dense(&f.x);
     let p0 = to_dense(&f.p);
@@ -672,12 +669,7 @@ fn fusion_matches_dense_information_form_and_adds_exactly_to_the_map_marginal() 
 #[test]
 fn bad_information_is_rejected_and_leaves_the_filter_unchanged() {
     let mut rng = ChaCha8Rng::seed_from_u64(7);
-    let mut f = SlamFilter::new(
-        config(NavFrame::Local, AssociationMode::Descriptor),
-        &[vehicle(Vector3::new(0.0, 0.0, -100.0))],
-    )
-    .unwrap();
-    randomize(&mut f, 3, &mut rng);
+    let mut f = random_local_filter(3, &mut rng);
     f.predict(0, &imu(0.0)).unwrap();
     let before = snapshot(&f);
     let good = delta(
@@ -729,12 +721,7 @@ fn bad_information_is_rejected_and_leaves_the_filter_unchanged() {
     assert!(f.fuse_map_information(&good).is_ok());
 
     // The map-information route (delta over the whole map) checks PD the same way.
-    let mut g = SlamFilter::new(
-        config(NavFrame::Local, AssociationMode::Descriptor),
-        &[vehicle(Vector3::new(0.0, 0.0, -100.0))],
-    )
-    .unwrap();
-    randomize(&mut g, 5, &mut rng);
+    let mut g = random_local_filter(5, &mut rng);
     g.predict(0, &imu(0.0)).unwrap();
     let before = snapshot(&g);
     let ids: Vec<FeatureId> = (100..105).collect();
@@ -991,12 +978,7 @@ fn construction_rejects_invalid_setups() {
 #[test]
 fn map_information_cache_follows_map_changes() {
     let mut rng = ChaCha8Rng::seed_from_u64(8);
-    let mut f = SlamFilter::new(
-        config(NavFrame::Local, AssociationMode::Descriptor),
-        &[vehicle(Vector3::new(0.0, 0.0, -100.0))],
-    )
-    .unwrap();
-    randomize(&mut f, 4, &mut rng);
+    let mut f = random_local_filter(4, &mut rng);
     let check = |f: &mut SlamFilter| {
         let (ids, y, v) = marginal_information(f);
         let mi = f.map_information().unwrap();
@@ -1158,12 +1140,7 @@ fn randomized_fusions_match_the_dense_information_form() {
 #[test]
 fn map_information_is_maintained_without_reinversion() {
     let mut rng = ChaCha8Rng::seed_from_u64(21);
-    let mut f = SlamFilter::new(
-        config(NavFrame::Local, AssociationMode::Descriptor),
-        &[vehicle(Vector3::new(0.0, 0.0, -100.0))],
-    )
-    .unwrap();
-    randomize(&mut f, 5, &mut rng);
+    let mut f = random_local_filter(5, &mut rng);
     f.map_information().unwrap();
     assert_eq!(f.info_cache.steps, 0);
     let cached_matches_dense = |f: &SlamFilter, what: &str| {
@@ -1268,12 +1245,7 @@ fn deferred_vs_sequential(
     coupling: AttitudeCoupling,
 ) -> (SlamFilter, SlamFilter) {
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
-    let mut f = SlamFilter::new(
-        config(NavFrame::Local, AssociationMode::Descriptor),
-        &[vehicle(Vector3::new(0.0, 0.0, -100.0))],
-    )
-    .unwrap();
-    randomize(&mut f, 6, &mut rng);
+    let mut f = random_local_filter(6, &mut rng);
     let n = f.dim();
     let attitude_bias = |i: usize| (ATT..VEHICLE_DIM).contains(&i);
     for j in 0..n {
@@ -1381,12 +1353,7 @@ fn deferred_fusion_matches_sequential_to_first_order() {
 #[test]
 fn carry_predictions_rejects_what_is_not_a_vehicle_part() {
     let mut rng = ChaCha8Rng::seed_from_u64(33);
-    let mut f = SlamFilter::new(
-        config(NavFrame::Local, AssociationMode::Descriptor),
-        &[vehicle(Vector3::new(0.0, 0.0, -100.0))],
-    )
-    .unwrap();
-    randomize(&mut f, 3, &mut rng);
+    let mut f = random_local_filter(3, &mut rng);
     let before = f.vehicle_part();
     let mut predicted = before.clone();
     predicted.predict(0, &imu(0.01)).unwrap();
