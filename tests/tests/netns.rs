@@ -270,13 +270,7 @@ fn vehicles_in_network_namespaces_detect_a_cut_veth_and_recover() {
     }
     // The last contiguous down window (zenoh may report the old session lost once more after
     // the TCP connection is re-established, see docs/arch/system.md).
-    let mut window: Vec<usize> = Vec::new();
-    for &i in &down {
-        if window.last().is_some_and(|&l| l + 1 != i) {
-            window.clear();
-        }
-        window.push(i);
-    }
+    let window = last_run(&rows, |x| x["up"] == "0" && t_of(x) >= t_cut - 10.0);
     // With the veth down for 12 s wall after a 3 s lease: ≥ 3 one-second samples (measured
     // 14–77), so the window has an interior where both ends know the link is down.
     assert!(
@@ -289,15 +283,7 @@ fn vehicles_in_network_namespaces_detect_a_cut_veth_and_recover() {
     // down window, by its own column (a_up for bytes_ab, b_up for bytes_ba); the edge samples
     // may count that end's last or first message.
     for (flag, bytes) in [("a_up", "bytes_ab"), ("b_up", "bytes_ba")] {
-        let mut own: Vec<usize> = Vec::new();
-        for (i, x) in rows.iter().enumerate() {
-            if x[flag] == "0" && t_of(x) >= t_cut - 10.0 {
-                if own.last().is_some_and(|&l| l + 1 != i) {
-                    own.clear();
-                }
-                own.push(i);
-            }
-        }
+        let own = last_run(&rows, |x| x[flag] == "0" && t_of(x) >= t_cut - 10.0);
         assert!(
             own.len() >= 3,
             "{flag}: the cut was not reported on ≥ 3 consecutive samples"
@@ -334,11 +320,7 @@ fn vehicles_in_network_namespaces_detect_a_cut_veth_and_recover() {
     // The team converges: as in the fault-free outage test (coverage ≥ 0.9: features first
     // seen in the last rounds have not crossed the tree yet; share within 0.05 of the
     // reference's information: linearisation differences only).
-    for (name, s) in r.map_standing() {
-        println!(
-            "{name}: coverage {:.2}, share {:.2}, map RMSE {:.2} m",
-            s.coverage, s.share, s.rmse
-        );
+    for (name, s) in r.print_standing(&r.summary.scenario) {
         assert!(s.coverage >= 0.9, "{name}: coverage {:.2}", s.coverage);
         assert!(
             (s.share - 1.0).abs() <= 0.05,
@@ -346,4 +328,16 @@ fn vehicles_in_network_namespaces_detect_a_cut_veth_and_recover() {
             s.share
         );
     }
+}
+
+/// Indices of the last run of consecutive rows for which `pred` holds (empty if none does).
+fn last_run<T>(rows: &[T], pred: impl Fn(&T) -> bool) -> Vec<usize> {
+    let mut run: Vec<usize> = Vec::new();
+    for (i, _) in rows.iter().enumerate().filter(|(_, x)| pred(x)) {
+        if run.last().is_some_and(|&l| l + 1 != i) {
+            run.clear();
+        }
+        run.push(i);
+    }
+    run
 }

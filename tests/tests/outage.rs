@@ -32,10 +32,10 @@ fn clean() -> &'static BTreeMap<String, Standing> {
     static CLEAN: OnceLock<BTreeMap<String, Standing>> = OnceLock::new();
     CLEAN.get_or_init(|| {
         let r = run(&clean_scenario(), &["--quiet"]);
-        r.print_standing("fault-free");
+        let standing = r.print_standing("fault-free");
         assert_sound(&r);
         assert_in_band(&r, IN_BAND);
-        r.map_standing()
+        standing
     })
 }
 
@@ -64,8 +64,7 @@ fn clean_scenario() -> PathBuf {
 /// tr(P_ref)/tr(P_vehicle)), and its map is as accurate or better.
 fn assert_converged(r: &Run, coverage_tol: f64, share_tol: f64) {
     let clean = clean();
-    r.print_standing(&r.summary.scenario);
-    for (name, s) in r.map_standing() {
+    for (name, s) in r.print_standing(&r.summary.scenario) {
         let c = clean[&name];
         assert!(
             s.coverage >= c.coverage - coverage_tol,

@@ -39,11 +39,7 @@ fn central_4_runs_with_a_hub() {
             v.name
         );
     }
-    for (name, s) in r.map_standing() {
-        println!(
-            "{name}: coverage {:.2}, share {:.2}, map RMSE {:.2} m",
-            s.coverage, s.share, s.rmse
-        );
+    for (name, s) in r.print_standing(&r.summary.scenario) {
         assert!(s.coverage >= 0.8, "{name}: coverage {:.2}", s.coverage);
         assert!(
             (s.share - 1.0).abs() <= 0.05,
@@ -65,12 +61,9 @@ fn central_4_hub_keeps_pace_over_the_full_run() {
     let r = run(&topology("central-4.toml"), &["--quiet"]);
     assert_sound(&r);
     let end = r.summary.duration_s;
+    let samples = r.csv("links.csv");
     for l in &r.summary.links {
-        let rows: Vec<_> = r
-            .csv("links.csv")
-            .into_iter()
-            .filter(|x| x["link"] == l.link)
-            .collect();
+        let rows: Vec<_> = samples.iter().filter(|x| x["link"] == l.link).collect();
         // Up on both ends 2 s before the end (the final samples may already see the other
         // side's shutdown, whose order is a race).
         let near_end = rows
@@ -98,11 +91,7 @@ fn central_4_hub_keeps_pace_over_the_full_run() {
             l.link
         );
     }
-    for (name, s) in r.map_standing() {
-        println!(
-            "{name}: coverage {:.3}, share {:.2}, map RMSE {:.2} m",
-            s.coverage, s.share, s.rmse
-        );
+    for (name, s) in r.print_standing(&r.summary.scenario) {
         assert!(s.coverage >= 0.97, "{name}: coverage {:.3}", s.coverage);
     }
 }
@@ -123,11 +112,7 @@ fn bearing_only_team_runs() {
         assert_eq!(v.wrong_associations, 0, "{}: wrong associations", v.name);
         assert!(v.map_features > 0, "{}: empty map", v.name);
     }
-    for (name, s) in r.map_standing() {
-        println!(
-            "{name}: coverage {:.2}, share {:.2}, map RMSE {:.2} m",
-            s.coverage, s.share, s.rmse
-        );
+    for (name, s) in r.print_standing(&r.summary.scenario) {
         // The tree delivers the team's features to every vehicle (measured ≥ 0.9).
         assert!(s.coverage >= 0.8, "{name}: coverage {:.2}", s.coverage);
     }

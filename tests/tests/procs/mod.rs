@@ -165,15 +165,17 @@ impl Run {
             .collect()
     }
 
-    /// Prints every vehicle's standing (figures for the test log).
-    pub fn print_standing(&self, label: &str) {
-        for (name, s) in self.map_standing() {
+    /// Prints every vehicle's standing (figures for the test log) and returns it.
+    pub fn print_standing(&self, label: &str) -> BTreeMap<String, Standing> {
+        let standing = self.map_standing();
+        for (name, s) in &standing {
             eprintln!(
                 "{label} {name}: coverage {:.3} (all features {:.3}), arrival p90 {:.1} s, \
                  share {:.2}, map RMSE {:.2} m",
                 s.coverage, s.coverage_all, s.latency_p90, s.share, s.rmse
             );
         }
+        standing
     }
 
     /// `up` of one link in links.csv over time: (t, up).
