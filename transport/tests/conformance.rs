@@ -388,11 +388,11 @@ fn compressed_body_round_trips<B: Backend>(test: &str) {
     let frame = codec::compress_body(&m).unwrap();
     let mut cm = meta(8);
     cm.compressed = true;
-    la.send(&cm, &PreEncoded(&frame)).unwrap();
-    let got = lb
-        .recv_timeout(RECV_TIMEOUT)
-        .unwrap()
-        .expect("compressed message");
+    let mut exchange = |body: &[u8], what: &str| {
+        la.send(&cm, &PreEncoded(body)).unwrap();
+        lb.recv_timeout(RECV_TIMEOUT).unwrap().expect(what)
+    };
+    let got = exchange(&frame, "compressed message");
     assert!(got.header().compressed);
     assert!(
         (got.message_bytes().len() as u64) < plain / 4,
@@ -404,12 +404,7 @@ fn compressed_body_round_trips<B: Backend>(test: &str) {
         CodecError::CompressedBorrow
     );
     // Garbage behind the flag.
-    la.send(&cm, &PreEncoded(&[1, 2, 3, 4, 5, 6, 7, 8]))
-        .unwrap();
-    let bad = lb
-        .recv_timeout(RECV_TIMEOUT)
-        .unwrap()
-        .expect("garbage message");
+    let bad = exchange(&[1, 2, 3, 4, 5, 6, 7, 8], "garbage message");
     assert!(matches!(
         bad.decode_owned::<WireSymMatrix>(),
         Err(CodecError::Decompress(_))
@@ -418,11 +413,7 @@ fn compressed_body_round_trips<B: Backend>(test: &str) {
     // ~10⁴:1, so the frame is small and the declared size is rejected before decompressing.
     let bomb =
         codec::compress_body(&WireBytes(vec![0u8; (DEFAULT_MAX_BODY_LEN + 1) as usize])).unwrap();
-    la.send(&cm, &PreEncoded(&bomb)).unwrap();
-    let big = lb
-        .recv_timeout(RECV_TIMEOUT)
-        .unwrap()
-        .expect("bomb message");
+    let big = exchange(&bomb, "bomb message");
     assert!(matches!(
         big.decode_owned::<WireBytes>(),
         Err(CodecError::TooLarge { .. })
