@@ -17,11 +17,15 @@
 //! - [`replay`]: recorded sensor logs (CSV) and the sensor sources of a run.
 //! - [`process`]: `canopy run` — the world, vehicle, hub and monitor processes.
 //! - [`team`]: generated tree teams of any size (`canopy team N`, benchmarks, scale tests).
+//! - [`eval`]: trajectory evaluation against ground truth (`canopy eval EST GT`): TUM and
+//!   EuRoC CSV readers, evo's timestamp association, ATE after SE(3) / position+yaw / Sim(3) /
+//!   no alignment, evo's RPE and rpg_trajectory_evaluation's relative error.
 //! - [`cli`]: the command line.
 
 pub mod agent;
 pub mod baseline;
 pub mod cli;
+pub mod eval;
 pub mod metrics;
 pub mod network;
 pub mod output;
