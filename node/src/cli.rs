@@ -53,6 +53,9 @@ pub enum Command {
         #[arg(required = true)]
         dirs: Vec<PathBuf>,
     },
+    /// Evaluate an estimated trajectory against ground truth: ATE after alignment, RPE (evo's
+    /// definitions) and relative error (rpg_trajectory_evaluation's).
+    Eval(EvalArgs),
     /// The processes `canopy run` spawns (internal).
     #[command(hide = true)]
     Role(crate::process::RoleArgs),
@@ -91,6 +94,40 @@ pub struct RunArgs {
     /// directory (see the README, "Replay logs").
     #[arg(long, value_name = "DIR")]
     pub record_logs: Option<PathBuf>,
+}
+
+/// Arguments of `eval`.
+#[derive(Debug, Args)]
+pub struct EvalArgs {
+    /// Estimated trajectory: TUM (`timestamp tx ty tz qx qy qz qw`) or EuRoC CSV.
+    pub est: PathBuf,
+    /// Ground truth: TUM, or EuRoC/ASL CSV (`state_groundtruth_estimate0/data.csv`).
+    pub gt: PathBuf,
+    /// Alignments before the ATE (comma separated or repeated).
+    #[arg(long, value_enum, value_delimiter = ',', default_values = ["se3", "posyaw"])]
+    pub align: Vec<crate::eval::Alignment>,
+    /// RPE and relative-error distances [m] (comma separated or repeated); default 10, 20, 30,
+    /// 40, 50 % of the matched ground truth's path length, truncated to centimetres.
+    #[arg(long, value_delimiter = ',')]
+    pub delta: Vec<f64>,
+    /// Largest timestamp difference of a matched pair [s].
+    #[arg(long, default_value_t = 0.01)]
+    pub max_diff: f64,
+    /// Added to the estimate's timestamps before matching [s].
+    #[arg(long, default_value_t = 0.0, allow_hyphen_values = true)]
+    pub offset: f64,
+    /// Where the estimate's z axis points (position+yaw alignment; canopy's outputs: down).
+    #[arg(long, value_enum, default_value = "up")]
+    pub est_z: crate::eval::ZAxis,
+    /// Where the ground truth's z axis points (position+yaw alignment; EuRoC: up).
+    #[arg(long, value_enum, default_value = "up")]
+    pub gt_z: crate::eval::ZAxis,
+    /// Choose the RPE pairs along the ground truth's path (evo's `--pairs_from_reference`).
+    #[arg(long)]
+    pub pairs_from_reference: bool,
+    /// Also write the figures as JSON to this file.
+    #[arg(long, value_name = "FILE")]
+    pub json: Option<PathBuf>,
 }
 
 /// Loads the scenario named on the command line, or the built-in default.
@@ -361,6 +398,42 @@ fn cmd_compare(dirs: &[PathBuf]) -> Result<()> {
     Ok(())
 }
 
+fn cmd_eval(args: &EvalArgs) -> Result<()> {
+    use crate::eval::{EvalOptions, Trajectory, evaluate, table};
+    let est = Trajectory::load(&args.est).context("reading the estimate")?;
+    let gt = Trajectory::load(&args.gt).context("reading the ground truth")?;
+    let opts = EvalOptions {
+        max_diff_s: args.max_diff,
+        offset_s: args.offset,
+        alignments: args.align.clone(),
+        est_z: args.est_z,
+        gt_z: args.gt_z,
+        distances_m: args.delta.clone(),
+        pairs_from_reference: args.pairs_from_reference,
+    };
+    let report = evaluate(&est, &gt, &opts).with_context(|| {
+        format!(
+            "evaluating {} against {}",
+            args.est.display(),
+            args.gt.display()
+        )
+    })?;
+    print!(
+        "{}",
+        table(
+            &report,
+            &args.est.display().to_string(),
+            &args.gt.display().to_string()
+        )
+    );
+    if let Some(path) = &args.json {
+        let text = serde_json::to_string_pretty(&report).context("serialising the report")?;
+        std::fs::write(path, text + "\n").with_context(|| format!("writing {}", path.display()))?;
+        println!("figures in {}", path.display());
+    }
+    Ok(())
+}
+
 /// Runs the parsed command line.
 pub fn run_cli(cli: Cli) -> Result<()> {
     canopy_fusion::runtime::tune_allocator();
@@ -371,6 +444,7 @@ pub fn run_cli(cli: Cli) -> Result<()> {
         Command::Role(args) => crate::process::run_role(args),
         Command::Check { scenario } => cmd_check(&scenario),
         Command::Compare { dirs } => cmd_compare(&dirs),
+        Command::Eval(args) => cmd_eval(&args),
         Command::Team {
             vehicles,
             duration,

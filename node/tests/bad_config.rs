@@ -7,9 +7,10 @@
 //! so every case differs from a valid scenario in exactly the way its name says.
 
 use std::path::{Path, PathBuf};
-use std::process::Command;
 
 use canopy_node::scenario::{Scenario, ScenarioError};
+
+mod common;
 
 fn root() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR"))
@@ -20,19 +21,7 @@ fn root() -> PathBuf {
 
 /// `canopy check FILE`: (success, stdout, stderr).
 fn check(file: &Path) -> (bool, String, String) {
-    let out = Command::new(env!("CARGO_BIN_EXE_canopy"))
-        .arg("check")
-        .arg(file)
-        // What a user reads is the error chain; a backtrace would only add noise to match on.
-        .env("RUST_BACKTRACE", "0")
-        .env("RUST_LIB_BACKTRACE", "0")
-        .output()
-        .expect("the canopy binary runs");
-    (
-        out.status.success(),
-        String::from_utf8_lossy(&out.stdout).into_owned(),
-        String::from_utf8_lossy(&out.stderr).into_owned(),
-    )
+    common::canopy(&["check".as_ref(), file.as_os_str()])
 }
 
 /// Every shipped scenario is valid: `canopy check` succeeds on it and `Scenario::load` accepts
