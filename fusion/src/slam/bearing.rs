@@ -102,6 +102,32 @@ pub struct BearingConfig {
     pub max_track_observations: usize,
     /// Gate of observations against track hypotheses. Default [`TrackGate::Correlated`].
     pub track_gate: TrackGate,
+    /// How a track becomes a feature. Default [`BearingInit::Pair`] (the chapter's method).
+    pub initialization: BearingInit,
+    /// [`BearingInit::MultiView`]: stored observations a track needs before it may initialize.
+    /// Default 5.
+    pub min_observations: usize,
+    /// [`BearingInit::MultiView`]: minimum separation of two rays of a track for its
+    /// constraint update (lost tracks) [rad]. Default 1°.
+    pub constraint_parallax: f64,
+}
+
+/// How an uninitialized track becomes a map feature.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum BearingInit {
+    /// §21.4.2 as in the chapter: range hypotheses gate the track's observations; the pair of
+    /// stored lines of sight with the widest separation is triangulated (21.72–21.77) and the
+    /// other stored observations are applied afterwards (21.78).
+    Pair,
+    /// Every stored observation of the track at once (module `multiview`): Gauss–Newton
+    /// triangulation, then the stacked linearized system is split by a QR decomposition of its
+    /// feature columns into an invertible part that initializes the feature and a null-space part
+    /// that updates the stored poses, after a joint χ² test of the track. Tracks lost before they
+    /// can initialize update the stored poses through their null-space part alone (the
+    /// multi-state constraint of Mourikis & Roumeliotis 2007). Needs descriptor association
+    /// (tracker ids), which replaces the hypothesis gate.
+    MultiView,
 }
 
 impl Default for BearingConfig {
@@ -116,6 +142,9 @@ impl Default for BearingConfig {
             max_track_age: 30.0,
             max_track_observations: 40,
             track_gate: TrackGate::Correlated,
+            initialization: BearingInit::Pair,
+            min_observations: 5,
+            constraint_parallax: 1f64.to_radians(),
         }
     }
 }
@@ -144,6 +173,12 @@ impl BearingConfig {
         }
         if self.max_track_observations < 2 {
             return bad("max_track_observations must be at least 2");
+        }
+        if !(self.constraint_parallax > 0.0 && self.constraint_parallax < std::f64::consts::PI) {
+            return bad("constraint_parallax must be in (0, π)");
+        }
+        if self.min_observations < 2 {
+            return bad("min_observations must be at least 2");
         }
         Ok(())
     }
@@ -182,6 +217,18 @@ pub struct BearingStats {
     pub poses_removed: u64,
     /// Largest number of stored poses held at once.
     pub max_stored_poses: usize,
+    /// Multi-view: tracks whose null-space part alone updated the state (lost or restarted
+    /// before they could initialize).
+    pub constraint_updates: u64,
+    /// Multi-view: stored observations used by those updates.
+    pub constraint_observations: u64,
+    /// Multi-view: tracks (or parts of them) refused by the joint χ² test after the outlier
+    /// removal, or whose triangulation failed (too little parallax, behind a camera, out of the
+    /// configured range); their observations were discarded.
+    pub tracks_rejected: u64,
+    /// Multi-view: single observations removed from a track as outliers (largest residual of a
+    /// track that failed the joint test).
+    pub outliers_removed: u64,
 }
 
 /// A read-only view of an uninitialized track.
@@ -200,9 +247,9 @@ pub struct TrackInfo {
 }
 
 #[derive(Clone, Debug)]
-struct StoredPose {
+pub(super) struct StoredPose {
     /// Stored observations referring to it.
-    refs: usize,
+    pub(super) refs: usize,
 }
 
 #[derive(Clone, Debug)]
@@ -221,17 +268,37 @@ struct Hypothesis {
 }
 
 #[derive(Clone, Debug)]
-struct Track {
-    id: TrackId,
-    descriptor: FeatureId,
-    created: f64,
-    observations: Vec<StoredObservation>,
+pub(super) struct Track {
+    pub(super) id: TrackId,
+    pub(super) descriptor: FeatureId,
+    pub(super) created: f64,
+    pub(super) observations: Vec<StoredObservation>,
     hypotheses: Vec<Hypothesis>,
     /// The first observation, which the hypotheses hang off (its pose stays in the state while
     /// the observation is stored).
-    anchor: StoredObservation,
+    pub(super) anchor: StoredObservation,
     /// Range σ of every hypothesis [m].
     sigma_range: f64,
+}
+
+impl Track {
+    /// A track without range hypotheses (multi-view initialization associates by descriptor).
+    pub(super) fn plain(
+        id: TrackId,
+        descriptor: FeatureId,
+        created: f64,
+        first: StoredObservation,
+    ) -> Self {
+        Self {
+            id,
+            descriptor,
+            created,
+            observations: vec![first.clone()],
+            hypotheses: Vec::new(),
+            anchor: first,
+            sigma_range: 0.0,
+        }
+    }
 }
 
 /// The first observation's line of sight and covariance blocks, for the correlated gate.
@@ -248,15 +315,15 @@ pub(super) struct Anchor {
 /// Bearing-only bookkeeping of a filter.
 #[derive(Clone, Debug)]
 pub(super) struct BearingState {
-    config: BearingConfig,
+    pub(super) config: BearingConfig,
     /// The stored-pose frame (None when no vehicle is bearing-only and the origin cannot define
     /// one).
     pose_frame: Option<PoseFrame>,
-    tracks: Vec<Track>,
-    poses: BTreeMap<PoseId, StoredPose>,
-    next_track: TrackId,
+    pub(super) tracks: Vec<Track>,
+    pub(super) poses: BTreeMap<PoseId, StoredPose>,
+    pub(super) next_track: TrackId,
     next_pose: PoseId,
-    stats: BearingStats,
+    pub(super) stats: BearingStats,
 }
 
 impl BearingState {
@@ -312,6 +379,14 @@ impl SlamFilter {
     /// Replaces the bearing-only options (validated; existing tracks keep their hypotheses).
     pub fn set_bearing_config(&mut self, config: BearingConfig) -> Result<(), SlamError> {
         config.validate()?;
+        if config.initialization == BearingInit::MultiView
+            && self.config.association.mode != AssociationMode::Descriptor
+        {
+            return Err(SlamError::InvalidConfig(
+                "bearing: multi-view initialization associates tracks by descriptor (tracker ids)"
+                    .into(),
+            ));
+        }
         self.bearing.config = config;
         Ok(())
     }
@@ -353,7 +428,7 @@ impl SlamFilter {
         Some((self.vec3_at(off + POSE_POS), self.vec3_at(off + POSE_ATT)))
     }
 
-    fn pose_frame(&self) -> Result<PoseFrame, SlamError> {
+    pub(super) fn pose_frame(&self) -> Result<PoseFrame, SlamError> {
         self.bearing.pose_frame.ok_or_else(|| {
             SlamError::InvalidConfig(
                 "bearing-only SLAM needs an origin near the Earth's surface".into(),
@@ -807,7 +882,7 @@ impl SlamFilter {
 
     /// Drops tracks past their age, and (descriptor mode) recovers tracks whose feature is now
     /// in the map onto it.
-    fn prune_tracks(&mut self, time: f64) {
+    pub(super) fn prune_tracks(&mut self, time: f64) {
         let max_age = self.bearing.config.max_track_age;
         let mut k = 0;
         while k < self.bearing.tracks.len() {
@@ -833,7 +908,7 @@ impl SlamFilter {
         }
     }
 
-    fn release(&mut self, observations: &[StoredObservation]) {
+    pub(super) fn release(&mut self, observations: &[StoredObservation]) {
         for o in observations {
             if let Some(p) = self.bearing.poses.get_mut(&o.pose) {
                 p.refs = p.refs.saturating_sub(1);
@@ -841,13 +916,13 @@ impl SlamFilter {
         }
     }
 
-    fn drop_track(&mut self, k: usize) {
+    pub(super) fn drop_track(&mut self, k: usize) {
         let track = self.bearing.tracks.remove(k);
         self.release(&track.observations);
     }
 
     /// Removes stored poses that no stored observation refers to (21.4.2.4): x and P shrink.
-    fn remove_unreferenced_poses(&mut self) {
+    pub(super) fn remove_unreferenced_poses(&mut self) {
         let unused: Vec<PoseId> = self
             .bearing
             .poses
@@ -865,7 +940,7 @@ impl SlamFilter {
 
     /// Adds the current pose of `vehicle` to the state (eqs. 21.66–21.68), first dropping the
     /// oldest tracks not in `keep` while the cap is reached. `None` when no pose can be freed.
-    fn store_current_pose(
+    pub(super) fn store_current_pose(
         &mut self,
         vehicle: usize,
         keep: &[TrackId],
@@ -931,7 +1006,7 @@ impl SlamFilter {
     }
 
     /// The sensor model of a stored observation's vehicle.
-    fn stored_model(&self, o: &StoredObservation) -> ObservationModel {
+    pub(super) fn stored_model(&self, o: &StoredObservation) -> ObservationModel {
         self.vehicles[o.vehicle].model
     }
 

@@ -1,6 +1,7 @@
 //! Unit tests of the bearing-only pipeline against independent dense computations (nalgebra
 //! `DMatrix`, textbook augmentation and Kalman update on the full joint covariance).
 
+use super::tests::after_frame;
 use super::triangulation::{PoseFrame, PosedObservation, initialize_from_pair, pose_line_of_sight};
 use super::*;
 use crate::geodesy::{Geodetic, geodetic_to_ecef};
@@ -146,16 +147,21 @@ fn dense_update(
     )
 }
 
-/// Pose augmentation (eq. 21.68), feature initialization (21.76), recovery (21.78) and pose
-/// removal equal the same steps done densely on the joint (x, P), in both frames.
-#[test]
-fn delayed_initialization_equals_the_dense_computation() {
-    for (frame, sensor) in [
+/// Both navigation frames with both camera models.
+fn frames_and_sensors() -> [(NavFrame, SensorModel); 4] {
+    [
         (NavFrame::Local, bearing_sensor()),
         (NavFrame::Global, pixel_sensor()),
         (NavFrame::Local, pixel_sensor()),
         (NavFrame::Global, bearing_sensor()),
-    ] {
+    ]
+}
+
+/// Pose augmentation (eq. 21.68), feature initialization (21.76), recovery (21.78) and pose
+/// removal equal the same steps done densely on the joint (x, P), in both frames.
+#[test]
+fn delayed_initialization_equals_the_dense_computation() {
+    for (frame, sensor) in frames_and_sensors() {
         let label = format!("{frame} {sensor:?}");
         let mut f = filter(frame, sensor, AssociationMode::Descriptor);
         f.set_bearing_config(BearingConfig {
@@ -396,10 +402,11 @@ fn snapshot(
     )
 }
 
-/// A camera frame with a NaN pixel or a pixel outside the image is a typed error and leaves
-/// the filter (state, covariance, tracks, stored poses, counters) bit-for-bit unchanged.
+/// A NaN pixel or a pixel outside the image rejects only itself: the frame's good observation is
+/// processed exactly as in a frame without it (state, covariance, tracks, stored poses, counters
+/// bit for bit), and a frame of bad pixels only is processed as an empty frame.
 #[test]
-fn invalid_camera_frames_leave_the_filter_unchanged() {
+fn invalid_camera_observations_are_rejected_alone() {
     let mut f = filter(NavFrame::Local, pixel_sensor(), AssociationMode::Descriptor);
     let m = Vector3::new(40.0, 10.0, 0.0);
     let good = measure(&f, &m, 0.0);
@@ -417,68 +424,49 @@ fn invalid_camera_frames_leave_the_filter_unchanged() {
     fly(&mut f, 0.0);
     assert_eq!(f.num_tracks(), 1);
     assert_eq!(f.num_stored_poses(), 1);
-    let good = measure(&f, &m, 0.0);
-    for (bad, expect) in [
+    let good = Observation {
+        descriptor: 3,
+        z: measure(&f, &m, 0.0),
+    };
+    let (alone, want) = after_frame(&f, 1.0, vec![good]);
+    assert!(matches!(
+        want.outcomes[0],
+        ObservationOutcome::Stored { .. }
+    ));
+    for (bad, fault) in [
         (
             Measurement::Pixel(nalgebra::Vector2::new(f64::NAN, 100.0)),
-            crate::observation::ObservationError::NonFinite,
+            MeasurementFault::NonFinite,
         ),
         (
             Measurement::Pixel(nalgebra::Vector2::new(100.0, 480.5)),
-            crate::observation::ObservationError::OutsideImage { u: 100.0, v: 480.5 },
+            MeasurementFault::OutsideImage,
         ),
         (
             Measurement::Pixel(nalgebra::Vector2::new(-3.0, 10.0)),
-            crate::observation::ObservationError::OutsideImage { u: -3.0, v: 10.0 },
+            MeasurementFault::OutsideImage,
+        ),
+        (
+            Measurement::Bearing(nalgebra::Vector2::new(0.1, 0.2)),
+            MeasurementFault::KindMismatch,
         ),
     ] {
-        let before = snapshot(&f);
-        let err = f
-            .process_frame(
-                0,
-                &ObservationFrame {
-                    time: 1.0,
-                    observations: vec![
-                        Observation {
-                            descriptor: 3,
-                            z: good,
-                        },
-                        Observation {
-                            descriptor: 4,
-                            z: bad,
-                        },
-                    ],
-                },
-            )
-            .unwrap_err();
+        let bad = Observation {
+            descriptor: 4,
+            z: bad,
+        };
+        let (g, r) = after_frame(&f, 1.0, vec![good, bad]);
         assert_eq!(
-            err,
-            SlamError::Observation {
-                index: 1,
-                source: expect
-            }
+            r.outcomes[1],
+            ObservationOutcome::Rejected(RejectReason::InvalidMeasurement(fault))
         );
-        let after = snapshot(&f);
-        assert_eq!(before.0, after.0);
-        assert_eq!(before.1, after.1);
-        assert_eq!(before.2, after.2);
-        assert_eq!(before.3, after.3);
-        assert_eq!(before.4, after.4);
+        assert_eq!(r.outcomes[0], want.outcomes[0]);
+        assert_eq!(snapshot(&g), snapshot(&alone));
+        let (empty, _) = after_frame(&f, 1.0, vec![]);
+        let (g, r) = after_frame(&f, 1.0, vec![bad]);
+        assert_eq!(r.rejected(), 1);
+        assert_eq!(snapshot(&g), snapshot(&empty));
     }
-    // The valid frame alone is accepted and stored with the track.
-    let r = f
-        .process_frame(
-            0,
-            &ObservationFrame {
-                time: 1.0,
-                observations: vec![Observation {
-                    descriptor: 3,
-                    z: good,
-                }],
-            },
-        )
-        .unwrap();
-    assert!(matches!(r.outcomes[0], ObservationOutcome::Stored { .. }));
 }
 
 /// Features seen once and never again: the stored poses stay at the cap (oldest tracks dropped,
@@ -916,6 +904,399 @@ fn correlated_track_gate_matches_a_finite_difference_linearization() {
         assert!(
             gamma_ref > 1.0,
             "the innovation must be non-trivial: {gamma_ref}"
+        );
+    }
+}
+
+/// A filter with multi-view initialization that never initializes on its own
+/// (`min_observations` out of reach), so a test can drive `initialize_track` / `finish_track`.
+fn multiview_filter(frame: NavFrame, sensor: SensorModel) -> SlamFilter {
+    let mut f = filter(frame, sensor, AssociationMode::Descriptor);
+    f.set_bearing_config(BearingConfig {
+        initialization: BearingInit::MultiView,
+        min_observations: 1000,
+        max_track_observations: 1000,
+        min_parallax: 5f64.to_radians(),
+        constraint_parallax: 1f64.to_radians(),
+        ..BearingConfig::default()
+    })
+    .unwrap();
+    f
+}
+
+/// Feeds `frames` frames, 1 s of flight apart, each observing the features `ms` (descriptors
+/// 7, 8, …) with small perturbations so that the innovations are not zero.
+fn observe_features(f: &mut SlamFilter, ms: &[Vector3<f64>], frames: usize) {
+    for k in 0..frames {
+        let observations = ms
+            .iter()
+            .enumerate()
+            .map(|(i, m)| Observation {
+                descriptor: 7 + i as u64,
+                z: measure(
+                    f,
+                    m,
+                    1e-3 * ((k + i) as f64 - 1.7) * if i % 2 == 0 { 1.0 } else { -0.6 },
+                ),
+            })
+            .collect();
+        let report = f
+            .process_frame(
+                0,
+                &ObservationFrame {
+                    time: k as f64,
+                    observations,
+                },
+            )
+            .unwrap();
+        assert_eq!(report.stored(), ms.len(), "{report:?}");
+        fly(f, k as f64);
+    }
+}
+
+/// The stacked measurement function of a track's stored observations at stored poses and a
+/// feature, with Jacobians by central differences (independent of the analytic ones).
+struct DenseTrack {
+    /// Residuals z − h at the linearization point, stacked.
+    r: DVector<f64>,
+    /// ∂h/∂x (rows × state), non-zero on the stored poses.
+    h_x: DMatrix<f64>,
+    /// ∂h/∂m (rows × 3).
+    h_m: DMatrix<f64>,
+    /// Block-diagonal R.
+    noise: DMatrix<f64>,
+}
+
+fn dense_track(f: &SlamFilter, id: TrackId, m: &Vector3<f64>) -> DenseTrack {
+    let pf = f.pose_frame().unwrap();
+    let track = f.bearing.tracks.iter().find(|t| t.id == id).unwrap();
+    let x = dense_x(f);
+    let n = x.len();
+    let model = *f.observation_model(0).unwrap();
+    let d = model.measurement_dim();
+    let rows = d * track.observations.len();
+    let h = |p: &Vector3<f64>, a: &Vector3<f64>, m: &Vector3<f64>| -> DVector<f64> {
+        model
+            .predict(&model.sensor_pose(&pf.to_filter(p), a), m)
+            .unwrap()
+            .z
+    };
+    let mut out = DenseTrack {
+        r: DVector::zeros(rows),
+        h_x: DMatrix::zeros(rows, n),
+        h_m: DMatrix::zeros(rows, 3),
+        noise: DMatrix::zeros(rows, rows),
+    };
+    // Steps: 1e-2 m (features 150 m away: truncation ∝ (step/range)² ≈ 4e-9 relative; rounding
+    // ∝ |coordinate|·ε/step ≈ 6e6·1.1e-16/1e-2 ≈ 7e-8 for ECEF coordinates) and 1e-6 rad.
+    for (j, o) in track.observations.iter().enumerate() {
+        let off = f.layout().pose_offset(o.pose).unwrap();
+        let p = Vector3::new(x[off], x[off + 1], x[off + 2]);
+        let a = Vector3::new(x[off + 3], x[off + 4], x[off + 5]);
+        let row = j * d;
+        let nu = model.innovation(&o.z, &h(&p, &a, m));
+        out.r.rows_mut(row, d).copy_from(&nu);
+        out.noise
+            .view_mut((row, row), (d, d))
+            .copy_from(&model.noise_covariance());
+        for c in 0..6 {
+            let step = if c < 3 { 1e-2 } else { 1e-6 };
+            let (mut pp, mut ap, mut pm, mut am) = (p, a, p, a);
+            if c < 3 {
+                pp[c] += step;
+                pm[c] -= step;
+            } else {
+                ap[c - 3] += step;
+                am[c - 3] -= step;
+            }
+            let col = model.innovation(&h(&pp, &ap, m), &h(&pm, &am, m)) / (2.0 * step);
+            out.h_x.view_mut((row, off + c), (d, 1)).copy_from(&col);
+        }
+        for c in 0..3 {
+            let (mut mp, mut mm) = (*m, *m);
+            mp[c] += 1e-2;
+            mm[c] -= 1e-2;
+            let col = model.innovation(&h(&p, &a, &mp), &h(&p, &a, &mm)) / 2e-2;
+            out.h_m.view_mut((row, c), (d, 1)).copy_from(&col);
+        }
+    }
+    out
+}
+
+/// The batch posterior of (x, m) given the prior N(x̂, P) on x, no prior on m, and the track's
+/// observations linearized at (x̂, m̂): information form on the joint, solved densely.
+fn dense_batch(
+    x: &DVector<f64>,
+    p: &DMatrix<f64>,
+    m: &Vector3<f64>,
+    t: &DenseTrack,
+) -> (DVector<f64>, DMatrix<f64>) {
+    let n = x.len();
+    let r_inv = t.noise.clone().try_inverse().unwrap();
+    let mut h = DMatrix::zeros(t.r.len(), n + 3);
+    h.view_mut((0, 0), (t.r.len(), n)).copy_from(&t.h_x);
+    h.view_mut((0, n), (t.r.len(), 3)).copy_from(&t.h_m);
+    let mut info = h.transpose() * &r_inv * &h;
+    let p_inv = p.clone().try_inverse().unwrap();
+    let mut block = info.view((0, 0), (n, n)).into_owned();
+    block += p_inv;
+    info.view_mut((0, 0), (n, n)).copy_from(&block);
+    let cov = info.try_inverse().unwrap();
+    let shift = &cov * h.transpose() * &r_inv * &t.r;
+    let mut mean = DVector::zeros(n + 3);
+    mean.rows_mut(0, n).copy_from(x);
+    mean.rows_mut(n, 3).copy_from(m);
+    (mean + shift, (&cov + cov.transpose()) * 0.5)
+}
+
+/// Multi-view initialization (QR split: augmentation by the invertible part, update by the
+/// null-space part) equals the dense batch posterior of the joint (x, m) given the prior on x and
+/// all of the track's observations, with Jacobians from central differences; the constraint
+/// update of a lost track equals that posterior's marginal on x. Both frames, both camera models.
+#[test]
+fn multiview_initialization_and_constraint_equal_the_dense_batch() {
+    for (frame, sensor) in frames_and_sensors() {
+        let label = format!("{frame} {sensor:?}");
+        for constraint in [false, true] {
+            let mut f = multiview_filter(frame, sensor);
+            let pf = PoseFrame::new(frame, &site()).unwrap();
+            let ms = [
+                pf.to_filter(&Vector3::new(50.0, 10.0, 0.0)),
+                pf.to_filter(&Vector3::new(45.0, -15.0, 5.0)),
+            ];
+            observe_features(&mut f, &ms, 5);
+            // The pipeline runs inside `process_frame`, after the lazy cross-covariance flush.
+            f.flush();
+            let id = f.tracks().iter().find(|t| t.descriptor == 7).unwrap().id;
+            let obs = f
+                .bearing
+                .tracks
+                .iter()
+                .find(|t| t.id == id)
+                .unwrap()
+                .observations
+                .clone();
+            let system = match f.track_system(&pf, &obs, 1e-3) {
+                Ok(s) => s,
+                Err(_) => panic!("{label}: no system"),
+            };
+            let m_hat = system.feature;
+            let t = dense_track(&f, id, &m_hat);
+            // The triangulated point is the least-squares optimum: the gradient H_mᵀ R⁻¹ r of
+            // the residuals vanishes (to the GN stopping rule and FD rounding).
+            let grad = t.h_m.transpose() * t.noise.clone().try_inverse().unwrap() * &t.r;
+            let scale =
+                (t.h_m.transpose() * t.noise.clone().try_inverse().unwrap() * &t.h_m).norm() * 1e-6;
+            assert!(grad.norm() < scale, "{label}: gradient {grad} vs {scale}");
+            let (x0, p0) = (dense_x(&f), dense_p(&f));
+            let n = x0.len();
+            let (mean, cov) = dense_batch(&x0, &p0, &m_hat, &t);
+            f.bearing.config.min_observations = 2;
+            // Old state i → its index after the step (the feature was inserted before the poses).
+            let old_slots: Vec<(SlotKind, usize)> = f
+                .layout()
+                .slots()
+                .iter()
+                .map(|s| (s.kind, s.offset))
+                .collect();
+            let feature = if constraint {
+                f.finish_track(&pf, id, false);
+                assert_eq!(f.bearing_stats().constraint_updates, 1, "{label}");
+                None
+            } else {
+                let fid = f.initialize_track(&pf, id).unwrap().unwrap();
+                Some(fid)
+            };
+            let mut map = vec![0; n];
+            for (kind, off) in &old_slots {
+                let new = f.layout().offset(*kind).unwrap();
+                for c in 0..kind.dim() {
+                    map[off + c] = new + c;
+                }
+            }
+            if let Some(fid) = feature {
+                map.extend((0..3).map(|c| f.layout().feature_offset(fid).unwrap() + c));
+            }
+            let k = map.len();
+            let (x1, p1) = (dense_x(&f), dense_p(&f));
+            assert_eq!(x1.len(), k, "{label}: state size");
+            let got_x = DVector::from_fn(k, |i, _| x1[map[i]]);
+            let got_p = DMatrix::from_fn(k, k, |i, j| p1[(map[i], map[j])]);
+            let want_x = mean.rows(0, k).into_owned();
+            let want_p = cov.view((0, 0), (k, k)).into_owned();
+            // Finite-difference Jacobians agree to ~1e-7 relative; the posterior inherits it.
+            let dx = (&got_x - &want_x).abs().max();
+            let dp = (&got_p - &want_p).abs().max() / want_p.abs().max();
+            assert!(
+                dx < 1e-5,
+                "{label} constraint={constraint}: mean differs by {dx}: {}",
+                (&got_x - &want_x).transpose()
+            );
+            assert!(
+                dp < 1e-6,
+                "{label} constraint={constraint}: covariance differs by {dp}"
+            );
+            // Sanity: the update did something (the check above is not vacuous).
+            let moved = (&got_p - p0.view((0, 0), (n.min(k), n.min(k))).resize(k, k, 0.0))
+                .abs()
+                .max();
+            assert!(moved > 1e-6, "{label}: the update changed nothing");
+        }
+    }
+}
+
+/// A track with one grossly wrong observation: the joint χ² test fails, the worst observation
+/// is removed and the rest initializes; a track of mutually inconsistent observations is refused
+/// and leaves the state as it was.
+#[test]
+fn multiview_removes_an_outlier_and_refuses_an_inconsistent_track() {
+    let frame = NavFrame::Local;
+    let mut f = multiview_filter(frame, pixel_sensor());
+    let pf = PoseFrame::new(frame, &site()).unwrap();
+    let ms = [pf.to_filter(&Vector3::new(50.0, 10.0, 0.0))];
+    observe_features(&mut f, &ms, 6);
+    f.flush();
+    // Corrupt the third stored observation by 25 px (σ = 1 px).
+    let k = f
+        .bearing
+        .tracks
+        .iter()
+        .position(|t| t.descriptor == 7)
+        .unwrap();
+    f.bearing.tracks[k].observations[2].z[0] += 25.0;
+    let id = f.bearing.tracks[k].id;
+    f.bearing.config.min_observations = 4;
+    let fid = f.initialize_track(&pf, id).unwrap();
+    assert!(fid.is_some());
+    assert_eq!(f.bearing_stats().outliers_removed, 1);
+
+    // Every observation pulled a different way: nothing consistent is left.
+    let mut g = multiview_filter(frame, pixel_sensor());
+    observe_features(&mut g, &ms, 6);
+    g.flush();
+    let k = g
+        .bearing
+        .tracks
+        .iter()
+        .position(|t| t.descriptor == 7)
+        .unwrap();
+    for (j, o) in g.bearing.tracks[k].observations.iter_mut().enumerate() {
+        o.z[0] += 40.0 * (j as f64 - 2.5);
+        o.z[1] -= 30.0 * ((j * 7 % 5) as f64 - 2.0);
+    }
+    let id = g.bearing.tracks[k].id;
+    g.bearing.config.min_observations = 4;
+    let (x0, p0) = (dense_x(&g), dense_p(&g));
+    assert_eq!(g.initialize_track(&pf, id).unwrap(), None);
+    assert_eq!(g.bearing_stats().tracks_rejected, 1);
+    assert_eq!(dense_x(&g), x0);
+    assert_eq!(dense_p(&g), p0);
+}
+
+/// End to end: frames through `process_frame` initialize a feature once the track has
+/// `min_observations` and the parallax, and the feature is then associated like any other.
+#[test]
+fn multiview_initializes_through_process_frame() {
+    for frame in [NavFrame::Local, NavFrame::Global] {
+        let mut f = filter(frame, pixel_sensor(), AssociationMode::Descriptor);
+        f.set_bearing_config(BearingConfig {
+            initialization: BearingInit::MultiView,
+            min_observations: 4,
+            min_parallax: 5f64.to_radians(),
+            ..BearingConfig::default()
+        })
+        .unwrap();
+        let pf = PoseFrame::new(frame, &site()).unwrap();
+        let m = pf.to_filter(&Vector3::new(50.0, 10.0, 0.0));
+        let mut outcomes = Vec::new();
+        for k in 0..6 {
+            let report = f
+                .process_frame(
+                    0,
+                    &ObservationFrame {
+                        time: k as f64,
+                        observations: vec![Observation {
+                            descriptor: 7,
+                            z: measure(&f, &m, 0.0),
+                        }],
+                    },
+                )
+                .unwrap();
+            outcomes.push(report.outcomes[0]);
+            fly(&mut f, k as f64);
+        }
+        assert!(
+            matches!(outcomes[3], ObservationOutcome::Initialized { feature: 7 }),
+            "{outcomes:?}"
+        );
+        assert!(
+            matches!(
+                outcomes[4],
+                ObservationOutcome::Associated { feature: 7, .. }
+            ),
+            "{outcomes:?}"
+        );
+        let err = (f.feature(7).unwrap() - m).norm();
+        // Noise-free measurements from the estimated poses: the feature sits where the rays meet.
+        assert!(err < 1e-6, "{frame}: feature off by {err}");
+        assert_eq!(f.num_stored_poses(), 0, "{frame}: poses released");
+    }
+}
+
+/// Multi-view initialization needs tracker ids; a gating association mode is refused.
+#[test]
+fn multiview_needs_descriptor_association() {
+    let mut f = filter(
+        NavFrame::Local,
+        pixel_sensor(),
+        AssociationMode::NearestNeighbour,
+    );
+    let err = f.set_bearing_config(BearingConfig {
+        initialization: BearingInit::MultiView,
+        ..BearingConfig::default()
+    });
+    assert!(matches!(err, Err(SlamError::InvalidConfig(_))), "{err:?}");
+}
+
+/// The zero-velocity pseudo-measurement equals the textbook Kalman update with H = [0 I 0] on the
+/// velocity and z = 0, in both frames, with stored poses and features in the state; invalid σ
+/// changes nothing.
+#[test]
+fn zero_velocity_update_equals_the_dense_kalman_update() {
+    for frame in [NavFrame::Local, NavFrame::Global] {
+        let mut f = multiview_filter(frame, pixel_sensor());
+        let pf = PoseFrame::new(frame, &site()).unwrap();
+        observe_features(&mut f, &[pf.to_filter(&Vector3::new(50.0, 10.0, 0.0))], 3);
+        let (x0, p0) = (dense_x(&f), dense_p(&f));
+        let n = x0.len();
+        let sigma = 0.05;
+        let mut h = DMatrix::zeros(3, n);
+        for i in 0..3 {
+            h[(i, crate::state::VEL + i)] = 1.0;
+        }
+        let nu = -(&h * &x0);
+        let r = DMatrix::identity(3, 3) * sigma * sigma;
+        let (want_x, want_p) = dense_update(&x0, &p0, &h, &r, &nu);
+        let s = &h * &p0 * h.transpose() + &r;
+        let want_nis = nu.dot(&(s.try_inverse().unwrap() * &nu));
+        for bad in [0.0, -1.0, f64::NAN, f64::INFINITY] {
+            assert!(f.zero_velocity_update(0, bad).is_err());
+        }
+        assert!(f.zero_velocity_update(3, sigma).is_err());
+        assert_eq!(dense_x(&f), x0, "{frame}: a refused update changed x");
+        let nis = f.zero_velocity_update(0, sigma).unwrap();
+        // ECEF-sized states round at ~1e-9 m; covariances at ~1e-12 of their scale.
+        assert!((dense_x(&f) - want_x).abs().max() < 1e-8, "{frame}: x");
+        assert!(
+            (dense_p(&f) - &want_p).abs().max() < 1e-10 * want_p.abs().max(),
+            "{frame}: P"
+        );
+        assert!(
+            (nis - want_nis).abs() < 1e-9 * want_nis.max(1.0),
+            "{frame}: NIS {nis} vs {want_nis}"
+        );
+        assert!(
+            dense_x(&f).rows(crate::state::VEL, 3).norm() < x0.rows(crate::state::VEL, 3).norm()
         );
     }
 }

@@ -30,10 +30,11 @@ mod deferred;
 mod fuse;
 mod info_cache;
 pub mod layout;
+mod multiview;
 pub mod triangulation;
 mod update;
 
-pub use bearing::{BearingConfig, BearingStats, TrackGate, TrackId, TrackInfo};
+pub use bearing::{BearingConfig, BearingInit, BearingStats, TrackGate, TrackId, TrackInfo};
 pub use fuse::{ForgetReport, FuseMethod, FuseReport, VANISHED_RTOL};
 pub use layout::{Layout, PoseId, Slot, SlotKind};
 
@@ -184,8 +185,9 @@ pub enum RejectReason {
     DegenerateGeometry,
     /// The update or augmentation failed numerically and was skipped.
     NumericalFailure,
-    /// A finite but physically invalid measurement (range ≤ 0).
-    InvalidMeasurement,
+    /// The measurement was refused before use (corrupt or physically invalid); the frame's other
+    /// observations were processed without it.
+    InvalidMeasurement(MeasurementFault),
     /// Bearing-only: no stored pose could be freed under `max_stored_poses` (every track was
     /// matched in this frame).
     PoseCapacity,
@@ -196,6 +198,59 @@ pub enum RejectReason {
         /// The track it had matched.
         track: TrackId,
     },
+}
+
+/// What is wrong with a refused measurement ([`RejectReason::InvalidMeasurement`]).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum MeasurementFault {
+    /// The measurement kind does not match the vehicle's sensor model.
+    KindMismatch,
+    /// A NaN or infinite component.
+    NonFinite,
+    /// A range ≤ 0 (Gaussian range noise near the sensor can produce one).
+    NonPositiveRange,
+    /// An elevation outside [−π/2, π/2].
+    ElevationOutOfRange,
+    /// A pixel outside the configured image bounds.
+    OutsideImage,
+}
+
+impl MeasurementFault {
+    fn of(e: &ObservationError) -> Option<Self> {
+        match e {
+            ObservationError::KindMismatch { .. } => Some(Self::KindMismatch),
+            ObservationError::NonFinite => Some(Self::NonFinite),
+            ObservationError::NonPositiveRange(_) => Some(Self::NonPositiveRange),
+            ObservationError::ElevationOutOfRange(_) => Some(Self::ElevationOutOfRange),
+            ObservationError::OutsideImage { .. } => Some(Self::OutsideImage),
+            ObservationError::DegenerateGeometry | ObservationError::NotInitializable(_) => None,
+        }
+    }
+}
+
+impl RejectReason {
+    /// A stable snake-case name for counting rejections by reason (outputs, logs).
+    pub fn label(&self) -> &'static str {
+        match self {
+            RejectReason::GateFailed { .. } => "gate_failed",
+            RejectReason::Ambiguous => "ambiguous",
+            RejectReason::NotInitializable => "not_initializable",
+            RejectReason::DegenerateGeometry => "degenerate_geometry",
+            RejectReason::NumericalFailure => "numerical_failure",
+            RejectReason::InvalidMeasurement(f) => match f {
+                MeasurementFault::KindMismatch => "invalid_measurement:kind_mismatch",
+                MeasurementFault::NonFinite => "invalid_measurement:non_finite",
+                MeasurementFault::NonPositiveRange => "invalid_measurement:non_positive_range",
+                MeasurementFault::ElevationOutOfRange => {
+                    "invalid_measurement:elevation_out_of_range"
+                }
+                MeasurementFault::OutsideImage => "invalid_measurement:outside_image",
+            },
+            RejectReason::PoseCapacity => "pose_capacity",
+            RejectReason::TriangulationFailed { .. } => "triangulation_failed",
+        }
+    }
 }
 
 /// What happened to one observation of a frame.
@@ -586,6 +641,42 @@ impl SlamFilter {
         self.vehicles[v].has_pending = false;
     }
 
+    /// Zero-velocity pseudo-measurement of a vehicle known to be at rest (a static period of a
+    /// real recording, used for the initial alignment): z = 0 = v + n, n ~ N(0, σ²I), a linear
+    /// EKF update (eqs. 21.56–21.60 with H = [0 I 0] on the velocity; at rest on the Earth v^e = 0
+    /// in global SLAM as v^n = 0 in local SLAM). Returns the NIS of the pseudo-measurement
+    /// against the prior (3 dof). σ must be positive and finite; on any error nothing changes.
+    pub fn zero_velocity_update(&mut self, vehicle: usize, sigma: f64) -> Result<f64, SlamError> {
+        self.check_vehicle(vehicle)?;
+        if !(sigma.is_finite() && sigma > 0.0) {
+            return Err(SlamError::InvalidConfig(format!(
+                "zero-velocity σ must be positive and finite, got {sigma}"
+            )));
+        }
+        self.flush();
+        let voff = self.layout.vehicle_block(vehicle) + crate::state::VEL;
+        let v = self.vec3_at(voff);
+        let s = Matrix3::from_fn(|i, j| self.p[(voff + i, voff + j)])
+            + Matrix3::identity() * sigma * sigma;
+        let nis = s
+            .cholesky()
+            .ok_or(SlamError::NotPositiveDefinite(
+                "zero-velocity innovation covariance",
+            ))?
+            .solve(&v)
+            .dot(&v);
+        let block = update::HBlock {
+            row: 0,
+            col: voff,
+            mat: Mat::identity(3, 3),
+        };
+        let nu = Col::from_fn(3, |i| -v[i]);
+        self.bump_map_generation(false);
+        let r = Mat::<f64>::identity(3, 3) * (sigma * sigma);
+        self.blocks_update(&[block], &nu, r)?;
+        Ok(nis)
+    }
+
     /// INS prediction of one vehicle over one IMU sample (eqs. 21.19–21.25 / 21.33–21.38 for the
     /// mean, 21.46/21.47 for the covariance, applied lazily to the cross terms; module docs).
     /// An invalid sample or a non-finite result is a typed error and changes nothing.
@@ -648,10 +739,12 @@ impl SlamFilter {
     }
 
     /// Associates, updates and initializes from one terrain-sensor frame of `vehicle` (module
-    /// docs). Validation errors (non-finite time or measurement, wrong measurement kind, unknown
-    /// vehicle) are returned before anything changes; a non-positive range rejects only its
-    /// observation ([`RejectReason::InvalidMeasurement`]) and numerical failures of single
-    /// observations are reported as [`RejectReason::NumericalFailure`].
+    /// docs). A non-finite frame time or an unknown vehicle is an error before anything changes.
+    /// A refused measurement (wrong kind, NaN/∞, range ≤ 0, elevation beyond ±π/2, pixel outside
+    /// the image) rejects only itself ([`RejectReason::InvalidMeasurement`]): the frame's other
+    /// observations are processed exactly as if it were absent (a frame of refused measurements
+    /// only is processed as an empty frame). Numerical failures of single observations
+    /// are reported as [`RejectReason::NumericalFailure`].
     pub fn process_frame(
         &mut self,
         vehicle: usize,
@@ -662,18 +755,21 @@ impl SlamFilter {
             return Err(SlamError::NonFiniteTime);
         }
         let model = self.vehicles[vehicle].model;
-        // Corrupt input (NaN/∞, wrong measurement kind) rejects the whole frame; a finite but
-        // physically invalid measurement (a noisy range ≤ 0 near the sensor) only itself.
         let mut zs = Vec::with_capacity(frame.observations.len());
         let mut valid = Vec::with_capacity(frame.observations.len());
-        for (index, o) in frame.observations.iter().enumerate() {
+        let mut outcomes = Vec::with_capacity(frame.observations.len());
+        for o in &frame.observations {
             match model.measurement_vector(&o.z) {
                 Ok(z) => {
                     zs.push(z);
-                    valid.push(index);
+                    valid.push(outcomes.len());
+                    outcomes.push(ObservationOutcome::Rejected(RejectReason::NumericalFailure));
                 }
-                Err(ObservationError::NonPositiveRange(_)) => {}
-                Err(source) => return Err(SlamError::Observation { index, source }),
+                Err(e) => outcomes.push(ObservationOutcome::Rejected(
+                    MeasurementFault::of(&e).map_or(RejectReason::DegenerateGeometry, |f| {
+                        RejectReason::InvalidMeasurement(f)
+                    }),
+                )),
             }
         }
         self.flush();
@@ -696,7 +792,12 @@ impl SlamFilter {
         self.apply_updates(vehicle, &model, &plan.updates, &mut report);
         if !matches!(model.sensor, SensorModel::RangeBearing { .. }) {
             // Bearing-only: delayed initialization through stored poses and tracks (§21.4).
-            self.process_bearing_observations(
+            let pipeline = match self.bearing.config.initialization {
+                bearing::BearingInit::Pair => Self::process_bearing_observations,
+                bearing::BearingInit::MultiView => Self::process_multiview_observations,
+            };
+            pipeline(
+                self,
                 vehicle,
                 &model,
                 frame.time,
@@ -720,10 +821,6 @@ impl SlamFilter {
             }
         }
         // Back to the frame's indexing.
-        let mut outcomes = vec![
-            ObservationOutcome::Rejected(RejectReason::InvalidMeasurement);
-            frame.observations.len()
-        ];
         for (k, &i) in valid.iter().enumerate() {
             outcomes[i] = report.outcomes[k];
         }

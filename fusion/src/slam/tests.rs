@@ -240,12 +240,29 @@ fn observe(f: &SlamFilter, v: usize, truth: &VehicleState, feature: &Vector3<f64
         .z
 }
 
+/// A clone of `f` after processing one frame of vehicle 0 (the report with it).
+pub(super) fn after_frame(
+    f: &SlamFilter,
+    time: f64,
+    observations: Vec<Observation>,
+) -> (SlamFilter, FrameReport) {
+    let mut g = f.clone();
+    let r = g
+        .process_frame(0, &ObservationFrame { time, observations })
+        .unwrap();
+    (g, r)
+}
+
 fn rb(z: &DVector<f64>) -> Measurement {
     Measurement::RangeBearing(Vector3::new(z[0], z[1], z[2]))
 }
 
+/// A refused measurement (NaN/∞, wrong kind, range ≤ 0) rejects only itself: the frame's good
+/// observation is processed exactly as in a frame without the bad one (bit for bit); a frame of
+/// refused measurements only is processed as an empty frame; a NaN frame time or an unknown
+/// vehicle leaves the filter unchanged.
 #[test]
-fn invalid_observation_frames_leave_the_filter_bit_for_bit_unchanged() {
+fn invalid_observations_are_rejected_alone() {
     let mut f = random_local_filter(3, &mut ChaCha8Rng::seed_from_u64(3));
     f.predict(0, &imu(0.0)).unwrap();
     let truth = f.vehicle_state(0).unwrap();
@@ -282,13 +299,25 @@ fn invalid_observation_frames_leave_the_filter_bit_for_bit_unchanged() {
             },
         ],
     });
-    for fr in &frames {
-        let e = f.process_frame(0, fr).unwrap_err();
-        assert!(
-            matches!(e, SlamError::Observation { index: 1, .. }),
-            "{e:?}"
+    let (alone, want_report) = after_frame(&f, 1.0, vec![good]);
+    for (fr, fault) in frames.iter().zip(
+        [MeasurementFault::NonFinite; 4]
+            .into_iter()
+            .chain([MeasurementFault::KindMismatch]),
+    ) {
+        let (g, r) = after_frame(&f, fr.time, fr.observations.clone());
+        assert_eq!(
+            r.outcomes[1],
+            ObservationOutcome::Rejected(RejectReason::InvalidMeasurement(fault)),
+            "{fr:?}"
         );
-        assert_eq!(snapshot(&f), before);
+        assert_eq!(r.outcomes[0], want_report.outcomes[0]);
+        assert_eq!(snapshot(&g), snapshot(&alone), "{fr:?}");
+        // Only the bad observation: the same as an empty frame.
+        let (empty, _) = after_frame(&f, 1.0, vec![]);
+        let (g, r) = after_frame(&f, 1.0, vec![fr.observations[1]]);
+        assert_eq!(r.rejected(), 1);
+        assert_eq!(snapshot(&g), snapshot(&empty));
     }
     let nan_time = ObservationFrame {
         time: f64::NAN,
@@ -319,7 +348,9 @@ fn invalid_observation_frames_leave_the_filter_bit_for_bit_unchanged() {
             .unwrap();
         assert_eq!(
             r.outcomes[0],
-            ObservationOutcome::Rejected(RejectReason::InvalidMeasurement)
+            ObservationOutcome::Rejected(RejectReason::InvalidMeasurement(
+                MeasurementFault::NonPositiveRange
+            ))
         );
         assert!(matches!(
             r.outcomes[1],
