@@ -15,16 +15,22 @@
 //! - [`sim`]: `canopy sim`, the whole scenario in one deterministic process.
 //! - [`baseline`]: the centralized all-data reference EKF driver.
 //! - [`replay`]: recorded sensor logs (CSV) and the sensor sources of a run.
+//! - [`preflight`]: every check of a scenario and its inputs before a run (`check`, `run`,
+//!   `sim` share it).
 //! - [`process`]: `canopy run` — the world, vehicle, hub and monitor processes.
 //! - [`team`]: generated tree teams of any size (`canopy team N`, benchmarks, scale tests).
+//! - [`import`]: `canopy import` — a real recording (EuRoC/ASL, Kalibr calibration, feature
+//!   tracks, ground truth) into a replay scenario, with the frame and time conversions.
 //! - [`cli`]: the command line.
 
 pub mod agent;
 pub mod baseline;
 pub mod cli;
+pub mod import;
 pub mod metrics;
 pub mod network;
 pub mod output;
+pub mod preflight;
 pub mod process;
 pub mod record;
 pub mod replay;
