@@ -665,10 +665,18 @@ impl Vehicle<'_> {
                     self.counters.stream_gaps += seq - *last_seq - 1;
                 }
                 *last_seq = seq;
-                for it in &items {
+                let mut items = items.iter().peekable();
+                while let Some(it) = items.next() {
                     match it {
                         SensorItem::Imu(s) => {
                             self.on_imu(s);
+                            // The frame that follows this sample belongs to the same step: the
+                            // record of this time comes after it, as in `canopy sim`.
+                            if let Some(SensorItem::Frame(f)) = items
+                                .next_if(|n| matches!(n, SensorItem::Frame(f) if f.time == s.time))
+                            {
+                                self.on_frame(f);
+                            }
                             self.after_sample();
                         }
                         SensorItem::Frame(f) => self.on_frame(f),
