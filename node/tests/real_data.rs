@@ -288,6 +288,9 @@ fn euroc_import_is_consistent_with_the_recording_and_its_ground_truth() {
     assert!(median_off > 2.0 * median, "{median_off} px vs {median} px");
 }
 
+/// One sighting of a track: sensor origin (navigation frame), C_n^s, pixel.
+type Sighting = (Vector3<f64>, Matrix3<f64>, Vector2<f64>);
+
 /// Median over long tracks of the median reprojection error [px]: each track triangulated
 /// (linear least squares on the bearing constraints) from the ground-truth body poses through
 /// the given mount, then reprojected through the pinhole of eq. 21.43.
@@ -316,8 +319,7 @@ fn median_reprojection_px(
         Some((p, qa.slerp(&qb, s).to_rotation_matrix().into_inner()))
     };
     // Observations per track: (sensor origin, C_n^s, pixel).
-    let mut tracks: BTreeMap<u64, Vec<(Vector3<f64>, Matrix3<f64>, Vector2<f64>)>> =
-        BTreeMap::new();
+    let mut tracks: BTreeMap<u64, Vec<Sighting>> = BTreeMap::new();
     for f in &log.frames {
         let Some((p, c_nb)) = pose(f.time) else {
             continue;
