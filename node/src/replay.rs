@@ -1078,4 +1078,73 @@ mod tests {
                 .contains("cov7")
         );
     }
+
+    #[test]
+    fn frames_between_samples_split_the_sample_they_fall_in() {
+        let sample = |time: f64, dt: f64, f: f64| ImuSample {
+            time,
+            dt,
+            specific_force: Vector3::new(f, 0.0, -9.8),
+            angular_rate: Vector3::new(0.0, f, 0.0),
+        };
+        // Jittered samples ending at 0.005, 0.0099998, 0.0150003.
+        let imu = vec![
+            sample(0.005, 0.005, 1.0),
+            sample(0.0099998, 0.0049998, 2.0),
+            sample(0.0150003, 0.0050005, 3.0),
+        ];
+        let frame = |time: f64| ObservationFrame {
+            time,
+            observations: vec![],
+        };
+        // One frame inside the second interval, one on the third sample's time.
+        let frames = vec![frame(0.007), frame(0.0150003)];
+        let steps = split_at_frames(0.0, &imu, &frames);
+        let times: Vec<f64> = steps.iter().map(|s| s.0.time).collect();
+        assert_eq!(times, vec![0.005, 0.007, 0.0099998, 0.0150003]);
+        let which: Vec<Option<usize>> = steps.iter().map(|s| s.1).collect();
+        assert_eq!(which, vec![None, Some(0), None, Some(1)]);
+        // The two parts keep the sample's measurement and tile its interval.
+        assert_eq!(steps[1].0.specific_force, imu[1].specific_force);
+        assert_eq!(steps[2].0.angular_rate, imu[1].angular_rate);
+        assert!((steps[1].0.dt - 0.002).abs() < 1e-15);
+        assert!((steps[1].0.dt + steps[2].0.dt - imu[1].dt).abs() < 1e-15);
+        let mut t = 0.0;
+        for (s, _) in &steps {
+            // Round-off of the subtractions only.
+            assert!((s.time - s.dt - t).abs() < 1e-15, "{s:?}");
+            t = s.time;
+        }
+    }
+
+    #[test]
+    fn imu_intervals_must_tile_and_versions_after_two_are_refused() {
+        let text = format!("{IMU_HEADER}\n0.01,0.01,0,0,-9.8,0,0,0\n0.02,0.005,0,0,-9.8,0,0,0\n");
+        let e = parse_imu(&p(), &text).unwrap_err().to_string();
+        assert!(
+            e.starts_with("x.csv:3:") && e.contains("previous sample"),
+            "{e}"
+        );
+        let text = format!("# canopy IMU log v3: later\n{IMU_HEADER}\n0.01,0.01,0,0,-9.8,0,0,0\n");
+        let e = parse_imu(&p(), &text).unwrap_err().to_string();
+        assert!(e.starts_with("x.csv:1:") && e.contains("v3"), "{e}");
+        let text = format!("# canopy IMU log v1: older\n{IMU_HEADER}\n0.01,0.01,0,0,-9.8,0,0,0\n");
+        assert_eq!(parse_imu(&p(), &text).unwrap().len(), 1);
+    }
+
+    #[test]
+    fn the_initial_source_reads_static_or_a_path() {
+        assert_eq!(
+            InitialSource::from(PathBuf::from("static")),
+            InitialSource::Static
+        );
+        assert_eq!(
+            InitialSource::from(PathBuf::from("./static")),
+            InitialSource::File(PathBuf::from("./static"))
+        );
+        assert_eq!(
+            PathBuf::from(InitialSource::Static),
+            PathBuf::from("static")
+        );
+    }
 }

@@ -1497,4 +1497,70 @@ synthesis = "continuous"
         // 2.4 km × 2.4 km = 5.76 km² at 50 per km².
         assert_eq!(w.feature_count(), 288);
     }
+
+    /// A general mount is validated (orthonormal, proper, not with `orientation`) and used; a
+    /// replayed vehicle has no trajectory, a simulated one must.
+    #[test]
+    fn general_mounts_and_replayed_vehicles_are_checked() {
+        let with_mount = |rows: &str| {
+            BASE.replacen(
+                "rate_hz = 4",
+                &format!("rate_hz = 4\nsensor_from_body = {rows}"),
+                1,
+            )
+        };
+        // 90° about z: body x → sensor y.
+        let s = Scenario::from_toml_str(&with_mount(
+            "[[0.0, 1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]",
+        ))
+        .unwrap();
+        let m = s.vehicles[0].sensor.mount();
+        assert_eq!(m.sensor_from_body * Vector3::x(), -Vector3::y());
+        for (rows, why) in [
+            (
+                "[[1.0, 0.1, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]",
+                "orthonormal",
+            ),
+            (
+                "[[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, -1.0]]",
+                "reflection",
+            ),
+        ] {
+            match Scenario::from_toml_str(&with_mount(rows)) {
+                Err(ScenarioError::Invalid { field, reason }) => {
+                    assert_eq!(field, "vehicle[0].sensor.sensor_from_body");
+                    assert!(reason.contains(why), "{reason}");
+                }
+                other => panic!("{rows}: {other:?}"),
+            }
+        }
+        let both = with_mount("[[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]").replacen(
+            "rate_hz = 4",
+            "rate_hz = 4\norientation = \"forward\"",
+            1,
+        );
+        assert_eq!(invalid_field(&both), "vehicle[0].sensor.sensor_from_body");
+        // A simulated vehicle without a trajectory; a replayed one with a trajectory.
+        let no_traj = BASE.replacen("[vehicle.trajectory]\naltitude_m = 120\n", "", 1).replacen(
+            "[vehicle.trajectory.shape]\nkind = \"figure_eight\"\nlength_m = 1500\nwidth_m = 700\n",
+            "",
+            1,
+        );
+        assert_eq!(invalid_field(&no_traj), "vehicle[0].trajectory");
+        let replayed_with_traj = BASE.replacen(
+            "[vehicle.sensor]",
+            "[vehicle.replay]\nimu = \"a.csv\"\nobservations = \"b.csv\"\ninitial = \"static\"\n[vehicle.sensor]",
+            1,
+        );
+        assert_eq!(invalid_field(&replayed_with_traj), "vehicle[0].trajectory");
+        let replayed = no_traj.replacen(
+            "[vehicle.sensor]",
+            "[vehicle.replay]\nimu = \"a.csv\"\nobservations = \"b.csv\"\ninitial = \"static\"\nrest_s = 2.5\n[vehicle.sensor]",
+            1,
+        );
+        let s = Scenario::from_toml_str(&replayed).unwrap();
+        assert!(s.vehicles[0].trajectory.is_none());
+        let bad_rest = replayed.replacen("rest_s = 2.5", "rest_s = -1", 1);
+        assert_eq!(invalid_field(&bad_rest), "vehicle[0].replay.rest_s");
+    }
 }
