@@ -15,8 +15,8 @@
 //! - [`sim`]: `canopy sim`, the whole scenario in one deterministic process.
 //! - [`baseline`]: the centralized all-data reference EKF driver.
 //! - [`replay`]: recorded sensor logs (CSV) and the sensor sources of a run.
-//! - [`preflight`]: every check of a scenario and its inputs before a run (`check`, `run`,
-//!   `sim` share it).
+//! - [`preflight`]: every check of a scenario and its inputs before a run (`check` and the
+//!   launcher of `run`; `sim` builds the same sources and agents).
 //! - [`process`]: `canopy run` — the world, vehicle, hub and monitor processes.
 //! - [`team`]: generated tree teams of any size (`canopy team N`, benchmarks, scale tests).
 //! - [`import`]: `canopy import` — a real recording (EuRoC/ASL, Kalibr calibration, feature

@@ -1,8 +1,9 @@
 //! The checks every run makes of a scenario and its inputs before it starts, shared by
-//! `canopy check`, `canopy run` (in the launcher, before any process is spawned) and
-//! `canopy sim`: the scenario's fields, the simulated vehicles (trajectory, clearance over the
-//! terrain), the replay logs (parsed and checked line by line, the static alignment made), the
-//! fusion topology, and every vehicle's estimator built from its initial estimate.
+//! `canopy check` and `canopy run` (in the launcher, before any process is spawned; `canopy
+//! sim` builds the same sources and agents, so it fails on the same inputs): the scenario's
+//! fields, the simulated vehicles (trajectory, clearance over the terrain), the replay logs
+//! (parsed and checked line by line, the static alignment made), the fusion topology, and every
+//! vehicle's estimator built from its initial estimate.
 
 use anyhow::{Context, Result};
 
