@@ -9,6 +9,8 @@
 //! - [`state`]: state layout and named index constants.
 //! - [`sensor`]: the estimator's inputs (IMU samples, terrain observations, sensor models).
 //! - [`imu`]: IMU error model and grades (21.13–21.17).
+//! - [`alignment`]: initial alignment from a rest period (levelling, gyro bias) and rest
+//!   detection, for starting on real recordings.
 //! - [`consistency`]: NEES, χ² quantiles, ANEES bands, angle-aware errors.
 //! - [`ins`]: INS mechanization in both frames with ∇F, ∇G and Q (21.19–21.38).
 //! - [`observation`]: terrain observation models, J_1 initialization and their Jacobians (21.41–21.50).
@@ -21,6 +23,7 @@
 //! - [`topology`]: fusion-network graphs and tree validation (channel filters need a tree).
 //! - [`runtime`]: process set-up for this maths (subnormals flushed to zero, heap kept mapped).
 
+pub mod alignment;
 pub mod ci;
 pub mod consistency;
 pub mod ddf;

@@ -44,6 +44,124 @@ pub struct AgentCounters {
     pub fusion: FusionCounters,
 }
 
+/// Inputs an estimator rejected, counted by reason. The keys are generic over the filter's error
+/// and reject types (new variants flow through without a change here): `imu.<error>`,
+/// `frame.<error>` (a whole frame refused), `observation.<reason>` (one observation of a
+/// frame not used, [`ObservationOutcome::Rejected`]) and `observation.in_rejected_frame` (the
+/// observations a refused frame carried), each `<…>` the snake_case variant path of the
+/// error ([`variant_key`]). Each reason is logged once, with its first cause, when first seen.
+#[derive(Clone, Debug, Default, PartialEq, Eq)]
+pub struct Rejections {
+    /// Count per reason key.
+    pub counts: std::collections::BTreeMap<String, u64>,
+}
+
+impl Rejections {
+    /// Counts `n` rejections for `key`; the first one of a key is logged with its `cause`.
+    pub fn add(&mut self, key: String, n: u64, cause: &dyn std::fmt::Display) {
+        if n == 0 {
+            return;
+        }
+        if !self.counts.contains_key(&key) {
+            // Logged once per reason: the counts are in the outputs.
+            tracing::warn!(reason = %key, cause = %cause, "estimator input rejected (first of its reason)");
+        }
+        let count = self.counts.entry(key).or_insert(0);
+        *count += n;
+    }
+
+    /// An IMU sample refused by the filter.
+    pub fn imu(&mut self, e: &SlamError) {
+        self.add(format!("imu.{}", variant_key(&format!("{e:?}"))), 1, e);
+    }
+
+    /// A whole frame refused by the filter, carrying `observations` observations.
+    pub fn frame(&mut self, e: &SlamError, observations: usize) {
+        let cause = format!("frame: {e}");
+        self.add(
+            format!("frame.{}", variant_key(&format!("{e:?}"))),
+            1,
+            &cause,
+        );
+        self.add(
+            "observation.in_rejected_frame".into(),
+            observations as u64,
+            &cause,
+        );
+    }
+
+    /// The rejected observations of a processed frame.
+    pub fn outcomes(&mut self, report: &FrameReport) {
+        for o in &report.outcomes {
+            if let ObservationOutcome::Rejected(r) = o {
+                let cause = format!("observation: {r:?}");
+                self.add(
+                    format!("observation.{}", variant_key(&format!("{r:?}"))),
+                    1,
+                    &cause,
+                );
+            }
+        }
+    }
+
+    /// Adds another set of counts.
+    pub fn merge(&mut self, other: &std::collections::BTreeMap<String, u64>) {
+        for (k, v) in other {
+            *self.counts.entry(k.clone()).or_insert(0) += v;
+        }
+    }
+}
+
+/// The variant path of an enum value from its `Debug` text, in snake_case: the leading variant
+/// name, then the variant of a wrapped error (`Ins(InvalidInterval(0.0))` →
+/// `ins.invalid_interval`; `Observation { index: 3, source: OutsideImage { .. } }` →
+/// `observation.outside_image`). Field values other than a wrapped `source`/tuple error are
+/// dropped, so the key names the reason, not the instance.
+pub fn variant_key(debug: &str) -> String {
+    fn ident(s: &str) -> Option<(&str, &str)> {
+        let s = s.trim_start();
+        let end = s
+            .find(|c: char| !(c.is_ascii_alphanumeric() || c == '_'))
+            .unwrap_or(s.len());
+        let id = &s[..end];
+        id.starts_with(|c: char| c.is_ascii_uppercase())
+            .then_some((id, &s[end..]))
+    }
+    fn snake(id: &str) -> String {
+        let mut out = String::new();
+        for (i, c) in id.chars().enumerate() {
+            if c.is_ascii_uppercase() {
+                if i > 0 {
+                    out.push('_');
+                }
+                out.push(c.to_ascii_lowercase());
+            } else {
+                out.push(c);
+            }
+        }
+        out
+    }
+    let mut parts = Vec::new();
+    let mut rest = debug;
+    while let Some((id, after)) = ident(rest) {
+        parts.push(snake(id));
+        // A wrapped error: `Variant(Inner…)` or `Variant { …, source: Inner… }`.
+        let after = after.trim_start();
+        rest = if let Some(inner) = after.strip_prefix('(') {
+            inner
+        } else if let Some(pos) = after.find("source: ") {
+            &after[pos + "source: ".len()..]
+        } else {
+            break;
+        };
+    }
+    if parts.is_empty() {
+        "unknown".into()
+    } else {
+        parts.join(".")
+    }
+}
+
 /// Adapter: the EKF as the DDF's fuse target.
 ///
 /// Received deltas are batched: they are summed (information adds, aligned by id) and fused into
@@ -246,6 +364,7 @@ impl VehicleFusion {
 pub struct VehicleEstimator {
     filter: SlamFilter,
     counters: AgentCounters,
+    rejections: Rejections,
     /// The vehicle part taken when a copy was lent out.
     lent: Option<SlamFilter>,
 }
@@ -256,6 +375,7 @@ impl VehicleEstimator {
         Ok(Self {
             filter: SlamFilter::new(slam, &[setup])?,
             counters: AgentCounters::default(),
+            rejections: Rejections::default(),
             lent: None,
         })
     }
@@ -275,6 +395,11 @@ impl VehicleEstimator {
         self.counters
     }
 
+    /// The inputs it rejected, by reason.
+    pub fn rejections(&self) -> &Rejections {
+        &self.rejections
+    }
+
     /// One IMU sample (eqs. 21.46/21.47). A rejected sample leaves the estimate unchanged.
     pub fn on_imu(&mut self, imu: &ImuSample) -> Result<(), SlamError> {
         match self.filter.predict(0, imu) {
@@ -284,6 +409,7 @@ impl VehicleEstimator {
             }
             Err(e) => {
                 self.counters.imu_rejected += 1;
+                self.rejections.imu(&e);
                 Err(e)
             }
         }
@@ -325,10 +451,12 @@ impl VehicleEstimator {
                 self.counters.associated += report.associated() as u64;
                 self.counters.initialized += report.initialized() as u64;
                 self.counters.rejected_observations += report.rejected() as u64;
+                self.rejections.outcomes(&report);
                 Ok(report)
             }
             Err(e) => {
                 self.counters.frames_rejected += 1;
+                self.rejections.frame(&e, frame.observations.len());
                 Err(e)
             }
         }
@@ -390,6 +518,11 @@ impl VehicleAgent {
     /// The DDF node (None in isolated mode).
     pub fn ddf(&self) -> Option<&DdfNode> {
         self.fusion.ddf()
+    }
+
+    /// The inputs its estimator rejected, by reason.
+    pub fn rejections(&self) -> &Rejections {
+        self.estimator.rejections()
     }
 
     /// Counters of both halves.
@@ -590,5 +723,63 @@ impl HubAgent {
     /// Link events.
     pub fn on_link_down(&mut self, peer: NodeId) -> Result<(), DdfError> {
         self.ddf.on_link_down(peer)
+    }
+}
+
+#[cfg(test)]
+mod rejection_tests {
+    use super::*;
+    use canopy_fusion::ins::InsError;
+    use canopy_fusion::observation::ObservationError;
+    use canopy_fusion::slam::RejectReason;
+
+    #[test]
+    fn reason_keys_name_the_variant_path_not_the_instance() {
+        let k = |e: &dyn std::fmt::Debug| variant_key(&format!("{e:?}"));
+        assert_eq!(
+            k(&SlamError::Ins(InsError::InvalidInterval(0.0))),
+            "ins.invalid_interval"
+        );
+        assert_eq!(
+            k(&SlamError::Observation {
+                index: 3,
+                source: ObservationError::OutsideImage { u: -1.0, v: 2.0 }
+            }),
+            "observation.outside_image"
+        );
+        assert_eq!(k(&SlamError::NonFiniteTime), "non_finite_time");
+        assert_eq!(
+            k(&RejectReason::GateFailed {
+                feature: 7,
+                nis: 99.0
+            }),
+            "gate_failed"
+        );
+        assert_eq!(k(&RejectReason::Ambiguous), "ambiguous");
+        assert_eq!(variant_key("42"), "unknown");
+    }
+
+    #[test]
+    fn rejections_count_by_reason() {
+        let mut r = Rejections::default();
+        r.imu(&SlamError::Ins(InsError::NonFiniteSample));
+        r.imu(&SlamError::Ins(InsError::NonFiniteSample));
+        r.frame(&SlamError::NonFiniteTime, 4);
+        r.outcomes(&FrameReport {
+            outcomes: vec![
+                ObservationOutcome::Rejected(RejectReason::Ambiguous),
+                ObservationOutcome::Initialized { feature: 1 },
+                ObservationOutcome::Rejected(RejectReason::Ambiguous),
+            ],
+            ..FrameReport::default()
+        });
+        let want: Vec<(&str, u64)> = vec![
+            ("frame.non_finite_time", 1),
+            ("imu.ins.non_finite_sample", 2),
+            ("observation.ambiguous", 2),
+            ("observation.in_rejected_frame", 4),
+        ];
+        let got: Vec<(&str, u64)> = r.counts.iter().map(|(k, v)| (k.as_str(), *v)).collect();
+        assert_eq!(got, want);
     }
 }

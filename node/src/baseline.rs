@@ -279,7 +279,7 @@ pub fn run_reference(
         .map(SensorSource::time)
         .fold(f64::INFINITY, f64::min)
         .min(duration);
-    let mut map = map_records(&world, &filter);
+    let mut map = map_records(&world, &filter, crate::metrics::maps_have_truth(s));
     let mut held = HeldSince::default();
     for snap in &run.snapshots {
         held.observe(snap.t, snap.covariances.keys().copied());

@@ -35,6 +35,9 @@ pub enum Command {
     },
     /// Print the built-in default scenario as TOML (a starting point for your own).
     Default,
+    /// Turn a real recording (EuRoC/ASL or flat files, EuRoC or Kalibr calibration, feature
+    /// tracks, optional ground truth) into a replay scenario.
+    Import(Box<crate::import::ImportArgs>),
     /// Print a generated tree team of N vehicles as TOML (benchmarks, scale tests).
     Team {
         /// Number of vehicles (1–64).
@@ -309,43 +312,68 @@ fn cmd_run(args: &LaunchArgs) -> Result<()> {
 
 fn cmd_check(path: &Path) -> Result<()> {
     let s = load_scenario(Some(path))?;
-    for (i, v) in s.vehicles.iter().enumerate() {
-        if let Some(r) = &v.replay {
-            let log = crate::replay::ReplayLog::load(r)
-                .with_context(|| format!("{}: vehicle[{i}].replay", path.display()))?;
-            println!(
-                "  vehicle {} replays {} IMU samples and {} frames ({:.1} s to {:.1} s)",
-                v.id,
-                log.imu.len(),
-                log.frames.len(),
-                log.initial.time,
-                log.imu.last().map_or(log.initial.time, |x| x.time)
-            );
-        }
-    }
+    let inputs =
+        crate::preflight::preflight(&s).with_context(|| format!("checking {}", path.display()))?;
     let names = node_names(&s);
     println!("{}: valid", path.display());
-    println!(
-        "  world: seed {}, {} frame, {} features over {:.0} m × {:.0} m",
-        s.world.seed,
-        s.world.earth_model.frame(),
-        s.world.feature_count(),
-        s.world.area.size_north_m,
-        s.world.area.size_east_m
-    );
-    for v in &s.vehicles {
+    if s.vehicles.iter().any(|v| v.replay.is_none()) {
         println!(
-            "  vehicle {} `{}`: {:?} at {:.0} m, {:.0} m/s; sensor {:?} at {} Hz; IMU {:?} at {} Hz",
-            v.id,
-            v.display_name(),
-            v.trajectory.shape,
-            v.trajectory.altitude_m,
-            v.trajectory.speed_mps,
-            v.sensor.model,
-            v.sensor.rate_hz,
-            v.imu.grade,
-            v.imu.rate_hz
+            "  world: seed {}, {} frame, {} features over {:.0} m × {:.0} m",
+            s.world.seed,
+            s.world.earth_model.frame(),
+            s.world.feature_count(),
+            s.world.area.size_north_m,
+            s.world.area.size_east_m
         );
+    } else {
+        println!(
+            "  world: {} frame, origin {}°, {}°, {} m (every vehicle replayed: nothing simulated)",
+            s.world.earth_model.frame(),
+            s.world.origin.lat_deg,
+            s.world.origin.lon_deg,
+            s.world.origin.height_m
+        );
+    }
+    for (v, input) in s.vehicles.iter().zip(&inputs) {
+        match (input, &v.trajectory) {
+            (
+                crate::preflight::VehicleInput::Replayed {
+                    imu_samples,
+                    frames,
+                    observations,
+                    split_samples,
+                    start,
+                    end,
+                    alignment,
+                },
+                _,
+            ) => {
+                println!(
+                    "  vehicle {} `{}` replays {imu_samples} IMU samples and {frames} frames \
+                     ({observations} observations; {split_samples} samples split at a frame \
+                     time) from t = {start} s to {end} s; sensor {:?}",
+                    v.id,
+                    v.display_name(),
+                    v.sensor.model,
+                );
+                if let Some((n, d)) = alignment {
+                    println!("    initial estimate: static alignment over {n} samples ({d:.2} s)");
+                }
+            }
+            (_, Some(t)) => println!(
+                "  vehicle {} `{}`: {:?} at {:.0} m, {:.0} m/s; sensor {:?} at {} Hz; IMU {:?} at {} Hz",
+                v.id,
+                v.display_name(),
+                t.shape,
+                t.altitude_m,
+                t.speed_mps,
+                v.sensor.model,
+                v.sensor.rate_hz,
+                v.imu.grade,
+                v.imu.rate_hz
+            ),
+            (_, None) => {}
+        }
     }
     println!(
         "  fusion: {} at {} Hz, association {:?}",
@@ -374,6 +402,58 @@ fn cmd_check(path: &Path) -> Result<()> {
         );
     }
     println!("  run: {} s, baseline {}", s.run.duration_s, s.run.baseline);
+    if let Some(o) = s.run.time_origin_ns {
+        println!("  time origin: t = 0 is {o} ns of the recording's clock");
+    }
+    Ok(())
+}
+
+fn cmd_import(args: &crate::import::ImportArgs) -> Result<()> {
+    let r = crate::import::import(args).context("canopy import failed")?;
+    println!("scenario: {}", r.scenario.display());
+    println!(
+        "  {} IMU samples, {} frames with {} observations; time origin {} ns",
+        r.imu_samples, r.frames, r.observations, r.time_origin_ns
+    );
+    println!("  initial estimate: {:?}", r.initial);
+    if let Some(rest) = r.rest_s {
+        println!("  at rest for the first {rest:.3} s");
+    }
+    let c = r.imu_from_body;
+    println!(
+        "  body frame: C_b^S = [{:.6} {:.6} {:.6}; {:.6} {:.6} {:.6}; {:.6} {:.6} {:.6}]",
+        c[(0, 0)],
+        c[(0, 1)],
+        c[(0, 2)],
+        c[(1, 0)],
+        c[(1, 1)],
+        c[(1, 2)],
+        c[(2, 0)],
+        c[(2, 1)],
+        c[(2, 2)]
+    );
+    println!(
+        "  camera: virtual undistorted pinhole f = ({:.3}, {:.3}) px, principal point ({:.3}, {:.3}) px, {} × {} px",
+        r.pinhole.focal[0],
+        r.pinhole.focal[1],
+        r.pinhole.principal[0],
+        r.pinhole.principal[1],
+        r.pinhole.size[0],
+        r.pinhole.size[1]
+    );
+    if let Some(g) = &r.groundtruth {
+        println!(
+            "  ground truth (navigation frame, recording time base): {}",
+            g.display()
+        );
+    }
+    for n in &r.notes {
+        println!("  note: {n}");
+    }
+    println!(
+        "next: canopy check {0}; canopy run {0}",
+        r.scenario.display()
+    );
     Ok(())
 }
 
@@ -434,8 +514,24 @@ fn cmd_eval(args: &EvalArgs) -> Result<()> {
     Ok(())
 }
 
+/// Log lines to stderr, `RUST_LOG` or warnings and above.
+pub fn init_tracing() {
+    let _ = tracing_subscriber::fmt()
+        .with_writer(std::io::stderr)
+        .with_env_filter(
+            tracing_subscriber::EnvFilter::try_from_default_env()
+                .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("warn")),
+        )
+        .try_init();
+}
+
 /// Runs the parsed command line.
 pub fn run_cli(cli: Cli) -> Result<()> {
+    // Warnings (e.g. the first rejected input of each reason) to stderr; the role processes
+    // set theirs up with their process (`process::run_role`).
+    if !matches!(cli.command, Command::Role(_)) {
+        init_tracing();
+    }
     canopy_fusion::runtime::tune_allocator();
     canopy_fusion::runtime::flush_subnormals_to_zero();
     match cli.command {
@@ -445,6 +541,7 @@ pub fn run_cli(cli: Cli) -> Result<()> {
         Command::Check { scenario } => cmd_check(&scenario),
         Command::Compare { dirs } => cmd_compare(&dirs),
         Command::Eval(args) => cmd_eval(&args),
+        Command::Import(args) => cmd_import(&args),
         Command::Team {
             vehicles,
             duration,

@@ -15,20 +15,26 @@
 //! - [`sim`]: `canopy sim`, the whole scenario in one deterministic process.
 //! - [`baseline`]: the centralized all-data reference EKF driver.
 //! - [`replay`]: recorded sensor logs (CSV) and the sensor sources of a run.
+//! - [`preflight`]: every check of a scenario and its inputs before a run (`check` and the
+//!   launcher of `run`; `sim` builds the same sources and agents).
 //! - [`process`]: `canopy run` — the world, vehicle, hub and monitor processes.
 //! - [`team`]: generated tree teams of any size (`canopy team N`, benchmarks, scale tests).
 //! - [`eval`]: trajectory evaluation against ground truth (`canopy eval EST GT`): TUM and
 //!   EuRoC CSV readers, evo's timestamp association, ATE after SE(3) / position+yaw / Sim(3) /
 //!   no alignment, evo's RPE and rpg_trajectory_evaluation's relative error.
+//! - [`import`]: `canopy import` — a real recording (EuRoC/ASL, Kalibr calibration, feature
+//!   tracks, ground truth) into a replay scenario, with the frame and time conversions.
 //! - [`cli`]: the command line.
 
 pub mod agent;
 pub mod baseline;
 pub mod cli;
 pub mod eval;
+pub mod import;
 pub mod metrics;
 pub mod network;
 pub mod output;
+pub mod preflight;
 pub mod process;
 pub mod record;
 pub mod replay;

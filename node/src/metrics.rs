@@ -41,6 +41,12 @@ pub fn launch_attitude(
     }
 }
 
+/// Whether a scenario's map features have truth: only when no vehicle is replayed (replayed
+/// descriptors name no simulated feature, and fusion mixes them into every map).
+pub fn maps_have_truth(s: &crate::scenario::Scenario) -> bool {
+    s.vehicles.iter().all(|v| v.replay.is_none())
+}
+
 /// The truth as an estimator state (biases in effect for the last sample).
 pub fn truth_state(t: &TruthSample) -> VehicleState {
     VehicleState {
@@ -128,19 +134,24 @@ pub fn estimate_sample(
 }
 
 /// One feature (mean and covariance in the estimator's frame) as a launch-frame record, with
-/// truth where the id names a world feature.
+/// truth where `truth` allows it and the id names a world feature (a replayed vehicle's
+/// descriptors are its recording's track ids, which name no simulated feature: pass false).
 pub fn feature_record(
     world: &World,
     id: FeatureId,
     mean: &Vector3<f64>,
     cov: &Matrix3<f64>,
+    truth: bool,
 ) -> MapFeatureRecord {
     let r = launch_from_nav(world);
     MapFeatureRecord {
         id,
         est: arr(&world.to_launch(mean)),
         cov: arr9(&(r * cov * r.transpose())),
-        truth: world.feature(id).map(|f| arr(&f.position_ned)),
+        truth: world
+            .feature(id)
+            .filter(|_| truth)
+            .map(|f| arr(&f.position_ned)),
         held_since: None,
     }
 }
@@ -171,14 +182,15 @@ impl HeldSince {
     }
 }
 
-/// The filter's map in the launch frame, with truth where the id names a world feature.
-pub fn map_records(world: &World, filter: &SlamFilter) -> Vec<MapFeatureRecord> {
+/// The filter's map in the launch frame, with truth where `truth` allows it and the id names a
+/// world feature ([`feature_record`]).
+pub fn map_records(world: &World, filter: &SlamFilter, truth: bool) -> Vec<MapFeatureRecord> {
     filter
         .features()
         .into_iter()
         .filter_map(|(id, m)| {
             let cov = filter.feature_covariance(id)?;
-            Some(feature_record(world, id, &m, &cov))
+            Some(feature_record(world, id, &m, &cov, truth))
         })
         .collect()
 }

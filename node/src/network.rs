@@ -58,6 +58,11 @@ pub struct RunConfig {
     /// How far the world may run ahead of the slowest live vehicle, and of a live hub
     /// [simulated s] (default 2): the flow-control window of the multi-process run.
     pub max_lead_s: f64,
+    /// The instant of a recording's own clock that is simulated t = 0 [ns] (replayed
+    /// recordings, `canopy import`); outputs stamp their times with origin + t, exactly, in
+    /// the recording's time base. Absent: outputs use t itself.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub time_origin_ns: Option<u64>,
 }
 
 impl Default for RunConfig {
@@ -69,6 +74,7 @@ impl Default for RunConfig {
             baseline: true,
             real_time_factor: None,
             max_lead_s: 2.0,
+            time_origin_ns: None,
         }
     }
 }
@@ -580,6 +586,12 @@ pub fn validate(s: &Scenario) -> Result<(), ScenarioError> {
         return Err(ScenarioError::invalid(
             "run.real_time_factor",
             format!("must be ≥ 0 (0 = as fast as possible), got {r}"),
+        ));
+    }
+    if run.time_origin_ns.is_some_and(|o| o > i64::MAX as u64) {
+        return Err(ScenarioError::invalid(
+            "run.time_origin_ns",
+            "must be below 2⁶³ (TOML integers are signed 64-bit)",
         ));
     }
     if !(run.max_lead_s.is_finite() && run.max_lead_s > 0.0) {

@@ -85,6 +85,10 @@ pub struct VehicleRecord {
     pub rejected_messages: u64,
     /// Times this vehicle's process was restarted.
     pub restarts: u32,
+    /// Inputs its estimator rejected, by reason (`crate::agent::Rejections` keys), summed over
+    /// its incarnations.
+    #[serde(default)]
+    pub rejections: std::collections::BTreeMap<String, u64>,
 }
 
 /// One statistics sample of a link (cumulative counters at time `t`).
@@ -170,4 +174,8 @@ pub struct RunRecord {
     pub baseline: Option<Vec<VehicleRecord>>,
     /// True feature positions (launch NED) by id, for the map plot.
     pub truth_features: Vec<(u64, [f64; 3])>,
+    /// The recording's clock at t = 0 [ns] (`[run] time_origin_ns`): output timestamps are
+    /// origin + t, in the recording's time base.
+    #[serde(default)]
+    pub time_origin_ns: Option<u64>,
 }

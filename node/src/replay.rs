@@ -1,26 +1,39 @@
 //! Recorded sensor logs (CSV) and the sensor sources of a run: a simulated vehicle, or a vehicle
 //! whose IMU samples and observation frames are replayed from logs.
 //!
-//! # Log format (version 1)
+//! # Log format (version 2)
 //! Three CSV files per vehicle, comma separated, `#` starts a comment line, the first
 //! non-comment line is the exact header given below. Numbers are decimal (Rust `f64` syntax;
-//! `canopy sim --record-logs` writes the shortest text that reads back to the same bits).
-//! Quantities are those the estimator receives, in its navigation frame (ECEF for a `wgs84`
-//! world, the launch site's NED frame for a `flat` one).
+//! `canopy sim --record-logs` and `canopy import` write the shortest text that reads back to the
+//! same bits). Quantities are those the estimator receives, in its navigation frame (ECEF for a
+//! `wgs84` world, the launch site's NED frame for a `flat` one). Times are seconds of the run's
+//! clock: `[run] time_origin_ns` (if given) is the instant of the recording's own clock that is
+//! t = 0, and the outputs stamp their times with origin + t.
 //!
 //! - `<name>.imu.csv` — one IMU sample per row, times strictly increasing:
 //!   `t,dt,f_x,f_y,f_z,w_x,w_y,w_z` — end of the sample interval [s], interval Δt [s],
-//!   measured specific force f̂^b [m/s²] and body rate ω̂^b_ib [rad/s] (eqs. 21.13, 21.14).
+//!   measured specific force f̂^b [m/s²] and body rate ω̂^b_ib [rad/s] (eqs. 21.13, 21.14). The
+//!   intervals tile time: each starts where the previous one ended (|t − Δt − t_prev| ≤
+//!   [`TILE_TOLERANCE_S`]), the first one at the time of the initial estimate. Δt may vary
+//!   (jitter, gaps: the INS holds the sample over its whole interval).
 //! - `<name>.obs.csv` — one observation per row; rows with the same `t` form one frame, frame
-//!   times non-decreasing:
-//!   `t,descriptor,kind,z0,z1,z2` — frame time [s] (the time of the IMU sample it follows),
-//!   the feature descriptor (u64), and `kind` = `range_bearing` (z0 = range [m], z1 = azimuth,
+//!   times strictly after the initial estimate, non-decreasing, and at most the last IMU time:
+//!   `t,descriptor,kind,z0,z1,z2` — frame time [s], the feature descriptor (u64, below 2⁶³;
+//!   e.g. a track id), and `kind` = `range_bearing` (z0 = range [m], z1 = azimuth,
 //!   z2 = elevation [rad], eq. 21.41), `bearing` (z0 = azimuth, z1 = elevation [rad], z2
 //!   empty, eq. 21.42) or `pixel` (z0 = u, z1 = v [px], z2 empty, eq. 21.43). A frame without
-//!   observations is one row `t,,none,,,`.
+//!   observations is one row `t,,none,,,`. A frame may fall anywhere inside an IMU interval:
+//!   the replay splits that sample at the frame time (same f̂, ω̂ over both parts), so the filter
+//!   propagates exactly to the frame.
 //! - `<name>.init.csv` — the initial estimate: 16 rows `what,t,v0,…,v14`; `what` = `mean`
 //!   (state p, v, Ψ, δf^b, δω^b in the order of `fusion::state`) then `cov0` … `cov14` (the rows
-//!   of the 15×15 covariance); `t` is the time of the estimate (the start of the logs).
+//!   of the 15×15 covariance); `t` is the time of the estimate (the start of the logs). Instead
+//!   of this file a scenario may ask for `initial = "static"`: the alignment of
+//!   [`canopy_fusion::alignment`] over the rest period at the start of the IMU log.
+//!
+//! Version 1 (canopy before the real-data path) is the same columns with every frame at the
+//! time of an IMU sample; it reads as version 2. A file whose first comment names a later
+//! version (`# canopy … log v3`) is refused with a clear error.
 //!
 //! A replayed vehicle has no truth: its metrics are marked unavailable in the outputs.
 
@@ -28,13 +41,28 @@ use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
+use canopy_fusion::alignment::{self, AlignmentOptions, RestDetection};
 use canopy_fusion::sensor::{FeatureId, ImuSample, Measurement, Observation, ObservationFrame};
+use canopy_fusion::slam::FRESH_ID_BASE;
 use canopy_fusion::state::VEHICLE_DIM;
 use nalgebra::{SMatrix, Vector2, Vector3};
 use serde::{Deserialize, Serialize};
 
-use crate::scenario::{Scenario, ScenarioError, VehicleConfig};
+use crate::scenario::{EarthModel, Scenario, ScenarioError, VehicleConfig, WorldConfig};
 use crate::world::{self, InitialEstimate, TruthSample, VehicleSim, World};
+
+/// Version of the log format this canopy writes (module docs).
+pub const FORMAT_VERSION: u32 = 2;
+
+/// Largest gap or overlap accepted between consecutive IMU intervals [s]: far below any IMU
+/// period, far above the round-off of times written as shortest decimals (≈ 1e-15 s at t ≈ 100 s).
+pub const TILE_TOLERANCE_S: f64 = 1e-6;
+
+/// σ of the frame-defining states of a static alignment: position [m], velocity at rest
+/// [m/s] and yaw [rad]. They define the local frame (zero at the start), so they are small, but
+/// not so small that P becomes ill-conditioned next to the other states (a 1e-12 m² position
+/// variance beside 1e2 m² feature variances would leave ~4 significant digits).
+pub const STATIC_FRAME_SIGMA: (f64, f64, f64) = (1e-3, 1e-3, 1e-4);
 
 /// Header of the IMU log.
 pub const IMU_HEADER: &str = "t,dt,f_x,f_y,f_z,w_x,w_y,w_z";
@@ -52,8 +80,42 @@ pub struct ReplayConfig {
     pub imu: PathBuf,
     /// Observation log (*required*).
     pub observations: PathBuf,
-    /// Initial estimate (*required*).
-    pub initial: PathBuf,
+    /// Initial estimate (*required*): a file, or `"static"` (write `./static` for a file of
+    /// that name).
+    pub initial: InitialSource,
+    /// `initial = "static"` only: the vehicle rests for this long from the start of the IMU
+    /// log [s]; absent = detected ([`canopy_fusion::alignment::detect_rest`]).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub rest_s: Option<f64>,
+}
+
+/// Where a replayed vehicle's initial estimate comes from.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(from = "PathBuf", into = "PathBuf")]
+pub enum InitialSource {
+    /// Static alignment over the rest period at the start of the IMU log (`"static"`).
+    Static,
+    /// An initial-estimate file (`<name>.init.csv`).
+    File(PathBuf),
+}
+
+impl From<PathBuf> for InitialSource {
+    fn from(p: PathBuf) -> Self {
+        if p.as_os_str() == "static" {
+            InitialSource::Static
+        } else {
+            InitialSource::File(p)
+        }
+    }
+}
+
+impl From<InitialSource> for PathBuf {
+    fn from(s: InitialSource) -> Self {
+        match s {
+            InitialSource::Static => PathBuf::from("static"),
+            InitialSource::File(p) => p,
+        }
+    }
 }
 
 impl ReplayConfig {
@@ -62,17 +124,46 @@ impl ReplayConfig {
         Self {
             imu: dir.join(format!("{name}.imu.csv")),
             observations: dir.join(format!("{name}.obs.csv")),
-            initial: dir.join(format!("{name}.init.csv")),
+            initial: InitialSource::File(dir.join(format!("{name}.init.csv"))),
+            rest_s: None,
         }
+    }
+
+    /// The files, for path rewriting (the initial estimate only when it is a file).
+    pub fn paths_mut(&mut self) -> Vec<&mut PathBuf> {
+        let mut v = vec![&mut self.imu, &mut self.observations];
+        if let InitialSource::File(p) = &mut self.initial {
+            v.push(p);
+        }
+        v
     }
 
     /// Makes relative paths relative to `base`.
     pub fn resolve(&mut self, base: &Path) {
-        for p in [&mut self.imu, &mut self.observations, &mut self.initial] {
+        for p in self.paths_mut() {
             if p.is_relative() {
                 *p = base.join(&*p);
             }
         }
+    }
+
+    /// Field checks (paths relative to `replay`).
+    pub fn validate(&self) -> Result<(), ScenarioError> {
+        if let Some(r) = self.rest_s {
+            if self.initial != InitialSource::Static {
+                return Err(ScenarioError::invalid(
+                    "rest_s",
+                    "only a static alignment (`initial = \"static\"`) uses a rest period",
+                ));
+            }
+            if !(r.is_finite() && r > 0.0) {
+                return Err(ScenarioError::invalid(
+                    "rest_s",
+                    format!("must be a finite number > 0, got {r}"),
+                ));
+            }
+        }
+        Ok(())
     }
 }
 
@@ -105,12 +196,59 @@ pub enum ReplayError {
 /// A vehicle's logs, parsed and checked.
 #[derive(Clone, Debug, PartialEq)]
 pub struct ReplayLog {
-    /// IMU samples in time order.
+    /// IMU samples in time order, as logged.
     pub imu: Vec<ImuSample>,
     /// Frames in time order.
     pub frames: Vec<ObservationFrame>,
     /// Initial estimate.
     pub initial: InitialEstimate,
+    /// What the estimator receives, in order: the IMU samples, those that straddle a frame time
+    /// split there, each followed by the index of the frame that comes after it, if any.
+    pub steps: Vec<(ImuSample, Option<usize>)>,
+    /// The static alignment, when the initial estimate came from one.
+    pub alignment: Option<alignment::StaticAlignment>,
+}
+
+/// Splits IMU samples at frame times: each frame follows a sample that ends exactly at its
+/// time (a straddling sample becomes two with the same measured f̂ and ω̂). Frames must lie in
+/// (start, last sample time] in non-decreasing order (checked by the caller).
+pub fn split_at_frames(
+    start: f64,
+    imu: &[ImuSample],
+    frames: &[ObservationFrame],
+) -> Vec<(ImuSample, Option<usize>)> {
+    let mut out = Vec::with_capacity(imu.len() + frames.len());
+    let mut f = 0;
+    let mut t_prev = start;
+    for s in imu {
+        // Frames inside the interval (t_prev, s.time): cut the sample there.
+        while f < frames.len() && frames[f].time < s.time {
+            // Frame times strictly increase (rows of one time form one frame) and every frame at
+            // or before t_prev was placed already, so tf > t_prev: no empty interval.
+            let tf = frames[f].time;
+            out.push((
+                ImuSample {
+                    time: tf,
+                    dt: tf - t_prev,
+                    ..*s
+                },
+                Some(f),
+            ));
+            t_prev = tf;
+            f += 1;
+        }
+        let rest = ImuSample {
+            dt: s.time - t_prev,
+            ..*s
+        };
+        let frame = (f < frames.len() && frames[f].time == s.time).then(|| {
+            f += 1;
+            f - 1
+        });
+        out.push((rest, frame));
+        t_prev = s.time;
+    }
+    out
 }
 
 fn read(path: &Path) -> Result<String, ReplayError> {
@@ -120,12 +258,44 @@ fn read(path: &Path) -> Result<String, ReplayError> {
     })
 }
 
-/// Data lines of a CSV log after its header: (1-based line number, fields).
+/// The format version a comment line names (`# canopy IMU log v2: …` → 2), if any.
+fn comment_version(line: &str) -> Option<u32> {
+    let rest = line
+        .strip_prefix('#')?
+        .trim_start()
+        .strip_prefix("canopy ")?;
+    let (_, after) = rest.split_once(" v")?;
+    let digits: String = after.chars().take_while(char::is_ascii_digit).collect();
+    digits.parse().ok()
+}
+
+/// Data lines of a CSV log after its header: (1-based line number, fields). A comment that
+/// names a format version later than [`FORMAT_VERSION`] is refused.
 fn data_lines<'a>(
     path: &Path,
     text: &'a str,
     header: &str,
 ) -> Result<Vec<(usize, Vec<&'a str>)>, ReplayError> {
+    for (i, l) in text.lines().enumerate() {
+        let l = l.trim();
+        if !l.starts_with('#') {
+            if l.is_empty() {
+                continue;
+            }
+            break;
+        }
+        if let Some(v) = comment_version(l)
+            && v > FORMAT_VERSION
+        {
+            return Err(ReplayError::Format {
+                path: path.to_path_buf(),
+                line: i + 1,
+                reason: format!(
+                    "written in log format v{v}; this canopy reads v1 and v{FORMAT_VERSION}"
+                ),
+            });
+        }
+    }
     let mut lines = text
         .lines()
         .enumerate()
@@ -196,17 +366,29 @@ pub fn parse_imu(path: &Path, text: &str) -> Result<Vec<ImuSample>, ReplayError>
                 reason: format!("dt = {} must be > 0", v[1]),
             });
         }
-        if let Some(prev) = out.last()
-            && v[0] <= prev.time
-        {
-            return Err(ReplayError::Format {
-                path: path.to_path_buf(),
-                line: n,
-                reason: format!(
-                    "t = {} does not follow {} (times must increase)",
-                    v[0], prev.time
-                ),
-            });
+        if let Some(prev) = out.last() {
+            if v[0] <= prev.time {
+                return Err(ReplayError::Format {
+                    path: path.to_path_buf(),
+                    line: n,
+                    reason: format!(
+                        "t = {} does not follow {} (times must increase)",
+                        v[0], prev.time
+                    ),
+                });
+            }
+            let start = v[0] - v[1];
+            if (start - prev.time).abs() > TILE_TOLERANCE_S {
+                return Err(ReplayError::Format {
+                    path: path.to_path_buf(),
+                    line: n,
+                    reason: format!(
+                        "the interval starts at t − dt = {start}, not where the previous sample \
+                         ended (t = {}): dt must be the time since the previous sample",
+                        prev.time
+                    ),
+                });
+            }
         }
         out.push(ImuSample {
             time: v[0],
@@ -220,7 +402,18 @@ pub fn parse_imu(path: &Path, text: &str) -> Result<Vec<ImuSample>, ReplayError>
 
 /// Parses an observation log.
 pub fn parse_observations(path: &Path, text: &str) -> Result<Vec<ObservationFrame>, ReplayError> {
-    let mut frames: Vec<ObservationFrame> = Vec::new();
+    Ok(parse_observation_lines(path, text)?
+        .into_iter()
+        .map(|(_, f)| f)
+        .collect())
+}
+
+/// Parses an observation log: the frames with the line of each frame's first row.
+fn parse_observation_lines(
+    path: &Path,
+    text: &str,
+) -> Result<Vec<(usize, ObservationFrame)>, ReplayError> {
+    let mut frames: Vec<(usize, ObservationFrame)> = Vec::new();
     for (n, f) in data_lines(path, text, OBS_HEADER)? {
         let t = num(path, n, "t", f[0])?;
         let bad = |reason: String| ReplayError::Format {
@@ -229,8 +422,8 @@ pub fn parse_observations(path: &Path, text: &str) -> Result<Vec<ObservationFram
             reason,
         };
         let new_frame = match frames.last() {
-            Some(last) if last.time == t => false,
-            Some(last) if t < last.time => {
+            Some((_, last)) if last.time == t => false,
+            Some((_, last)) if t < last.time => {
                 return Err(bad(format!(
                     "t = {t} is before the previous frame at {} (frames must be in time order)",
                     last.time
@@ -239,10 +432,13 @@ pub fn parse_observations(path: &Path, text: &str) -> Result<Vec<ObservationFram
             _ => true,
         };
         if new_frame {
-            frames.push(ObservationFrame {
-                time: t,
-                observations: Vec::new(),
-            });
+            frames.push((
+                n,
+                ObservationFrame {
+                    time: t,
+                    observations: Vec::new(),
+                },
+            ));
         }
         let kind = f[2];
         if kind == "none" {
@@ -262,6 +458,11 @@ pub fn parse_observations(path: &Path, text: &str) -> Result<Vec<ObservationFram
         let descriptor: FeatureId = f[1]
             .parse()
             .map_err(|_| bad(format!("descriptor `{}` is not an unsigned integer", f[1])))?;
+        if descriptor >= FRESH_ID_BASE {
+            return Err(bad(format!(
+                "descriptor {descriptor} is in the range ≥ 2⁶³ that the filter reserves for its own ids"
+            )));
+        }
         let z0 = num(path, n, "z0", f[3])?;
         let z1 = num(path, n, "z1", f[4])?;
         let z = match kind {
@@ -285,7 +486,7 @@ pub fn parse_observations(path: &Path, text: &str) -> Result<Vec<ObservationFram
                 )));
             }
         };
-        let frame = frames.last_mut().expect("pushed above");
+        let (_, frame) = frames.last_mut().expect("pushed above");
         if frame.observations.is_empty() && !new_frame {
             // The frame was declared empty by a `none` row.
             return Err(bad(format!("frame at t = {t} was declared empty (`none`)")));
@@ -368,46 +569,118 @@ pub fn parse_initial(path: &Path, text: &str) -> Result<InitialEstimate, ReplayE
 }
 
 impl ReplayLog {
-    /// Reads and checks the three files of `cfg`. A frame time must equal the time of an IMU
-    /// sample (the frame follows that sample).
-    pub fn load(cfg: &ReplayConfig) -> Result<Self, ReplayError> {
+    /// Reads and checks the logs of `cfg` for vehicle `vehicle` in `world` (whose Earth model
+    /// and origin a static alignment needs).
+    pub fn load(
+        cfg: &ReplayConfig,
+        vehicle: &VehicleConfig,
+        world: &WorldConfig,
+    ) -> Result<Self, ReplayError> {
         let imu = parse_imu(&cfg.imu, &read(&cfg.imu)?)?;
-        let frames = parse_observations(&cfg.observations, &read(&cfg.observations)?)?;
-        let initial = parse_initial(&cfg.initial, &read(&cfg.initial)?)?;
-        let mut k = 0;
-        for fr in &frames {
-            while k < imu.len() && imu[k].time < fr.time {
-                k += 1;
+        let Some(first) = imu.first() else {
+            return Err(ReplayError::Format {
+                path: cfg.imu.clone(),
+                line: 1,
+                reason: "no IMU samples after the header".into(),
+            });
+        };
+        let frames = parse_observation_lines(&cfg.observations, &read(&cfg.observations)?)?;
+        let (initial, alignment) = match &cfg.initial {
+            InitialSource::File(p) => (parse_initial(p, &read(p)?)?, None),
+            InitialSource::Static => {
+                let (e, a) = static_initial(cfg, &imu, vehicle, world)?;
+                (e, Some(a))
             }
-            if k == imu.len() || imu[k].time != fr.time {
-                return Err(ReplayError::Format {
-                    path: cfg.observations.clone(),
-                    line: 1,
-                    reason: format!(
-                        "the frame at t = {} does not follow an IMU sample of the same time",
-                        fr.time
-                    ),
-                });
-            }
-        }
-        if let Some(first) = imu.first()
-            && first.time <= initial.time
-        {
+        };
+        let start = first.time - first.dt;
+        if (start - initial.time).abs() > TILE_TOLERANCE_S {
             return Err(ReplayError::Format {
                 path: cfg.imu.clone(),
                 line: 1,
                 reason: format!(
-                    "the first sample (t = {}) is not after the initial estimate (t = {})",
-                    first.time, initial.time
+                    "the first sample's interval starts at t − dt = {start}, not at the initial \
+                     estimate's time {}",
+                    initial.time
                 ),
             });
         }
+        let last = imu.last().map_or(initial.time, |s| s.time);
+        for (line, fr) in &frames {
+            if fr.time <= initial.time || fr.time > last {
+                return Err(ReplayError::Format {
+                    path: cfg.observations.clone(),
+                    line: *line,
+                    reason: format!(
+                        "the frame at t = {} lies outside the IMU log's span ({}, {}]: the IMU \
+                         cannot propagate the estimate to it",
+                        fr.time, initial.time, last
+                    ),
+                });
+            }
+        }
+        let frames: Vec<ObservationFrame> = frames.into_iter().map(|(_, f)| f).collect();
+        let steps = split_at_frames(initial.time, &imu, &frames);
         Ok(Self {
             imu,
             frames,
             initial,
+            steps,
+            alignment,
         })
     }
+}
+
+/// The initial estimate of a static alignment over the rest period at the start of `imu`
+/// (given by `cfg.rest_s` or detected), at the start of the log; yaw, position and velocity zero
+/// with [`STATIC_FRAME_SIGMA`]: they define the local frame.
+fn static_initial(
+    cfg: &ReplayConfig,
+    imu: &[ImuSample],
+    vehicle: &VehicleConfig,
+    world: &WorldConfig,
+) -> Result<(InitialEstimate, alignment::StaticAlignment), ReplayError> {
+    let bad = |reason: String| ReplayError::Format {
+        path: cfg.imu.clone(),
+        line: 1,
+        reason,
+    };
+    if world.earth_model != EarthModel::Flat {
+        return Err(ReplayError::Scenario(ScenarioError::invalid(
+            "replay.initial",
+            "a static alignment finds no north: it needs a local frame (`[world] earth_model = \"flat\"`); give an initial-estimate file for a wgs84 world",
+        )));
+    }
+    let start = imu[0].time - imu[0].dt;
+    let n = match cfg.rest_s {
+        Some(r) => imu.partition_point(|s| s.time <= start + r + TILE_TOLERANCE_S),
+        None => alignment::detect_rest(imu, &RestDetection::default()).ok_or_else(|| {
+            bad(format!(
+                "no rest period of at least {} s found at the start (see canopy_fusion::alignment::detect_rest); give `rest_s` or an initial-estimate file",
+                RestDetection::default().min_rest_s
+            ))
+        })?,
+    };
+    let (sp, sv, sy) = STATIC_FRAME_SIGMA;
+    let opts = AlignmentOptions {
+        yaw: 0.0,
+        yaw_sigma: sy,
+        position_sigma: sp,
+        velocity_sigma: sv,
+        // Local SLAM models no Earth rotation: the gyro bias absorbs it.
+        earth_rate_nav: None,
+    };
+    let a = alignment::static_alignment(&imu[..n], &vehicle.imu.noise_model(), &opts)
+        .map_err(|e| bad(format!("static alignment over the first {n} samples: {e}")))?;
+    let e = InitialEstimate {
+        time: start,
+        position: Vector3::zeros(),
+        velocity: Vector3::zeros(),
+        attitude: a.attitude,
+        accel_bias: Vector3::zeros(),
+        gyro_bias: a.gyro_bias,
+        covariance: a.covariance,
+    };
+    Ok((e, a))
 }
 
 fn write_num(out: &mut String, v: f64) {
@@ -455,8 +728,9 @@ pub fn frame_rows(out: &mut String, f: &ObservationFrame) {
 
 /// The initial-estimate file.
 pub fn initial_text(e: &InitialEstimate) -> String {
-    let mut out =
-        format!("# canopy initial estimate v1 (estimator navigation frame)\n{INIT_HEADER}\n");
+    let mut out = format!(
+        "# canopy initial estimate v{FORMAT_VERSION} (estimator navigation frame)\n{INIT_HEADER}\n"
+    );
     let _ = write!(out, "mean,{}", e.time);
     for v in [
         e.position,
@@ -511,10 +785,10 @@ pub fn record_logs(
         let name = v.display_name();
         let cfg = ReplayConfig::in_dir(dir, &name);
         let mut imu = format!(
-            "# canopy IMU log v1: vehicle {name}, estimator navigation frame\n{IMU_HEADER}\n"
+            "# canopy IMU log v{FORMAT_VERSION}: vehicle {name}, estimator navigation frame\n{IMU_HEADER}\n"
         );
         let mut obs = format!(
-            "# canopy observation log v1: vehicle {name}, estimator navigation frame\n{OBS_HEADER}\n"
+            "# canopy observation log v{FORMAT_VERSION}: vehicle {name}, estimator navigation frame\n{OBS_HEADER}\n"
         );
         while sim.time() + sim.imu_dt() <= duration + 1e-9 {
             let step = sim.step();
@@ -525,7 +799,9 @@ pub fn record_logs(
         }
         write_file(&cfg.imu, &imu)?;
         write_file(&cfg.observations, &obs)?;
-        write_file(&cfg.initial, &initial_text(sim.initial_estimate()))?;
+        if let InitialSource::File(p) = &cfg.initial {
+            write_file(p, &initial_text(sim.initial_estimate()))?;
+        }
         out.push((name, cfg));
     }
     Ok(out)
@@ -546,8 +822,14 @@ pub struct SourceStep {
 #[derive(Clone, Debug)]
 pub struct ReplayStream {
     log: Arc<ReplayLog>,
-    next_imu: usize,
-    next_frame: usize,
+    next: usize,
+}
+
+impl ReplayStream {
+    /// The log being streamed.
+    pub fn log(&self) -> &ReplayLog {
+        &self.log
+    }
 }
 
 /// Where a vehicle's sensor input comes from.
@@ -560,25 +842,28 @@ pub enum SensorSource {
 }
 
 impl SensorSource {
-    /// The sources of every vehicle of `s` (loading replay logs).
+    /// The sources of every vehicle of `s` (loading and checking replay logs). Every check
+    /// that a run makes of its inputs before it starts happens here (`canopy check` calls it
+    /// too).
     pub fn for_scenario(s: &Scenario) -> Result<(Arc<World>, Vec<SensorSource>), ReplayError> {
-        let (world, sims) = world::build(s)?;
+        let (world, sims) = world::build_parts(s)?;
         let mut out = Vec::with_capacity(sims.len());
-        for (v, sim) in s.vehicles.iter().zip(sims) {
-            out.push(Self::for_vehicle(v, sim)?);
+        for (i, (v, sim)) in s.vehicles.iter().zip(sims).enumerate() {
+            out.push(match (sim, &v.replay) {
+                (Some(sim), _) => SensorSource::Sim(Box::new(sim)),
+                (None, Some(r)) => SensorSource::Replay(ReplayStream {
+                    log: Arc::new(ReplayLog::load(r, v, &s.world)?),
+                    next: 0,
+                }),
+                (None, None) => {
+                    return Err(ReplayError::Scenario(ScenarioError::invalid(
+                        format!("vehicle[{i}]"),
+                        "neither simulated nor replayed",
+                    )));
+                }
+            });
         }
         Ok((world, out))
-    }
-
-    fn for_vehicle(v: &VehicleConfig, sim: VehicleSim) -> Result<Self, ReplayError> {
-        Ok(match &v.replay {
-            None => SensorSource::Sim(Box::new(sim)),
-            Some(r) => SensorSource::Replay(ReplayStream {
-                log: Arc::new(ReplayLog::load(r)?),
-                next_imu: 0,
-                next_frame: 0,
-            }),
-        })
     }
 
     /// Time of the last step (or of the initial estimate).
@@ -586,9 +871,9 @@ impl SensorSource {
         match self {
             SensorSource::Sim(s) => s.time(),
             SensorSource::Replay(r) => r
-                .next_imu
+                .next
                 .checked_sub(1)
-                .map_or(r.log.initial.time, |k| r.log.imu[k].time),
+                .map_or(r.log.initial.time, |k| r.log.steps[k].0.time),
         }
     }
 
@@ -596,11 +881,11 @@ impl SensorSource {
     pub fn next_time(&self) -> Option<f64> {
         match self {
             SensorSource::Sim(s) => Some(s.time() + s.imu_dt()),
-            SensorSource::Replay(r) => r.log.imu.get(r.next_imu).map(|s| s.time),
+            SensorSource::Replay(r) => r.log.steps.get(r.next).map(|s| s.0.time),
         }
     }
 
-    /// Advances one IMU sample.
+    /// Advances one IMU sample (of a replay: one sample or part of a sample split at a frame).
     pub fn step(&mut self) -> Option<SourceStep> {
         match self {
             SensorSource::Sim(s) => {
@@ -612,20 +897,11 @@ impl SensorSource {
                 })
             }
             SensorSource::Replay(r) => {
-                let imu = *r.log.imu.get(r.next_imu)?;
-                r.next_imu += 1;
-                let frame = r
-                    .log
-                    .frames
-                    .get(r.next_frame)
-                    .filter(|f| f.time == imu.time)
-                    .cloned();
-                if frame.is_some() {
-                    r.next_frame += 1;
-                }
+                let &(imu, frame) = r.log.steps.get(r.next)?;
+                r.next += 1;
                 Some(SourceStep {
                     imu,
-                    frame: frame.map(|f| (f, None)),
+                    frame: frame.map(|f| (r.log.frames[f].clone(), None)),
                     truth: None,
                 })
             }
@@ -698,7 +974,7 @@ mod tests {
                         z: Measurement::RangeBearing(Vector3::new(150.25, 0.1, -0.7)),
                     },
                     Observation {
-                        descriptor: u64::MAX,
+                        descriptor: FRESH_ID_BASE - 1,
                         z: Measurement::Pixel(Vector2::new(320.5, 10.0)),
                     },
                 ],
@@ -750,6 +1026,10 @@ mod tests {
         let obs = [
             (format!("{OBS_HEADER}\n0.1,5,sonar,1,2,3\n"), "kind"),
             (format!("{OBS_HEADER}\n0.1,-5,bearing,1,2,\n"), "unsigned"),
+            (
+                format!("{OBS_HEADER}\n0.1,{},bearing,1,2,\n", u64::MAX),
+                "reserves",
+            ),
             (format!("{OBS_HEADER}\n0.1,5,bearing,1,2,3\n"), "z2 empty"),
             (
                 format!("{OBS_HEADER}\n0.2,5,bearing,1,2,\n0.1,5,bearing,1,2,\n"),
@@ -796,6 +1076,75 @@ mod tests {
                 .unwrap_err()
                 .to_string()
                 .contains("cov7")
+        );
+    }
+
+    #[test]
+    fn frames_between_samples_split_the_sample_they_fall_in() {
+        let sample = |time: f64, dt: f64, f: f64| ImuSample {
+            time,
+            dt,
+            specific_force: Vector3::new(f, 0.0, -9.8),
+            angular_rate: Vector3::new(0.0, f, 0.0),
+        };
+        // Jittered samples ending at 0.005, 0.0099998, 0.0150003.
+        let imu = vec![
+            sample(0.005, 0.005, 1.0),
+            sample(0.0099998, 0.0049998, 2.0),
+            sample(0.0150003, 0.0050005, 3.0),
+        ];
+        let frame = |time: f64| ObservationFrame {
+            time,
+            observations: vec![],
+        };
+        // One frame inside the second interval, one on the third sample's time.
+        let frames = vec![frame(0.007), frame(0.0150003)];
+        let steps = split_at_frames(0.0, &imu, &frames);
+        let times: Vec<f64> = steps.iter().map(|s| s.0.time).collect();
+        assert_eq!(times, vec![0.005, 0.007, 0.0099998, 0.0150003]);
+        let which: Vec<Option<usize>> = steps.iter().map(|s| s.1).collect();
+        assert_eq!(which, vec![None, Some(0), None, Some(1)]);
+        // The two parts keep the sample's measurement and tile its interval.
+        assert_eq!(steps[1].0.specific_force, imu[1].specific_force);
+        assert_eq!(steps[2].0.angular_rate, imu[1].angular_rate);
+        assert!((steps[1].0.dt - 0.002).abs() < 1e-15);
+        assert!((steps[1].0.dt + steps[2].0.dt - imu[1].dt).abs() < 1e-15);
+        let mut t = 0.0;
+        for (s, _) in &steps {
+            // Round-off of the subtractions only.
+            assert!((s.time - s.dt - t).abs() < 1e-15, "{s:?}");
+            t = s.time;
+        }
+    }
+
+    #[test]
+    fn imu_intervals_must_tile_and_versions_after_two_are_refused() {
+        let text = format!("{IMU_HEADER}\n0.01,0.01,0,0,-9.8,0,0,0\n0.02,0.005,0,0,-9.8,0,0,0\n");
+        let e = parse_imu(&p(), &text).unwrap_err().to_string();
+        assert!(
+            e.starts_with("x.csv:3:") && e.contains("previous sample"),
+            "{e}"
+        );
+        let text = format!("# canopy IMU log v3: later\n{IMU_HEADER}\n0.01,0.01,0,0,-9.8,0,0,0\n");
+        let e = parse_imu(&p(), &text).unwrap_err().to_string();
+        assert!(e.starts_with("x.csv:1:") && e.contains("v3"), "{e}");
+        let text = format!("# canopy IMU log v1: older\n{IMU_HEADER}\n0.01,0.01,0,0,-9.8,0,0,0\n");
+        assert_eq!(parse_imu(&p(), &text).unwrap().len(), 1);
+    }
+
+    #[test]
+    fn the_initial_source_reads_static_or_a_path() {
+        assert_eq!(
+            InitialSource::from(PathBuf::from("static")),
+            InitialSource::Static
+        );
+        assert_eq!(
+            InitialSource::from(PathBuf::from("./static")),
+            InitialSource::File(PathBuf::from("./static"))
+        );
+        assert_eq!(
+            PathBuf::from(InitialSource::Static),
+            PathBuf::from("static")
         );
     }
 }

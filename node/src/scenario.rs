@@ -172,7 +172,7 @@ impl Scenario {
                 id,
                 name: Some(format!("uav{id}")),
                 frame: None,
-                trajectory: TrajectoryConfig {
+                trajectory: Some(TrajectoryConfig {
                     centre_ne_m: [0.0, east],
                     altitude_m: altitude,
                     speed_mps: 25.0,
@@ -185,22 +185,26 @@ impl Scenario {
                         turn_ramp_fraction: default_turn_ramp_fraction(),
                     },
                     ..TrajectoryConfig::default()
-                },
+                }),
                 sensor: SensorConfig::default(),
                 imu: ImuConfig::default(),
                 initial: InitialConfig::default(),
                 replay: None,
             };
         let mut orbit = survey(3, 0.0, 180.0, 0.25, 0.0);
-        orbit.trajectory.shape = ShapeConfig::Orbit {
-            radius_m: 650.0,
-            clockwise: true,
-        };
+        if let Some(t) = orbit.trajectory.as_mut() {
+            t.shape = ShapeConfig::Orbit {
+                radius_m: 650.0,
+                clockwise: true,
+            };
+        }
         let mut eight = survey(4, 0.0, 140.0, 0.5, 45.0);
-        eight.trajectory.shape = ShapeConfig::FigureEight {
-            length_m: 1800.0,
-            width_m: 900.0,
-        };
+        if let Some(t) = eight.trajectory.as_mut() {
+            t.shape = ShapeConfig::FigureEight {
+                length_m: 1800.0,
+                width_m: 900.0,
+            };
+        }
         Self {
             world: WorldConfig::default(),
             vehicles: vec![
@@ -533,8 +537,9 @@ pub struct VehicleConfig {
     /// `"wgs84"`, `"local"` for `"flat"`). Default: the world's.
     #[serde(default)]
     pub frame: Option<NavFrame>,
-    /// Flight path (*required*).
-    pub trajectory: TrajectoryConfig,
+    /// Flight path (*required* for a simulated vehicle; a replayed vehicle has none).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub trajectory: Option<TrajectoryConfig>,
     /// Terrain sensor. Default [`SensorConfig::default`].
     #[serde(default)]
     pub sensor: SensorConfig,
@@ -564,9 +569,20 @@ impl VehicleConfig {
     /// implies `world_frame`, including building the trajectory (bank-angle limit).
     pub fn validate(&self, world_frame: NavFrame) -> Result<(), ScenarioError> {
         self.validate_except_trajectory(world_frame)?;
-        crate::world::trajectory::Trajectory::new(&self.trajectory)
-            .map_err(|e| e.within("trajectory"))?;
+        if let Some(t) = &self.trajectory {
+            crate::world::trajectory::Trajectory::new(t).map_err(|e| e.within("trajectory"))?;
+        }
         Ok(())
+    }
+
+    /// The flight path of a simulated vehicle (an error naming the field when it is missing).
+    pub fn trajectory(&self) -> Result<&TrajectoryConfig, ScenarioError> {
+        self.trajectory.as_ref().ok_or_else(|| {
+            ScenarioError::invalid(
+                "trajectory",
+                "a simulated vehicle needs a trajectory (only a replayed vehicle has none)",
+            )
+        })
     }
 
     /// [`VehicleConfig::validate`] without building the trajectory (for callers that build it
@@ -593,11 +609,28 @@ impl VehicleConfig {
                 ),
             ));
         }
+        match (&self.replay, &self.trajectory) {
+            (None, None) => {
+                self.trajectory()?;
+            }
+            (Some(_), Some(_)) => {
+                return Err(ScenarioError::invalid(
+                    "trajectory",
+                    "a replayed vehicle is not simulated: leave its trajectory out",
+                ));
+            }
+            _ => {}
+        }
         self.imu.validate().map_err(|e| e.within("imu"))?;
+        // A replayed vehicle's frames come when they were recorded: its rates are not tied.
+        let tied_rate = self.replay.is_none().then_some(self.imu.rate_hz);
         self.sensor
-            .validate(self.imu.rate_hz)
+            .validate(tied_rate)
             .map_err(|e| e.within("sensor"))?;
         self.initial.validate().map_err(|e| e.within("initial"))?;
+        if let Some(r) = &self.replay {
+            r.validate().map_err(|e| e.within("replay"))?;
+        }
         Ok(())
     }
 }
@@ -719,10 +752,18 @@ pub enum MountOrientation {
 pub struct SensorConfig {
     /// Measurement model and noise. Default: range-bearing, σ 0.5 m and 0.2°.
     pub model: SensorModelConfig,
-    /// Frame rate [Hz], > 0; the IMU rate must be an integer multiple of it. Default 2.
+    /// Frame rate [Hz], > 0; the IMU rate must be an integer multiple of it (simulated vehicles;
+    /// a replayed vehicle's frames come at their recorded times). Default 2.
     pub rate_hz: f64,
-    /// Mounting orientation. Default `"down"`.
-    pub orientation: MountOrientation,
+    /// Mounting orientation, `"down"` or `"forward"`. Default `"down"` unless
+    /// `sensor_from_body` gives a general mount.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub orientation: Option<MountOrientation>,
+    /// General mount: the rotation C_b^s (eq. 21.45) that maps body-frame vectors into the
+    /// sensor frame (x along the boresight / optical axis, y right, z down in the image), as
+    /// three rows. Orthonormal with determinant +1 (to 1e-6). Give this or `orientation`.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub sensor_from_body: Option<[[f64; 3]; 3]>,
     /// Lever arm p_sb^b: sensor origin from the centre of mass, body axes [m]. Default
     /// (0.3, 0, 0.1).
     pub lever_arm_m: [f64; 3],
@@ -749,7 +790,8 @@ impl Default for SensorConfig {
         Self {
             model: SensorModelConfig::default(),
             rate_hz: 2.0,
-            orientation: MountOrientation::Down,
+            orientation: None,
+            sensor_from_body: None,
             lever_arm_m: [0.3, 0.0, 0.1],
             min_range_m: 10.0,
             max_range_m: 500.0,
@@ -771,7 +813,13 @@ impl SensorConfig {
     /// The estimator-facing mount (C_b^s and the lever arm of eq. 21.45).
     pub fn mount(&self) -> SensorMount {
         let lever = Vector3::from(self.lever_arm_m);
-        match self.orientation {
+        if let Some(rows) = self.sensor_from_body {
+            return SensorMount {
+                sensor_from_body: Matrix3::from_fn(|r, c| rows[r][c]),
+                lever_arm_body: lever,
+            };
+        }
+        match self.orientation.unwrap_or_default() {
             MountOrientation::Down => SensorMount::downward(lever),
             MountOrientation::Forward => SensorMount {
                 sensor_from_body: Matrix3::identity(),
@@ -780,17 +828,30 @@ impl SensorConfig {
         }
     }
 
-    /// Field checks (paths relative to `sensor`); `imu_rate_hz` must be a multiple of the rate.
-    pub fn validate(&self, imu_rate_hz: f64) -> Result<(), ScenarioError> {
+    /// Field checks (paths relative to `sensor`); `imu_rate_hz`, when given, must be an integer
+    /// multiple of the frame rate (simulated vehicles).
+    pub fn validate(&self, imu_rate_hz: Option<f64>) -> Result<(), ScenarioError> {
         self.model.validate().map_err(|e| e.within("model"))?;
         positive_at_most("rate_hz", self.rate_hz, 1000.0)?;
-        let ratio = imu_rate_hz / self.rate_hz;
-        // Rates are user-typed decimals: 1e-9 relative slack absorbs their binary rounding only.
-        if (ratio - ratio.round()).abs() > 1e-9 * ratio || ratio.round() < 1.0 {
-            return Err(ScenarioError::invalid(
-                "rate_hz",
-                format!("the IMU rate {imu_rate_hz} Hz must be an integer multiple of it"),
-            ));
+        if let Some(imu_rate_hz) = imu_rate_hz {
+            let ratio = imu_rate_hz / self.rate_hz;
+            // Rates are user-typed decimals: 1e-9 relative slack absorbs their binary rounding
+            // only.
+            if (ratio - ratio.round()).abs() > 1e-9 * ratio || ratio.round() < 1.0 {
+                return Err(ScenarioError::invalid(
+                    "rate_hz",
+                    format!("the IMU rate {imu_rate_hz} Hz must be an integer multiple of it"),
+                ));
+            }
+        }
+        if let Some(rows) = self.sensor_from_body {
+            if self.orientation.is_some() {
+                return Err(ScenarioError::invalid(
+                    "sensor_from_body",
+                    "give either `orientation` or `sensor_from_body`, not both",
+                ));
+            }
+            validate_rotation("sensor_from_body", &rows)?;
         }
         for (i, l) in self.lever_arm_m.iter().enumerate() {
             in_range(&format!("lever_arm_m[{i}]"), *l, -100.0, 100.0, "lever arm")?;
@@ -1095,6 +1156,36 @@ impl InitialConfig {
     }
 }
 
+/// Largest deviation from orthonormality accepted in a configured rotation matrix: rows typed
+/// with 7 significant digits (or more) are orthonormal to about 1e-7.
+pub const ROTATION_TOLERANCE: f64 = 1e-6;
+
+/// A rotation matrix check: finite, orthonormal (|R Rᵀ − I| ≤ [`ROTATION_TOLERANCE`]) and
+/// proper (det +1, not a reflection).
+pub fn validate_rotation(field: &str, rows: &[[f64; 3]; 3]) -> Result<(), ScenarioError> {
+    let r = Matrix3::from_fn(|i, j| rows[i][j]);
+    if !r.iter().all(|v| v.is_finite()) {
+        return Err(ScenarioError::invalid(field, "has a non-finite entry"));
+    }
+    let err = (r * r.transpose() - Matrix3::identity()).abs().max();
+    if err > ROTATION_TOLERANCE {
+        return Err(ScenarioError::invalid(
+            field,
+            format!(
+                "is not orthonormal: |R·Rᵀ − I| = {err:.3e} > {ROTATION_TOLERANCE:e} (rows are C_b^s)"
+            ),
+        ));
+    }
+    let det = r.determinant();
+    if det < 0.0 {
+        return Err(ScenarioError::invalid(
+            field,
+            format!("is a reflection (det = {det:.6}), not a rotation"),
+        ));
+    }
+    Ok(())
+}
+
 /// Finite value check.
 pub(crate) fn finite(field: &str, v: f64) -> Result<(), ScenarioError> {
     if v.is_finite() {
@@ -1228,13 +1319,18 @@ synthesis = "continuous"
         assert_eq!(b.vehicles[0].display_name(), "uav1");
         assert_eq!(b.vehicles[1].display_name(), "scout");
         assert_eq!(
-            b.vehicles[0].trajectory.altitude_m, 120.0,
+            b.vehicles[0].trajectory.as_ref().unwrap().altitude_m,
+            120.0,
             "TOML integer into f64"
         );
-        assert_eq!(b.vehicles[1].trajectory.altitude_m, 150.0, "default");
+        assert_eq!(
+            b.vehicles[1].trajectory.as_ref().unwrap().altitude_m,
+            150.0,
+            "default"
+        );
         assert_eq!(b.vehicles[1].imu.synthesis, ImuSynthesis::Continuous);
         assert!(matches!(
-            b.vehicles[1].trajectory.shape,
+            b.vehicles[1].trajectory.as_ref().unwrap().shape,
             ShapeConfig::Lawnmower { turn_ramp_fraction, .. } if turn_ramp_fraction == 0.4
         ));
         assert!(matches!(
@@ -1250,7 +1346,7 @@ synthesis = "continuous"
         assert_eq!(d.vehicles.len(), 4);
         assert_eq!(d.world.earth_model.frame(), NavFrame::Global);
         for v in &d.vehicles {
-            assert!((100.0..=200.0).contains(&v.trajectory.altitude_m));
+            assert!((100.0..=200.0).contains(&v.trajectory.as_ref().unwrap().altitude_m));
             assert_eq!(v.imu.grade, ImuGrade::Tactical);
             assert!(matches!(
                 v.sensor.model,
@@ -1400,5 +1496,71 @@ synthesis = "continuous"
         w.validate().unwrap();
         // 2.4 km × 2.4 km = 5.76 km² at 50 per km².
         assert_eq!(w.feature_count(), 288);
+    }
+
+    /// A general mount is validated (orthonormal, proper, not with `orientation`) and used; a
+    /// replayed vehicle has no trajectory, a simulated one must.
+    #[test]
+    fn general_mounts_and_replayed_vehicles_are_checked() {
+        let with_mount = |rows: &str| {
+            BASE.replacen(
+                "rate_hz = 4",
+                &format!("rate_hz = 4\nsensor_from_body = {rows}"),
+                1,
+            )
+        };
+        // 90° about z: body x → sensor y.
+        let s = Scenario::from_toml_str(&with_mount(
+            "[[0.0, 1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]",
+        ))
+        .unwrap();
+        let m = s.vehicles[0].sensor.mount();
+        assert_eq!(m.sensor_from_body * Vector3::x(), -Vector3::y());
+        for (rows, why) in [
+            (
+                "[[1.0, 0.1, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]",
+                "orthonormal",
+            ),
+            (
+                "[[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, -1.0]]",
+                "reflection",
+            ),
+        ] {
+            match Scenario::from_toml_str(&with_mount(rows)) {
+                Err(ScenarioError::Invalid { field, reason }) => {
+                    assert_eq!(field, "vehicle[0].sensor.sensor_from_body");
+                    assert!(reason.contains(why), "{reason}");
+                }
+                other => panic!("{rows}: {other:?}"),
+            }
+        }
+        let both = with_mount("[[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]").replacen(
+            "rate_hz = 4",
+            "rate_hz = 4\norientation = \"forward\"",
+            1,
+        );
+        assert_eq!(invalid_field(&both), "vehicle[0].sensor.sensor_from_body");
+        // A simulated vehicle without a trajectory; a replayed one with a trajectory.
+        let no_traj = BASE.replacen("[vehicle.trajectory]\naltitude_m = 120\n", "", 1).replacen(
+            "[vehicle.trajectory.shape]\nkind = \"figure_eight\"\nlength_m = 1500\nwidth_m = 700\n",
+            "",
+            1,
+        );
+        assert_eq!(invalid_field(&no_traj), "vehicle[0].trajectory");
+        let replayed_with_traj = BASE.replacen(
+            "[vehicle.sensor]",
+            "[vehicle.replay]\nimu = \"a.csv\"\nobservations = \"b.csv\"\ninitial = \"static\"\n[vehicle.sensor]",
+            1,
+        );
+        assert_eq!(invalid_field(&replayed_with_traj), "vehicle[0].trajectory");
+        let replayed = no_traj.replacen(
+            "[vehicle.sensor]",
+            "[vehicle.replay]\nimu = \"a.csv\"\nobservations = \"b.csv\"\ninitial = \"static\"\nrest_s = 2.5\n[vehicle.sensor]",
+            1,
+        );
+        let s = Scenario::from_toml_str(&replayed).unwrap();
+        assert!(s.vehicles[0].trajectory.is_none());
+        let bad_rest = replayed.replacen("rest_s = 2.5", "rest_s = -1", 1);
+        assert_eq!(invalid_field(&bad_rest), "vehicle[0].replay.rest_s");
     }
 }

@@ -1,6 +1,7 @@
 //! `canopy sim`: the whole scenario in one deterministic process.
 //!
-//! The same agents as the multi-process run ([`crate::agent`]), the world simulator stepped in
+//! The same agents as the multi-process run ([`crate::agent`]), every vehicle's sensor source
+//! (the world simulator, or a replayed log: [`crate::replay::SensorSource`]) stepped in
 //! simulation time, and a simulated network made of the transport's in-memory links wrapped in
 //! its fault layer ([`canopy_transport::fault`]) on a manual clock: delay, jitter, loss,
 //! duplication, reordering, outages, partitions and bandwidth caps from the scenario, in
@@ -14,20 +15,21 @@ use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 
 use canopy_fusion::ddf::Outgoing;
-use canopy_fusion::ins::VehicleState;
-use canopy_fusion::slam::{AssociationConfig, SlamConfig, SlamFilter, VehicleSetup};
+use canopy_fusion::slam::{SlamConfig, SlamFilter, VehicleSetup};
 use canopy_fusion::topology::NodeId;
 use canopy_transport::fault::{Clock, FaultyLink, ManualClock};
 use canopy_transport::link::{Link, LinkEvent, PeerState};
 use canopy_transport::memory::{InMemoryHub, InMemoryLink};
 
 use crate::agent::{AgentError, AssociationAudit, HubAgent, VehicleAgent};
-use crate::metrics::{HeldSince, confidence_ratio, map_records, pose_sample};
+use crate::baseline::estimator_setup;
+use crate::metrics::{HeldSince, confidence_ratio, estimate_sample, map_records, pose_sample};
 use crate::network::{EventKind, FusionMode, effective_links, node_names, topology};
 use crate::record::{EventRecord, LinkRecord, LinkSample, RunRecord, VehicleRecord};
+use crate::replay::{ReplayError, SensorSource};
 use crate::scenario::{Scenario, ScenarioError};
 use crate::wire::{decode_ddf, send_ddf};
-use crate::world::{self, InitialEstimate, VehicleSim, World};
+use crate::world::{self, InitialEstimate, World};
 
 /// Options of a simulation run.
 #[derive(Default)]
@@ -57,6 +59,9 @@ pub enum SimError {
     /// The scenario is invalid.
     #[error(transparent)]
     Scenario(#[from] ScenarioError),
+    /// A replay log is malformed or unreadable.
+    #[error(transparent)]
+    Replay(#[from] ReplayError),
     /// An agent could not be built.
     #[error("building {node}: {source}")]
     Agent {
@@ -156,30 +161,51 @@ impl Node {
     }
 }
 
-/// The estimator's setup from the simulator's initial estimate (σ floors keep a perfect IMU's
-/// zero bias variances positive definite: 1e-12 is far below any grade's turn-on bias²).
-pub fn vehicle_setup(
-    sim: &VehicleSim,
+/// The agent of vehicle `cfg` of scenario `s` from an initial estimate, as every driver builds
+/// it (`canopy sim`, the vehicle process, the pre-run checks): its filter (frame and origin of
+/// `world`, the scenario's association, fresh ids in the vehicle's namespace), its DDF node on
+/// the scenario's topology with each link's byte budget.
+pub fn vehicle_agent(
+    s: &Scenario,
+    cfg: &crate::scenario::VehicleConfig,
+    world: &World,
     estimate: &InitialEstimate,
-    imu: canopy_fusion::imu::ImuNoise,
-) -> VehicleSetup {
-    let mut covariance = estimate.covariance;
-    for i in 0..covariance.nrows() {
-        covariance[(i, i)] = covariance[(i, i)].max(1e-12);
-    }
-    VehicleSetup {
-        state: VehicleState {
-            position: estimate.position,
-            velocity: estimate.velocity,
-            attitude: estimate.attitude,
-            accel_bias: estimate.accel_bias,
-            gyro_bias: estimate.gyro_bias,
-        },
-        covariance,
-        imu_noise: imu,
-        sensor: sim.sensor_model(),
-        mount: sim.sensor_mount(),
-    }
+    epoch: u64,
+) -> Result<VehicleAgent, SimError> {
+    let topo = topology(s)?;
+    let budgets: Vec<(NodeId, Option<usize>)> = effective_links(s)
+        .iter()
+        .filter_map(|l| {
+            let peer = if l.a == cfg.id {
+                l.b
+            } else if l.b == cfg.id {
+                l.a
+            } else {
+                return None;
+            };
+            Some((NodeId(peer), l.byte_budget))
+        })
+        .collect();
+    let slam = SlamConfig {
+        frame: world.frame(),
+        origin: world.map_origin(),
+        association: s.fusion.association_config(),
+        fresh_id_namespace: cfg.id,
+    };
+    VehicleAgent::new(
+        NodeId(cfg.id),
+        epoch,
+        slam,
+        estimator_setup(cfg, estimate),
+        s.fusion.ddf_mode(),
+        &topo,
+        s.fusion.ddf_config(),
+        &budgets,
+    )
+    .map_err(|source| SimError::Agent {
+        node: cfg.display_name(),
+        source,
+    })
 }
 
 /// A fresh epoch for a (re)started node: deterministic in the simulation.
@@ -192,7 +218,7 @@ fn epoch_for(seed: u64, node: u32, incarnation: u32) -> u64 {
 struct Sim<'s> {
     s: &'s Scenario,
     world: Arc<World>,
-    vehicles: Vec<VehicleSim>,
+    vehicles: Vec<SensorSource>,
     nodes: BTreeMap<NodeId, Node>,
     clock: Arc<ManualClock>,
     baseline: Option<SlamFilter>,
@@ -209,15 +235,6 @@ struct Sim<'s> {
 }
 
 impl<'s> Sim<'s> {
-    fn slam_config(&self, vehicle: u32, association: AssociationConfig) -> SlamConfig {
-        SlamConfig {
-            frame: self.world.frame(),
-            origin: self.world.map_origin(),
-            association,
-            fresh_id_namespace: vehicle,
-        }
-    }
-
     fn vehicle_agent(
         &self,
         index: usize,
@@ -226,35 +243,13 @@ impl<'s> Sim<'s> {
     ) -> Result<VehicleAgent, SimError> {
         let s = self.s;
         let cfg = &s.vehicles[index];
-        let sim = &self.vehicles[index];
-        let topo = topology(s)?;
-        let budgets: Vec<(NodeId, Option<usize>)> = effective_links(s)
-            .iter()
-            .filter_map(|l| {
-                let peer = if l.a == cfg.id {
-                    l.b
-                } else if l.b == cfg.id {
-                    l.a
-                } else {
-                    return None;
-                };
-                Some((NodeId(peer), l.byte_budget))
-            })
-            .collect();
-        VehicleAgent::new(
-            NodeId(cfg.id),
+        vehicle_agent(
+            s,
+            cfg,
+            &self.world,
+            estimate,
             epoch_for(s.world.seed, cfg.id, incarnation),
-            self.slam_config(cfg.id, s.fusion.association_config()),
-            vehicle_setup(sim, estimate, cfg.imu.noise_model()),
-            s.fusion.ddf_mode(),
-            &topo,
-            s.fusion.ddf_config(),
-            &budgets,
         )
-        .map_err(|source| SimError::Agent {
-            node: cfg.display_name(),
-            source,
-        })
     }
 
     fn poll_network(&mut self, now: f64) {
@@ -330,20 +325,19 @@ impl<'s> Sim<'s> {
                 let f = a.filter();
                 self.held[i].observe(now, f.features().into_iter().map(|x| x.0));
                 if let (Ok(est), Ok(cov)) = (f.vehicle_state(0), f.vehicle_covariance(0)) {
-                    self.records[i]
-                        .samples
-                        .push(pose_sample(&self.world, &est, &cov, sim.truth()));
+                    self.records[i].samples.push(match sim.truth() {
+                        Some(truth) => pose_sample(&self.world, &est, &cov, truth),
+                        None => estimate_sample(&self.world, sim.time(), &est, &cov),
+                    });
                 }
             }
             if let Some(b) = &self.baseline
                 && let (Ok(est), Ok(cov)) = (b.vehicle_state(i), b.vehicle_covariance(i))
             {
-                self.baseline_records[i].samples.push(pose_sample(
-                    &self.world,
-                    &est,
-                    &cov,
-                    sim.truth(),
-                ));
+                self.baseline_records[i].samples.push(match sim.truth() {
+                    Some(truth) => pose_sample(&self.world, &est, &cov, truth),
+                    None => estimate_sample(&self.world, sim.time(), &est, &cov),
+                });
             }
         }
         if let Some(b) = &self.baseline {
@@ -421,15 +415,9 @@ impl<'s> Sim<'s> {
 /// Runs a scenario in one deterministic process.
 pub fn simulate(s: &Scenario, mut opts: SimOptions<'_>) -> Result<SimOutcome, SimError> {
     s.validate()?;
-    if let Some(i) = s.vehicles.iter().position(|v| v.replay.is_some()) {
-        return Err(SimError::Scenario(ScenarioError::invalid(
-            format!("vehicle[{i}].replay"),
-            "`canopy sim` simulates every vehicle; run scenarios with replayed vehicles with `canopy run`",
-        )));
-    }
     let started = std::time::Instant::now();
     let duration = opts.duration.unwrap_or(s.run.duration_s);
-    let (world, vehicles) = world::build(s)?;
+    let (world, vehicles) = SensorSource::for_scenario(s)?;
     let names = node_names(s);
     let clock = Arc::new(ManualClock::new(0.0));
     let dyn_clock: Arc<dyn Clock> = clock.clone();
@@ -468,7 +456,7 @@ pub fn simulate(s: &Scenario, mut opts: SimOptions<'_>) -> Result<SimOutcome, Si
 
     // Agents.
     for i in 0..s.vehicles.len() {
-        let est = sim.vehicles[i].initial_estimate().clone();
+        let est = sim.vehicles[i].initial_estimate();
         let agent = sim.vehicle_agent(i, &est, 0)?;
         sim.nodes.insert(
             NodeId(s.vehicles[i].id),
@@ -555,7 +543,7 @@ pub fn simulate(s: &Scenario, mut opts: SimOptions<'_>) -> Result<SimOutcome, Si
             .vehicles
             .iter()
             .zip(&s.vehicles)
-            .map(|(v, cfg)| vehicle_setup(v, v.initial_estimate(), cfg.imu.noise_model()))
+            .map(|(v, cfg)| estimator_setup(cfg, &v.initial_estimate()))
             .collect();
         // The reference associates by descriptor, verified by the gate (shared with the
         // monitor of multi-process runs).
@@ -618,12 +606,12 @@ pub fn simulate(s: &Scenario, mut opts: SimOptions<'_>) -> Result<SimOutcome, Si
         {
             break;
         }
-        // The vehicle whose next sample is earliest.
+        // The vehicle whose next sample is earliest (a replayed log may end before the run).
         let Some((vi, t)) = sim
             .vehicles
             .iter()
             .enumerate()
-            .map(|(i, v)| (i, v.time() + v.imu_dt()))
+            .filter_map(|(i, v)| v.next_time().map(|t| (i, t)))
             .min_by(|a, b| a.1.total_cmp(&b.1).then(a.0.cmp(&b.0)))
         else {
             break;
@@ -664,7 +652,10 @@ pub fn simulate(s: &Scenario, mut opts: SimOptions<'_>) -> Result<SimOutcome, Si
                 let node = sim.nodes.get_mut(&target).expect("exists");
                 node.restarts += 1;
                 let inc = node.restarts;
-                let est = sim.vehicles[idx].restart_estimate(u64::from(inc));
+                // Replayed vehicles cannot restart (scenario validation).
+                let Some(est) = sim.vehicles[idx].restart_estimate(u64::from(inc)) else {
+                    continue;
+                };
                 // The reference gets the same external fix, so it still holds all the data.
                 if let Some(b) = sim.baseline.as_mut() {
                     let _ = crate::baseline::apply_restart_fix(b, idx, &est);
@@ -713,18 +704,22 @@ pub fn simulate(s: &Scenario, mut opts: SimOptions<'_>) -> Result<SimOutcome, Si
         }
         sim.clock.set(t);
         let id = NodeId(s.vehicles[vi].id);
-        let out = sim.vehicles[vi].step();
+        let Some(out) = sim.vehicles[vi].step() else {
+            continue;
+        };
         if let Some(Agent::Vehicle(a)) = sim.nodes.get_mut(&id).and_then(|n| n.agent.as_mut()) {
             if a.on_imu(&out.imu).is_err() {
                 sim.checks.inputs_rejected += 1;
             }
-            if let Some(sensed) = &out.frame {
-                match a.on_frame(&sensed.frame) {
+            if let Some((frame, true_ids)) = &out.frame {
+                match a.on_frame(frame) {
                     Ok(report) => {
-                        let c = sim.audit.audit(a.filter(), &report, &sensed.true_ids);
-                        sim.records[vi].wrong_associations += c.wrong;
-                        sim.records[vi].duplicate_features += c.duplicates;
-                        sim.records[vi].observations += sensed.frame.observations.len() as u64;
+                        if let Some(ids) = true_ids {
+                            let c = sim.audit.audit(a.filter(), &report, ids);
+                            sim.records[vi].wrong_associations += c.wrong;
+                            sim.records[vi].duplicate_features += c.duplicates;
+                        }
+                        sim.records[vi].observations += frame.observations.len() as u64;
                     }
                     Err(_) => sim.checks.inputs_rejected += 1,
                 }
@@ -732,24 +727,29 @@ pub fn simulate(s: &Scenario, mut opts: SimOptions<'_>) -> Result<SimOutcome, Si
         }
         if let Some(b) = sim.baseline.as_mut() {
             let _ = b.predict(vi, &out.imu);
-            if let Some(sensed) = &out.frame
-                && let Ok(report) = b.process_frame(vi, &sensed.frame)
+            if let Some((frame, true_ids)) = &out.frame
+                && let Ok(report) = b.process_frame(vi, frame)
             {
-                let c = sim.baseline_audit.audit(b, &report, &sensed.true_ids);
-                sim.baseline_records[vi].wrong_associations += c.wrong;
-                sim.baseline_records[vi].duplicate_features += c.duplicates;
-                sim.baseline_records[vi].observations += sensed.frame.observations.len() as u64;
+                if let Some(ids) = true_ids {
+                    let c = sim.baseline_audit.audit(b, &report, ids);
+                    sim.baseline_records[vi].wrong_associations += c.wrong;
+                    sim.baseline_records[vi].duplicate_features += c.duplicates;
+                }
+                sim.baseline_records[vi].observations += frame.observations.len() as u64;
             }
         }
         if t + eps >= next_poll {
             sim.poll_network(t);
             next_poll += poll_dt;
         }
+        // Time reached by every source that still has data (an ended log holds no one back).
         let tmin = sim
             .vehicles
             .iter()
-            .map(|v| v.time())
+            .filter(|v| v.next_time().is_some())
+            .map(SensorSource::time)
             .fold(f64::INFINITY, f64::min);
+        let tmin = if tmin.is_finite() { tmin } else { t };
         if tmin + eps >= next_record {
             sim.record(tmin);
             next_record += record_dt;
@@ -777,11 +777,12 @@ pub fn simulate(s: &Scenario, mut opts: SimOptions<'_>) -> Result<SimOutcome, Si
         if let Some(node) = sim.nodes.get(&NodeId(cfg.id))
             && let Some(Agent::Vehicle(a)) = node.agent.as_ref()
         {
-            let mut map = map_records(&world, a.filter());
+            let mut map = map_records(&world, a.filter(), crate::metrics::maps_have_truth(s));
             sim.held[i].stamp(end, &mut map);
             sim.records[i].map = map;
             let c = a.counters();
             sim.records[i].rejected_messages = c.fusion.messages_rejected;
+            sim.records[i].rejections = a.rejections().counts.clone();
             sim.checks
                 .rejected_messages
                 .insert(node.name.clone(), c.fusion.messages_rejected);
@@ -789,7 +790,7 @@ pub fn simulate(s: &Scenario, mut opts: SimOptions<'_>) -> Result<SimOutcome, Si
         }
     }
     if let Some(b) = &sim.baseline {
-        let mut map = map_records(&world, b);
+        let mut map = map_records(&world, b, crate::metrics::maps_have_truth(s));
         sim.baseline_held.stamp(end, &mut map);
         for r in &mut sim.baseline_records {
             r.map = map.clone();
@@ -806,15 +807,26 @@ pub fn simulate(s: &Scenario, mut opts: SimOptions<'_>) -> Result<SimOutcome, Si
         links: sim.links.drain(..).map(|l| l.2).collect(),
         events,
         baseline: with_baseline.then(|| std::mem::take(&mut sim.baseline_records)),
-        truth_features: world
-            .features()
-            .iter()
-            .map(|f| (f.id, [f.position_ned.x, f.position_ned.y, f.position_ned.z]))
-            .collect(),
+        truth_features: truth_features(s, &world),
+        time_origin_ns: s.run.time_origin_ns,
     };
     record.events.sort_by(|a, b| a.t.total_cmp(&b.t));
     Ok(SimOutcome {
         record,
         checks: sim.checks,
     })
+}
+
+/// True feature positions for the map plot: the world's features when some vehicle is
+/// simulated, none when every vehicle is replayed (the simulated world then has nothing to do
+/// with what the vehicles saw).
+pub fn truth_features(s: &Scenario, world: &World) -> Vec<(u64, [f64; 3])> {
+    if s.vehicles.iter().all(|v| v.replay.is_some()) {
+        return Vec::new();
+    }
+    world
+        .features()
+        .iter()
+        .map(|f| (f.id, [f.position_ned.x, f.position_ned.y, f.position_ned.z]))
+        .collect()
 }

@@ -40,8 +40,10 @@ pub fn team_scenario(n: u32, duration_s: f64) -> Scenario {
             let mut v = base.vehicles[k as usize].clone();
             v.id = id;
             v.name = Some(format!("uav{id}"));
-            v.trajectory.phase = (v.trajectory.phase + f64::from(rep) / f64::from(reps)).fract();
-            v.trajectory.altitude_m += 5.0 * f64::from(rep);
+            if let Some(t) = v.trajectory.as_mut() {
+                t.phase = (t.phase + f64::from(rep) / f64::from(reps)).fract();
+                t.altitude_m += 5.0 * f64::from(rep);
+            }
             v
         })
         .collect();

@@ -112,10 +112,18 @@ fn cases() -> Vec<Case> {
         Case {
             kind: "missing field",
             edit: (
+                "[[vehicle]]\nid = 4\nname = \"uav4\"\n",
+                "[[vehicle]]\nname = \"uav4\"\n",
+            ),
+            expect: Parse("id", "missing field"),
+        },
+        Case {
+            kind: "simulated vehicle without a trajectory",
+            edit: (
                 "[[vehicle]]\nid = 4\nname = \"uav4\"\ntrajectory = ",
                 "[[vehicle]]\nid = 4\nname = \"uav4\"\n# trajectory = ",
             ),
-            expect: Parse("trajectory", "missing field"),
+            expect: Invalid("vehicle[3].trajectory", "needs a trajectory"),
         },
         Case {
             kind: "port clash",

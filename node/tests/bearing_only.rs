@@ -74,7 +74,7 @@ fn scenario(earth: EarthModel, sensor: SensorModelConfig, seed: u64) -> Scenario
             id: 1,
             name: None,
             frame: None,
-            trajectory: TrajectoryConfig {
+            trajectory: Some(TrajectoryConfig {
                 altitude_m: 120.0,
                 speed_mps: 20.0,
                 shape: ShapeConfig::Lawnmower {
@@ -84,7 +84,7 @@ fn scenario(earth: EarthModel, sensor: SensorModelConfig, seed: u64) -> Scenario
                     turn_ramp_fraction: 0.4,
                 },
                 ..TrajectoryConfig::default()
-            },
+            }),
             sensor: SensorConfig {
                 model: sensor,
                 ..SensorConfig::default()
@@ -611,9 +611,9 @@ fn mixed_centralized_team_is_consistent() {
         let mut v2 = scn.vehicles[0].clone();
         v2.id = 2;
         v2.sensor.model = second;
-        v2.trajectory.centre_ne_m = [0.0, 75.0];
-        v2.trajectory.altitude_m = 140.0;
-        v2.trajectory.phase = 0.1;
+        v2.trajectory.as_mut().unwrap().centre_ne_m = [0.0, 75.0];
+        v2.trajectory.as_mut().unwrap().altitude_m = 140.0;
+        v2.trajectory.as_mut().unwrap().phase = 0.1;
         scn.vehicles.push(v2);
         scn
     };

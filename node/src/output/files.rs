@@ -9,9 +9,26 @@ pub fn quaternion_from_euler(att: &[f64; 3]) -> [f64; 4] {
     [q.i, q.j, q.k, q.w]
 }
 
+/// A timestamp for the outputs: with a recording's time origin [ns] (`[run] time_origin_ns`),
+/// origin + t in seconds with all nine decimals, exact (t is rounded to the nanosecond, which
+/// recovers the recording's integer timestamp: t was made from one, and f64 keeps nanoseconds
+/// exactly for |t| < 2⁵³ ns ≈ 104 days); without one, t with six decimals.
+pub fn stamp(origin_ns: Option<u64>, t: f64) -> String {
+    match origin_ns {
+        Some(o) => {
+            let ns = i128::from(o) + (t * 1e9).round() as i128;
+            let sign = if ns < 0 { "-" } else { "" };
+            let a = ns.unsigned_abs();
+            format!("{sign}{}.{:09}", a / 1_000_000_000, a % 1_000_000_000)
+        }
+        None => format!("{t:.6}"),
+    }
+}
+
 /// A TUM trajectory (`timestamp tx ty tz qx qy qz qw`, one pose per line, space separated; see
-/// the TUM RGB-D benchmark file-format page), of the estimate or of the truth.
-pub fn tum(v: &VehicleRecord, truth: bool) -> String {
+/// the TUM RGB-D benchmark file-format page), of the estimate or of the truth; timestamps as
+/// [`stamp`] writes them. Samples without that truth (a replayed vehicle) are left out.
+pub fn tum(v: &VehicleRecord, truth: bool, origin_ns: Option<u64>) -> String {
     let mut out = String::with_capacity(v.samples.len() * 96);
     out.push_str("# timestamp tx ty tz qx qy qz qw (launch-site NED frame, metres)\n");
     for s in &v.samples {
@@ -20,11 +37,21 @@ pub fn tum(v: &VehicleRecord, truth: bool) -> String {
         } else {
             (&s.est_pos, &s.est_att)
         };
+        if !p.iter().chain(a).all(|x| x.is_finite()) {
+            continue;
+        }
         let q = quaternion_from_euler(a);
         let _ = writeln!(
             out,
-            "{:.6} {:.6} {:.6} {:.6} {:.9} {:.9} {:.9} {:.9}",
-            s.t, p[0], p[1], p[2], q[0], q[1], q[2], q[3]
+            "{} {:.6} {:.6} {:.6} {:.9} {:.9} {:.9} {:.9}",
+            stamp(origin_ns, s.t),
+            p[0],
+            p[1],
+            p[2],
+            q[0],
+            q[1],
+            q[2],
+            q[3]
         );
     }
     out
@@ -169,7 +196,7 @@ mod tests {
             }],
             ..Default::default()
         };
-        for text in [tum(&v, false), tum(&v, true)] {
+        for text in [tum(&v, false, None), tum(&v, true, None)] {
             let lines: Vec<_> = text.lines().filter(|l| !l.starts_with('#')).collect();
             assert_eq!(lines.len(), 1);
             let fields: Vec<f64> = lines[0].split(' ').map(|f| f.parse().unwrap()).collect();
@@ -177,5 +204,26 @@ mod tests {
             let qn: f64 = fields[4..].iter().map(|x| x * x).sum();
             assert!((qn - 1.0).abs() < 1e-8);
         }
+    }
+
+    #[test]
+    fn stamps_keep_the_recordings_nanoseconds() {
+        // EuRoC timestamps: t made from (ns − origin) / 1e9 stamps back to the same integer.
+        let origin = 1_403_715_273_262_143_232_u64;
+        for ns in [
+            1_403_715_273_262_143_232_u64,
+            1_403_715_273_267_142_912,
+            1_403_715_303_262_143_232,
+        ] {
+            let t = (ns - origin) as f64 / 1e9;
+            let s = stamp(Some(origin), t);
+            let (sec, frac) = s.split_once('.').unwrap();
+            assert_eq!(frac.len(), 9);
+            let back: u64 =
+                sec.parse::<u64>().unwrap() * 1_000_000_000 + frac.parse::<u64>().unwrap();
+            assert_eq!(back, ns);
+        }
+        assert_eq!(stamp(Some(5), -1e-8), "-0.000000005");
+        assert_eq!(stamp(None, 1.5), "1.500000");
     }
 }

@@ -36,8 +36,17 @@ pub fn write_all(run: &RunRecord, dir: &Path) -> Result<Summary, OutputError> {
         serde_json::to_string_pretty(&summary).unwrap_or_else(|e| format!("{{\"error\":\"{e}\"}}"));
     write(dir, "summary.json", &json)?;
     for v in &run.vehicles {
-        write(dir, &format!("{}.est.tum", v.name), &files::tum(v, false))?;
-        write(dir, &format!("{}.truth.tum", v.name), &files::tum(v, true))?;
+        let origin = run.time_origin_ns;
+        write(
+            dir,
+            &format!("{}.est.tum", v.name),
+            &files::tum(v, false, origin),
+        )?;
+        write(
+            dir,
+            &format!("{}.truth.tum", v.name),
+            &files::tum(v, true, origin),
+        )?;
     }
     write(dir, "map.csv", &files::map_csv(run))?;
     write(dir, "metrics.csv", &files::metrics_csv(run))?;

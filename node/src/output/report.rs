@@ -371,6 +371,35 @@ fn escape(s: &str) -> String {
         .replace('>', "&gt;")
 }
 
+/// The table of rejected estimator inputs by reason and vehicle (nothing when none were).
+fn rejections(summary: &Summary) -> String {
+    let reasons: std::collections::BTreeSet<&String> = summary
+        .vehicles
+        .iter()
+        .flat_map(|v| v.rejections.keys())
+        .collect();
+    if reasons.is_empty() {
+        return String::new();
+    }
+    let mut html = String::from("<h2>Rejected inputs by reason</h2><table><tr><th>reason</th>");
+    for v in &summary.vehicles {
+        html.push_str(&format!("<th>{}</th>", escape(&v.name)));
+    }
+    html.push_str("</tr>");
+    for r in reasons {
+        html.push_str(&format!("<tr><td><code>{}</code></td>", escape(r)));
+        for v in &summary.vehicles {
+            html.push_str(&format!(
+                "<td style=\"text-align:right\">{}</td>",
+                v.rejections.get(r).copied().unwrap_or(0)
+            ));
+        }
+        html.push_str("</tr>");
+    }
+    html.push_str("</table>");
+    html
+}
+
 /// Renders the report page.
 pub fn render(run: &RunRecord, summary: &Summary) -> String {
     let mut html = String::from(
@@ -390,6 +419,7 @@ pub fn render(run: &RunRecord, summary: &Summary) -> String {
         "<h2>Summary</h2><pre>{}</pre>",
         escape(&table(&[("this run", summary)]))
     ));
+    html.push_str(&rejections(summary));
     html.push_str("<h2>Trajectories and map</h2>");
     html.push_str(&trajectories(run));
     html.push_str("<h2>Position error with ±3σ</h2>");

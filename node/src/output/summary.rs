@@ -69,6 +69,11 @@ pub struct VehicleSummary {
     pub rejected_messages: u64,
     /// Process restarts.
     pub restarts: u32,
+    /// Inputs the estimator rejected, by reason: `imu.<error>`, `frame.<error>` (a whole frame
+    /// refused), `observation.<reason>` (one observation not used),
+    /// `observation.in_rejected_frame` (observations of refused frames).
+    #[serde(default)]
+    pub rejections: std::collections::BTreeMap<String, u64>,
 }
 
 /// Totals of one link.
@@ -219,6 +224,7 @@ pub fn summarize_vehicle(v: &VehicleRecord) -> VehicleSummary {
         observations: v.observations,
         rejected_messages: v.rejected_messages,
         restarts: v.restarts,
+        rejections: v.rejections.clone(),
     }
 }
 

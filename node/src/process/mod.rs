@@ -121,13 +121,7 @@ fn init_child_process() {
     {
         let _ = nix::sys::prctl::set_pdeathsig(nix::sys::signal::Signal::SIGTERM);
     }
-    let _ = tracing_subscriber::fmt()
-        .with_writer(std::io::stderr)
-        .with_env_filter(
-            tracing_subscriber::EnvFilter::try_from_default_env()
-                .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("warn")),
-        )
-        .try_init();
+    crate::cli::init_tracing();
 }
 
 /// A flag set by SIGINT/SIGTERM (a child asked to stop by a signal finishes cleanly).

@@ -135,6 +135,10 @@ pub struct VehicleCheck {
     pub map_sizes: Vec<(f64, usize)>,
     /// Times it was initialised (1 + restarts).
     pub initialisations: usize,
+    /// Inputs its estimator rejected, by reason, summed over incarnations (as in
+    /// `summary.json`).
+    #[serde(default)]
+    pub rejections: BTreeMap<String, u64>,
 }
 
 /// One end of a fusion link at the end of the run.
@@ -280,7 +284,9 @@ struct Monitor {
     /// Vehicles the world holds its streams for (a scheduled restart).
     restart_requests: BTreeMap<u32, f64>,
     failure: Option<String>,
-    last_activity: Instant,
+    /// The last `Report::Status` of each process (by name): when, its time, what it said,
+    /// whether it is a bounded wait.
+    statuses: BTreeMap<String, (Instant, f64, String, bool)>,
 }
 
 /// Resolves a scenario for a run: overrides, free ports for `net` links without `listen`,
@@ -305,7 +311,7 @@ pub fn resolve(
     }
     for v in &mut s.vehicles {
         if let Some(r) = v.replay.as_mut() {
-            for p in [&mut r.imu, &mut r.observations, &mut r.initial] {
+            for p in r.paths_mut() {
                 *p = std::fs::canonicalize(&*p)
                     .with_context(|| format!("replay log {}", p.display()))?;
             }
@@ -400,7 +406,30 @@ impl Monitor {
     }
 
     fn on_report(&mut self, from: NodeId, r: Report) {
-        self.last_activity = Instant::now();
+        if let Report::Status {
+            t,
+            state,
+            bounded_wait,
+        } = &r
+        {
+            let name = if from == WORLD_ID {
+                "world".to_string()
+            } else if let Some(v) = self.vehicles.get_mut(&from) {
+                v.last_t = v.last_t.max(*t);
+                v.name.clone()
+            } else {
+                self.names
+                    .get(&from)
+                    .cloned()
+                    .unwrap_or_else(|| from.to_string())
+            };
+            if from == WORLD_ID {
+                self.world_t = self.world_t.max(*t);
+            }
+            self.statuses
+                .insert(name, (Instant::now(), *t, state.clone(), *bounded_wait));
+            return;
+        }
         if from == WORLD_ID {
             match r {
                 Report::Truth {
@@ -465,6 +494,11 @@ impl Monitor {
                 associations,
             }) => {
                 v.last_t = v.last_t.max(t);
+                // A final report at the time of the last one (the vehicle's end of stream)
+                // replaces it: one estimate per time.
+                if v.estimates.last().is_some_and(|e| e.0 == t) {
+                    v.estimates.pop();
+                }
                 v.estimates.push((t, state, covariance));
                 v.counters.insert(v.incarnation, counters);
                 v.associations.extend(associations);
@@ -636,6 +670,92 @@ impl Monitor {
     }
 }
 
+/// No progress for this long: the monitor says who holds the run up and why.
+const STALL_WARN: Duration = Duration::from_secs(5);
+/// No progress for this long: the run fails with that diagnosis.
+const STALL_FAIL: Duration = Duration::from_secs(60);
+
+/// The monitor's stall watchdog: progress is any process's simulation time moving (every
+/// process reports its time about once a wall second, `Report::Status`); a wait with its own
+/// deadline (start-up, a scheduled restart) is not a stall.
+struct Watchdog {
+    progress_t: f64,
+    since: Instant,
+    warned: bool,
+}
+
+enum WatchdogVerdict {
+    Fine,
+    Warn(String),
+    Fail(String),
+}
+
+impl Watchdog {
+    fn new() -> Self {
+        Self {
+            progress_t: f64::NEG_INFINITY,
+            since: Instant::now(),
+            warned: false,
+        }
+    }
+
+    fn check(&mut self, m: &Monitor) -> WatchdogVerdict {
+        let t = m
+            .statuses
+            .values()
+            .map(|s| s.1)
+            .fold(m.world_t.max(m.team_time()), f64::max);
+        let bounded = m
+            .statuses
+            .values()
+            .any(|s| s.3 && s.0.elapsed() < STALL_WARN);
+        if t > self.progress_t || bounded || m.world_finished {
+            self.progress_t = self.progress_t.max(t);
+            self.since = Instant::now();
+            self.warned = false;
+            return WatchdogVerdict::Fine;
+        }
+        let idle = self.since.elapsed();
+        if idle > STALL_FAIL {
+            return WatchdogVerdict::Fail(format!(
+                "no progress for {} s: {}",
+                STALL_FAIL.as_secs(),
+                stall_diagnosis(m, self.progress_t)
+            ));
+        }
+        if idle > STALL_WARN && !self.warned {
+            self.warned = true;
+            return WatchdogVerdict::Warn(format!(
+                "no progress for {} s: {}",
+                STALL_WARN.as_secs(),
+                stall_diagnosis(m, self.progress_t)
+            ));
+        }
+        WatchdogVerdict::Fine
+    }
+}
+
+/// Who holds a stalled run up: every process's last status and its age.
+fn stall_diagnosis(m: &Monitor, t: f64) -> String {
+    let mut names: Vec<String> = vec!["world".into()];
+    names.extend(
+        m.vehicles
+            .values()
+            .filter(|v| v.alive)
+            .map(|v| v.name.clone()),
+    );
+    let parts: Vec<String> = names
+        .iter()
+        .map(|n| match m.statuses.get(n) {
+            Some((at, _, state, _)) => {
+                format!("{n}: {state} ({:.1} s ago)", at.elapsed().as_secs_f64())
+            }
+            None => format!("{n}: no status received (busy, hung, or not started)"),
+        })
+        .collect();
+    format!("stuck at t = {t}; {}", parts.join("; "))
+}
+
 fn describe(st: &ExitStatus) -> String {
     use std::os::unix::process::ExitStatusExt;
     match (st.code(), st.signal()) {
@@ -655,6 +775,9 @@ pub fn launch(s: Scenario, opts: &LaunchOptions) -> Result<LaunchOutcome> {
     std::fs::create_dir_all(&opts.out)
         .with_context(|| format!("creating {}", opts.out.display()))?;
     let (s, secrets) = resolve(s, opts)?;
+    // Every check `canopy check` makes, here in the launcher: a bad input fails the run before
+    // any process starts, with the file, line and reason.
+    crate::preflight::preflight(&s).context("checking the scenario's inputs")?;
     std::fs::write(opts.out.join("scenario.toml"), s.to_toml_string())
         .with_context(|| format!("writing {}", opts.out.join("scenario.toml").display()))?;
     let world = World::new(&s.world, s.world.seed).context("building the world")?;
@@ -700,7 +823,7 @@ pub fn launch(s: Scenario, opts: &LaunchOptions) -> Result<LaunchOutcome> {
         hub_alive: s.fusion.mode == FusionMode::Central,
         restart_requests: Default::default(),
         failure: None,
-        last_activity: Instant::now(),
+        statuses: BTreeMap::new(),
     };
     // Links first, so the children find the monitor.
     m.links
@@ -773,7 +896,7 @@ pub fn launch(s: Scenario, opts: &LaunchOptions) -> Result<LaunchOutcome> {
     };
     let mut next_plain = 10.0;
     let mut interrupted = false;
-    let stall = Duration::from_secs(300);
+    let mut watchdog = Watchdog::new();
 
     while m.failure.is_none() {
         if opts.stop.load(Ordering::Relaxed) {
@@ -897,11 +1020,10 @@ pub fn launch(s: Scenario, opts: &LaunchOptions) -> Result<LaunchOutcome> {
             m.failure
                 .get_or_insert("the world process ended before the end of the run".into());
         }
-        if m.last_activity.elapsed() > stall {
-            m.failure = Some(format!(
-                "no report for {} s: the run stalled",
-                stall.as_secs()
-            ));
+        match watchdog.check(&m) {
+            WatchdogVerdict::Fine => {}
+            WatchdogVerdict::Warn(line) => say(&pb, line),
+            WatchdogVerdict::Fail(reason) => m.failure = Some(reason),
         }
         if !busy {
             std::thread::sleep(Duration::from_millis(2));
@@ -978,7 +1100,15 @@ fn assemble(
         if let Some((t_last, feats)) = &v.last_map {
             rec.map = feats
                 .iter()
-                .map(|f| feature_record(world, f.id, &Vector3::from(f.mean), &f.covariance()))
+                .map(|f| {
+                    feature_record(
+                        world,
+                        f.id,
+                        &Vector3::from(f.mean),
+                        &f.covariance(),
+                        crate::metrics::maps_have_truth(s),
+                    )
+                })
                 .collect();
             let mut held = HeldSince::default();
             let mut reports: Vec<_> = v.maps.iter().collect();
@@ -993,6 +1123,12 @@ fn assemble(
         rec.wrong_associations = a.wrong;
         rec.duplicate_features = a.duplicates;
         rec.rejected_messages = v.counters.values().map(|c| c.messages_rejected).sum();
+        for c in v.counters.values() {
+            for (k, n) in &c.rejections {
+                *rec.rejections.entry(k.clone()).or_insert(0) += n;
+            }
+        }
+        let rec_rejections = rec.rejections.clone();
         vehicles.push(rec);
         if let Some(b) = &baseline {
             for (t, feats) in &v.maps {
@@ -1028,7 +1164,8 @@ fn assemble(
         }
         vchecks.push(VehicleCheck {
             name: v.name.clone(),
-            counters: v.counters.values().copied().collect(),
+            counters: v.counters.values().cloned().collect(),
+            rejections: rec_rejections,
             estimate_reports: v.estimates.len(),
             map_reports: v.maps.len(),
             last_report_t: v.estimates.iter().map(|e| e.0).fold(f64::NAN, f64::max),
@@ -1131,11 +1268,8 @@ fn assemble(
             }
             v
         }),
-        truth_features: world
-            .features()
-            .iter()
-            .map(|f| (f.id, [f.position_ned.x, f.position_ned.y, f.position_ned.z]))
-            .collect(),
+        truth_features: crate::sim::truth_features(s, world),
+        time_origin_ns: s.run.time_origin_ns,
     };
     let processes = m
         .procs

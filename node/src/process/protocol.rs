@@ -204,7 +204,7 @@ pub struct LinkReport {
 }
 
 /// Counters of a vehicle process.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Clone, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
 pub struct VehicleCounters {
     /// IMU samples applied.
     pub imu_samples: u64,
@@ -226,6 +226,10 @@ pub struct VehicleCounters {
     pub ci_fused: u64,
     /// Sensor batches missing from the stream (should stay 0: flow control sizes the buffers).
     pub stream_gaps: u64,
+    /// Inputs the estimator rejected, by reason (`crate::agent::Rejections` keys): IMU
+    /// samples, whole frames and single observations.
+    #[serde(default)]
+    pub rejections: std::collections::BTreeMap<String, u64>,
 }
 
 /// What the estimator did with one observation (the monitor audits it against the truth).
@@ -389,6 +393,17 @@ pub enum Report {
         /// Why.
         reason: String,
     },
+    /// What the process is doing, sent about once a wall-clock second (the monitor's
+    /// watchdog names who holds a stalled run up, and why).
+    Status {
+        /// Its simulation time [s].
+        t: f64,
+        /// What it is doing or waiting for, in words.
+        state: String,
+        /// It waits for something that has its own deadline (start-up, a scheduled restart):
+        /// not a stall.
+        bounded_wait: bool,
+    },
 }
 
 impl Report {
@@ -448,9 +463,10 @@ impl Validate for Report {
                 )?;
                 finite("truth.frames", frames.iter().map(|f| f.t))
             }
-            Report::Initialized { t, .. } | Report::Waiting { t, .. } | Report::Finished { t } => {
-                finite("t", [*t])
-            }
+            Report::Initialized { t, .. }
+            | Report::Waiting { t, .. }
+            | Report::Finished { t }
+            | Report::Status { t, .. } => finite("t", [*t]),
         }
     }
 }

@@ -26,7 +26,7 @@ use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result, bail};
 use canopy_fusion::ins::{VehicleState, VehicleVector};
-use canopy_fusion::slam::{ObservationOutcome, SlamConfig};
+use canopy_fusion::slam::ObservationOutcome;
 use canopy_fusion::state::VEHICLE_DIM;
 use canopy_fusion::topology::NodeId;
 use canopy_transport::link::{Link, LinkEvent};
@@ -44,13 +44,13 @@ use super::{
     naive_round_bytes, send_body, stop_flag,
 };
 use crate::agent::{VehicleAgent, VehicleEstimator};
-use crate::baseline::estimator_setup;
-use crate::network::{effective_links, topology};
 use crate::scenario::{Scenario, VehicleConfig};
 use crate::world::{InitialEstimate, World};
 
 /// How long a vehicle waits for its initialisation.
 const INIT_TIMEOUT: Duration = Duration::from_secs(120);
+/// How often a process tells the monitor what it is doing (`Report::Status`).
+pub(crate) const STATUS_INTERVAL: Duration = Duration::from_secs(1);
 /// After the end of its stream, how long a vehicle keeps serving its links without hearing
 /// from the monitor.
 const LINGER_TIMEOUT: Duration = Duration::from_secs(120);
@@ -234,36 +234,8 @@ fn build_agent(
     init: &InitMsg,
     epoch: u64,
 ) -> Result<VehicleAgent> {
-    let budgets: Vec<(NodeId, Option<usize>)> = effective_links(s)
-        .iter()
-        .filter_map(|l| {
-            let peer = if l.a == cfg.id {
-                l.b
-            } else if l.b == cfg.id {
-                l.a
-            } else {
-                return None;
-            };
-            Some((NodeId(peer), l.byte_budget))
-        })
-        .collect();
-    let slam = SlamConfig {
-        frame: world.frame(),
-        origin: world.map_origin(),
-        association: s.fusion.association_config(),
-        fresh_id_namespace: cfg.id,
-    };
-    VehicleAgent::new(
-        NodeId(cfg.id),
-        epoch,
-        slam,
-        estimator_setup(cfg, &initial_from(init)),
-        s.fusion.ddf_mode(),
-        &topology(s)?,
-        s.fusion.ddf_config(),
-        &budgets,
-    )
-    .with_context(|| format!("building the estimator of {}", cfg.display_name()))
+    crate::sim::vehicle_agent(s, cfg, world, &initial_from(init), epoch)
+        .with_context(|| format!("building the estimator of {}", cfg.display_name()))
 }
 
 impl Vehicle<'_> {
@@ -359,6 +331,7 @@ impl Vehicle<'_> {
             messages_rejected: c.fusion.messages_rejected,
             ci_fused: c.fusion.ci_fused,
             stream_gaps: self.counters.stream_gaps,
+            rejections: self.estimator.rejections().counts.clone(),
         }
     }
 
@@ -487,6 +460,7 @@ impl Vehicle<'_> {
                     .collect(),
                 initialized_tracks: rep.initialized_tracks.clone(),
             }),
+            // Counted by reason in the estimator (`Rejections`), logged once per reason.
             Err(_) => self.counters.inputs_rejected += 1,
         }
         if let Some(now) = self.round_due.take() {
@@ -499,9 +473,10 @@ impl Vehicle<'_> {
             self.dispatch_round(now);
         }
         self.wait_for_round();
-        if self.last_report < self.t {
-            self.estimate_report();
-        }
+        // Always: the counters must include what came after the last record time (a frame
+        // follows the sample that triggered that report); the monitor keeps one estimate per
+        // time.
+        self.estimate_report();
         self.map_report(true);
         let t = self.t;
         self.report(&Report::Finished { t });
@@ -601,6 +576,8 @@ pub fn run(c: &RoleCommon, id: WireId, incarnation: u32) -> Result<()> {
     let mut last_seq = 0u64;
     let mut ended = false;
     let mut linger_since: Option<Instant> = None;
+    let mut last_status = Instant::now();
+    let mut stream_idle_since = Instant::now();
     loop {
         let mut shutdown = stop.load(Ordering::Relaxed);
         while let Ok(Some(m)) = v.monitor.try_recv() {
@@ -624,6 +601,27 @@ pub fn run(c: &RoleCommon, id: WireId, incarnation: u32) -> Result<()> {
             });
             bail!("the world process is gone");
         }
+        // What this process is doing, about once a wall second, for the monitor's watchdog.
+        if last_status.elapsed() >= STATUS_INTERVAL {
+            let state = if ended {
+                format!("finished its stream at t = {}; serving its links", v.t)
+            } else if stream_idle_since.elapsed() >= STATUS_INTERVAL {
+                format!(
+                    "waiting for sensor data from the world (applied everything up to t = {}, \
+                     batch {last_seq}, acknowledged)",
+                    v.t
+                )
+            } else {
+                format!("estimating (t = {})", v.t)
+            };
+            let st = Report::Status {
+                t: v.t,
+                state,
+                bounded_wait: false,
+            };
+            v.report(&st);
+            last_status = Instant::now();
+        }
         // The sensor stream: wait briefly for a batch (woken by the world's notification),
         // then take what is waiting, a few at a time so the links stay serviced.
         let mut n = 0;
@@ -635,6 +633,7 @@ pub fn run(c: &RoleCommon, id: WireId, incarnation: u32) -> Result<()> {
             };
             let Some(m) = m else { break };
             n += 1;
+            stream_idle_since = Instant::now();
             ended = v.on_world(&mut wl, &m, &mut last_seq)?;
         }
         if ended && linger_since.is_none() {
@@ -666,10 +665,18 @@ impl Vehicle<'_> {
                     self.counters.stream_gaps += seq - *last_seq - 1;
                 }
                 *last_seq = seq;
-                for it in &items {
+                let mut items = items.iter().peekable();
+                while let Some(it) = items.next() {
                     match it {
                         SensorItem::Imu(s) => {
                             self.on_imu(s);
+                            // The frame that follows this sample belongs to the same step: the
+                            // record of this time comes after it, as in `canopy sim`.
+                            if let Some(SensorItem::Frame(f)) = items
+                                .next_if(|n| matches!(n, SensorItem::Frame(f) if f.time == s.time))
+                            {
+                                self.on_frame(f);
+                            }
                             self.after_sample();
                         }
                         SensorItem::Frame(f) => self.on_frame(f),

@@ -45,6 +45,9 @@ const STARTUP_TIMEOUT: Duration = Duration::from_secs(120);
 /// How long the world holds the streams for a scheduled restart.
 const RESTART_TIMEOUT: Duration = Duration::from_secs(60);
 
+/// How long the world may go without advancing while nothing holds it before it gives up.
+const STUCK_TIMEOUT: Duration = Duration::from_secs(3);
+
 /// Without any live vehicle the world runs at this many simulated seconds per wall second, so
 /// the monitor can restart crashed vehicles close to their scheduled time.
 const IDLE_PACE: f64 = 50.0;
@@ -173,6 +176,8 @@ pub fn run(c: &RoleCommon) -> Result<()> {
     let mut waiting_since: Option<Instant> = None;
     let mut end_reached = false;
     let mut shutdown = false;
+    let mut stuck_since: Option<Instant> = None;
+    let mut last_status = Instant::now();
 
     while !stop.load(Ordering::Relaxed) && !shutdown {
         let mut busy = false;
@@ -254,6 +259,23 @@ pub fn run(c: &RoleCommon) -> Result<()> {
             }
         }
         if !started {
+            if last_status.elapsed() >= super::vehicle::STATUS_INTERVAL {
+                let missing: Vec<String> = slots
+                    .iter()
+                    .filter(|s| !s.active)
+                    .map(|s| s.id.to_string())
+                    .collect();
+                report(
+                    &mut monitor,
+                    &Report::Status {
+                        t: 0.0,
+                        state: format!("starting: waiting for vehicles [{}]", missing.join(", ")),
+                        bounded_wait: true,
+                    },
+                    0.0,
+                );
+                last_status = Instant::now();
+            }
             let all = slots.iter().all(|s| s.active)
                 && hub.as_ref().is_none_or(|h| h.peer_state() == PeerState::Up);
             if all {
@@ -310,6 +332,11 @@ pub fn run(c: &RoleCommon) -> Result<()> {
         // Step up to the limit, at most one batch per pass so links stay serviced.
         let pass_end = next_batch;
         let mut blocked = false;
+        // The time of the next sample when it lies beyond this batch: the batch is complete even
+        // though no sample fell on its end (recorded timestamps jitter around the batch grid;
+        // before this, t_world never reached next_batch and the world stepped nothing forever).
+        let mut beyond_batch: Option<f64> = None;
+        let t_before = t_world;
         loop {
             let Some((vi, t)) = sources
                 .iter()
@@ -329,6 +356,7 @@ pub fn run(c: &RoleCommon) -> Result<()> {
                 break;
             }
             if t > pass_end + eps {
+                beyond_batch = Some(t);
                 break;
             }
             if let Some(&(tr, idx, inc)) = restarts.first()
@@ -393,9 +421,65 @@ pub fn run(c: &RoleCommon) -> Result<()> {
                 slot.next_record += record_dt;
             }
         }
-        let batch_done = t_world + eps >= next_batch;
+        let batch_done = t_world + eps >= next_batch || beyond_batch.is_some();
         if batch_done {
             next_batch += BATCH_S;
+            // A gap in the recording: the next batch is the one holding the next sample.
+            if let Some(t_next) = beyond_batch {
+                while next_batch + eps < t_next {
+                    next_batch += BATCH_S;
+                }
+            }
+        }
+        // Watchdog: a pass that is neither held (flow control, real-time pacing, a restart)
+        // nor finished must advance the world. If it cannot for STUCK_TIMEOUT, say why and
+        // give up instead of spinning silently.
+        if t_world > t_before || blocked || end_reached || batch_done {
+            stuck_since = None;
+        } else {
+            let since = *stuck_since.get_or_insert_with(Instant::now);
+            if since.elapsed() > STUCK_TIMEOUT {
+                let next = sources
+                    .iter()
+                    .enumerate()
+                    .filter_map(|(i, v)| v.next_time().map(|t| (i, t)))
+                    .min_by(|a, b| a.1.total_cmp(&b.1));
+                let reason = format!(
+                    "the world cannot advance at t = {t_world}: next sample {next:?} (vehicle \
+                     index, time), batch end {next_batch}, limit {limit}"
+                );
+                report(
+                    &mut monitor,
+                    &Report::Failed {
+                        reason: reason.clone(),
+                    },
+                    t_world,
+                );
+                bail!(reason);
+            }
+        }
+        if last_status.elapsed() >= super::vehicle::STATUS_INTERVAL {
+            let state = world_state(
+                &s,
+                &slots,
+                hub_acked,
+                hub.as_ref()
+                    .is_some_and(|h| h.peer_state() == PeerState::Up),
+                limit,
+                blocked,
+                end_reached,
+                waiting_since.is_some(),
+            );
+            report(
+                &mut monitor,
+                &Report::Status {
+                    t: t_world,
+                    state,
+                    bounded_wait: waiting_since.is_some(),
+                },
+                t_world,
+            );
+            last_status = Instant::now();
         }
         if batch_done || blocked || end_reached {
             for slot in slots
@@ -460,6 +544,50 @@ pub fn run(c: &RoleCommon) -> Result<()> {
         }
     }
     Ok(())
+}
+
+/// The world's state in words for the monitor's watchdog: what holds it, if anything.
+#[allow(clippy::too_many_arguments)]
+fn world_state(
+    s: &crate::scenario::Scenario,
+    slots: &[Slot],
+    hub_acked: f64,
+    hub_live: bool,
+    limit: f64,
+    blocked: bool,
+    end_reached: bool,
+    restart_hold: bool,
+) -> String {
+    if end_reached {
+        return "reached the end of the run".into();
+    }
+    if restart_hold {
+        return "holding the streams for a scheduled restart".into();
+    }
+    if !blocked {
+        return "stepping".into();
+    }
+    let name = |id: NodeId| {
+        s.vehicles
+            .iter()
+            .find(|v| v.id == id)
+            .map_or_else(|| id.to_string(), |v| v.display_name())
+    };
+    let slowest = slots
+        .iter()
+        .filter(|x| x.active)
+        .min_by(|a, b| a.acked.total_cmp(&b.acked));
+    match slowest {
+        Some(x) if hub_live && hub_acked < x.acked => format!(
+            "held by flow control at the limit t = {limit}: the hub acknowledged only t = {hub_acked}"
+        ),
+        Some(x) => format!(
+            "held by flow control at the limit t = {limit}: {} acknowledged only t = {}",
+            name(x.id),
+            x.acked
+        ),
+        None => format!("paced (no live vehicle) up to t = {limit}"),
+    }
 }
 
 /// Peer-gone detection on a control link.

@@ -223,9 +223,12 @@ impl World {
     }
 }
 
-/// Builds a scenario's world (seeded with `[world].seed`) and its vehicles (seeded with
-/// [`vehicle_seed`]), after validating the whole scenario.
-pub fn build(scenario: &Scenario) -> Result<(Arc<World>, Vec<VehicleSim>), ScenarioError> {
+/// Builds a scenario's world (seeded with `[world].seed`) and its simulated vehicles (seeded
+/// with [`vehicle_seed`]; `None` for a vehicle replayed from logs, which the simulator does not
+/// touch), after validating the whole scenario.
+pub fn build_parts(
+    scenario: &Scenario,
+) -> Result<(Arc<World>, Vec<Option<VehicleSim>>), ScenarioError> {
     scenario.validate()?;
     let world = Arc::new(World::new(&scenario.world, scenario.world.seed)?);
     let vehicles = scenario
@@ -233,15 +236,38 @@ pub fn build(scenario: &Scenario) -> Result<(Arc<World>, Vec<VehicleSim>), Scena
         .iter()
         .enumerate()
         .map(|(i, v)| {
+            if v.replay.is_some() {
+                return Ok(None);
+            }
             VehicleSim::new(
                 v,
                 Arc::clone(&world),
                 vehicle_seed(scenario.world.seed, v.id),
             )
+            .map(Some)
             .map_err(|e| e.within(&format!("vehicle[{i}]")))
         })
         .collect::<Result<Vec<_>, _>>()?;
     Ok((world, vehicles))
+}
+
+/// [`build_parts`] for a scenario whose vehicles are all simulated (an error naming the first
+/// replayed vehicle otherwise).
+pub fn build(scenario: &Scenario) -> Result<(Arc<World>, Vec<VehicleSim>), ScenarioError> {
+    let (world, parts) = build_parts(scenario)?;
+    let sims = parts
+        .into_iter()
+        .enumerate()
+        .map(|(i, v)| {
+            v.ok_or_else(|| {
+                ScenarioError::invalid(
+                    format!("vehicle[{i}].replay"),
+                    "this needs every vehicle simulated",
+                )
+            })
+        })
+        .collect::<Result<Vec<_>, _>>()?;
+    Ok((world, sims))
 }
 
 #[cfg(test)]

@@ -35,12 +35,12 @@ fn vehicle_cfg(shape: ShapeConfig) -> VehicleConfig {
         id: 7,
         name: None,
         frame: None,
-        trajectory: TrajectoryConfig {
+        trajectory: Some(TrajectoryConfig {
             altitude_m: 150.0,
             speed_mps: 25.0,
             shape,
             ..TrajectoryConfig::default()
-        },
+        }),
         sensor: SensorConfig::default(),
         imu: ImuConfig::default(),
         initial: Default::default(),
@@ -130,8 +130,8 @@ fn discrete_synthesis_inverts_the_mechanization() {
     for model in [EarthModel::Wgs84, EarthModel::Flat] {
         let mut cfg = vehicle_cfg(lawnmower());
         cfg.imu.grade = ImuGrade::Perfect;
-        cfg.trajectory.phase = 0.2; // starts shortly before the first turn
-        cfg.trajectory.climb_amplitude_m = 8.0;
+        cfg.trajectory.as_mut().unwrap().phase = 0.2; // starts shortly before the first turn
+        cfg.trajectory.as_mut().unwrap().climb_amplitude_m = 8.0;
         let w = world(model, 3);
         let frame = w.frame();
         let mut v = VehicleSim::new(&cfg, w, 5).unwrap();
@@ -359,7 +359,7 @@ fn independent_sensor_position(
 fn sensor_respects_range_and_field_of_view() {
     for model in [EarthModel::Wgs84, EarthModel::Flat] {
         let mut cfg = vehicle_cfg(lawnmower());
-        cfg.trajectory.phase = 0.2;
+        cfg.trajectory.as_mut().unwrap().phase = 0.2;
         cfg.sensor.model = SensorModelConfig::RangeBearing {
             sigma_range_m: 0.0,
             sigma_bearing_deg: 0.0,
@@ -728,7 +728,7 @@ fn builtin_default_builds_and_observes() {
 #[test]
 fn low_flight_is_rejected() {
     let mut cfg = vehicle_cfg(lawnmower());
-    cfg.trajectory.altitude_m = 5.0;
+    cfg.trajectory.as_mut().unwrap().altitude_m = 5.0;
     match VehicleSim::new(&cfg, world(EarthModel::Flat, 1), 1) {
         Err(crate::scenario::ScenarioError::Invalid { field, .. }) => {
             assert_eq!(field, "trajectory.altitude_m")
@@ -766,7 +766,7 @@ fn bearing_and_pixel_measurements_match_the_estimators_model_at_the_truth() {
             cfg.sensor.model = sensor;
             cfg.sensor.max_observations = 50;
             // Start just before the first turn so the run covers straight flight and a turn.
-            cfg.trajectory.phase = 0.2;
+            cfg.trajectory.as_mut().unwrap().phase = 0.2;
             let w = world(earth, 5);
             let mut v = VehicleSim::new(&cfg, w.clone(), 1).unwrap();
             let model = ObservationModel {

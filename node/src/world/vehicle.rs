@@ -120,7 +120,7 @@ impl VehicleSim {
     /// the vehicle's configuration (error paths relative to the vehicle).
     pub fn new(cfg: &VehicleConfig, world: Arc<World>, seed: u64) -> Result<Self, ScenarioError> {
         cfg.validate_except_trajectory(world.frame())?;
-        let trajectory = Trajectory::new(&cfg.trajectory).map_err(|e| e.within("trajectory"))?;
+        let trajectory = Trajectory::new(cfg.trajectory()?).map_err(|e| e.within("trajectory"))?;
         check_clearance(&trajectory, &world)?;
         let dt = 1.0 / cfg.imu.rate_hz;
         let frame_every = (cfg.imu.rate_hz / cfg.sensor.rate_hz).round() as u64;
