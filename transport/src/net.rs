@@ -394,6 +394,15 @@ impl MessageBytes for ZPayload {
             ZPayload::Flat(v) => v,
         }
     }
+    fn is_borrowed(&self) -> bool {
+        matches!(self, ZPayload::Contiguous(_))
+    }
+    fn into_vec(self: Box<Self>) -> Vec<u8> {
+        match *self {
+            ZPayload::Contiguous(z) => z.slices().next().unwrap_or(&[]).to_vec(),
+            ZPayload::Flat(v) => v,
+        }
+    }
 }
 
 /// Takes a received payload: kept as is when contiguous (the envelope check then reads it once);
