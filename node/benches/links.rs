@@ -327,10 +327,12 @@ fn iox_round(ddf: &DdfMessage, ddf_bytes: usize, size: usize, iters: usize) -> [
             // Raw iceoryx2.
             0 | 2 => {
                 let max = raw_max[i];
+                // This end first: two ends creating the same services at once can see one
+                // half-created (iceoryx2 `open_or_create` → `DoesNotExist`).
+                let side = raw_side(p, "a2b", "b2a", max);
                 let echo = std::thread::spawn(move || {
                     raw_echo(raw_side(&p2, "b2a", "a2b", max), total, is_ddf, r)
                 });
-                let side = raw_side(p, "a2b", "b2a", max);
                 Series {
                     ping: Box::new(move |_| raw_ping(&side, work)),
                     echo,
@@ -340,13 +342,12 @@ fn iox_round(ddf: &DdfMessage, ddf_bytes: usize, size: usize, iters: usize) -> [
             // Production path: default IceoryxConfig and body limit, fault layer.
             1 | 3 => {
                 let ix = IceoryxConfig::new(p.clone());
-                let ix2 = ix.clone();
-                let echo = std::thread::spawn(move || {
-                    let l = IceoryxLink::connect(LinkConfig::new(2, 1), ix2).unwrap();
-                    canopy_echo(production(Box::new(l), 2), total, is_ddf, r)
-                });
-                let l = IceoryxLink::connect(LinkConfig::new(1, 2), ix).unwrap();
+                let l = IceoryxLink::connect(LinkConfig::new(1, 2), ix.clone()).unwrap();
                 let mut link = production(Box::new(l), 1);
+                let l2 = IceoryxLink::connect(LinkConfig::new(2, 1), ix).unwrap();
+                let echo = std::thread::spawn(move || {
+                    canopy_echo(production(Box::new(l2), 2), total, is_ddf, r)
+                });
                 Series {
                     ping: Box::new(move |k| canopy_ping(&mut link, k, work)),
                     echo,
@@ -359,14 +360,12 @@ fn iox_round(ddf: &DdfMessage, ddf_bytes: usize, size: usize, iters: usize) -> [
                 ix.subscriber_buffer = 4;
                 ix.max_borrowed = 2;
                 let max = size as u64 + 64;
-                let ix2 = ix.clone();
-                let echo = std::thread::spawn(move || {
-                    let l = IceoryxLink::connect(LinkConfig::new(2, 1).with_max_body_len(max), ix2)
-                        .unwrap();
-                    canopy_echo(l, total, false, r)
-                });
                 let mut link =
-                    IceoryxLink::connect(LinkConfig::new(1, 2).with_max_body_len(max), ix).unwrap();
+                    IceoryxLink::connect(LinkConfig::new(1, 2).with_max_body_len(max), ix.clone())
+                        .unwrap();
+                let l2 =
+                    IceoryxLink::connect(LinkConfig::new(2, 1).with_max_body_len(max), ix).unwrap();
+                let echo = std::thread::spawn(move || canopy_echo(l2, total, false, r));
                 Series {
                     ping: Box::new(move |k| canopy_ping(&mut link, k, work)),
                     echo,
