@@ -1,7 +1,9 @@
 #!/usr/bin/env bash
 # canopy's benchmark suite (issue 7; not part of CI). Runs, on this machine:
 #   1. fusion/benches/slam.rs         prediction / update / fusion round vs map size
-#   2. transport/benches/links.rs     canopy links vs raw iceoryx2 and raw zenoh
+#   2. node/benches/links.rs          canopy's production link path (fault layer, production
+#                                     queues, DDF deltas) vs raw iceoryx2 and raw zenoh, plus the
+#                                     transport-only (opaque bytes) rows
 #   3. `canopy run` on generated tree teams (`canopy team N`) of 4, 8, 16, 24 vehicle
 #      processes: real-time factor, link bytes / naive dense (Y, y), and the fusion stall
 #      each vehicle measured (docs/benchmarks.md explains every column);
@@ -31,15 +33,15 @@ START=$(date +%s)
 echo "building (release)…" >&2
 cargo build --release -p canopy-node >&2
 cargo bench --no-run -p canopy-fusion --bench slam >&2
-cargo bench --no-run -p canopy-transport --bench links >&2
+cargo bench --no-run -p canopy-node --bench links >&2
 CANOPY=$ROOT/target/release/canopy
 
 echo "1/5 fusion/benches/slam.rs …" >&2
 cargo bench -q -p canopy-fusion --bench slam 2>/dev/null >"$OUT/slam.md"
 
-echo "2/5 transport/benches/links.rs …" >&2
+echo "2/5 node/benches/links.rs …" >&2
 if [[ $QUICK == 1 ]]; then LINKARGS=(--quick); else LINKARGS=(); fi
-cargo bench -q -p canopy-transport --bench links -- "${LINKARGS[@]}" 2>/dev/null >"$OUT/links.md"
+cargo bench -q -p canopy-node --bench links -- "${LINKARGS[@]}" 2>/dev/null >"$OUT/links.md"
 
 echo "3/5 canopy run, teams: $TEAMS ($DURATION s simulated each) …" >&2
 # World feature counts chosen so each vehicle (which holds the team's map) ends with ~150
@@ -124,11 +126,19 @@ for head, hdr, body in slam:
                 f"/ raw faer Cholesky inverse = {r[5]}", f"inverse {r[1]} ms")
 
 for head, hdr, body in tables((out / "links.md").read_text()):
-    for r in body:
-        row("iceoryx2 link latency p50", r[0], f"{r[2]} µs", f"canopy / raw iceoryx2 = {r[3]}",
-            f"raw {r[1]} µs")
-        row("zenoh link throughput", r[0], f"{r[5]} MB/s", f"canopy / raw zenoh = {r[6]}",
-            f"raw {r[4]} MB/s")
+    if head.startswith("Production path"):
+        for r in body:
+            row("iceoryx2 link latency p50, production path, DDF delta", r[0], f"{r[3]} µs",
+                f"canopy / raw iceoryx2 = {r[4]}", f"raw {r[2]} µs; body {r[1]} B")
+            row("zenoh link throughput, production path, DDF delta", r[0], f"{r[6]} MB/s",
+                f"canopy / raw zenoh = {r[7]}", f"raw {r[5]} MB/s; dropped {r[8]}")
+    elif head.startswith("Transport only"):
+        for r in body:
+            row("iceoryx2 link latency p50, opaque bytes (secondary)", r[0], f"{r[2]} µs",
+                f"production / raw = {r[3]}", f"raw {r[1]} µs; bare link {r[4]} µs ({r[5]})")
+            row("zenoh link throughput, opaque bytes (secondary)", r[0], f"{r[7]} MB/s",
+                f"production / raw = {r[8]}",
+                f"raw {r[6]} MB/s; bare link, 64k queue {r[10]} MB/s ({r[11]})")
 
 def team_ratio(s):
     """Team link bytes / naive dense bytes, from the per-link figures of summary.json."""

@@ -155,7 +155,7 @@ impl Node {
         for o in out {
             if let Some(link) = self.links.get_mut(&o.to) {
                 // Undeliverable messages are counted by the link; the DDF recovers losses.
-                let _ = send_ddf(link, now, o.message, self.compression);
+                let _ = send_ddf(link, now, &o.message, self.compression);
             }
         }
     }

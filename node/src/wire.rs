@@ -63,7 +63,7 @@ pub enum Compression {
 pub fn send_ddf(
     link: &mut dyn Link,
     now: f64,
-    msg: DdfMessage,
+    msg: &DdfMessage,
     compression: Compression,
 ) -> Result<(), LinkError> {
     let seq = match &msg.body {
@@ -71,7 +71,7 @@ pub fn send_ddf(
         Body::Cumulative { upto, .. } => *upto,
         _ => 0,
     };
-    let kind = ddf_kind(&msg);
+    let kind = ddf_kind(msg);
     let mut meta = SendMeta {
         kind,
         sender_epoch: msg.header.from_epoch,
@@ -80,13 +80,18 @@ pub fn send_ddf(
         sim_time: now,
         compressed: false,
     };
-    let body = DdfBody(msg);
+    // Serialised once here, then copied into the link's buffer: a link measures a body before
+    // it encodes it (two passes), and a map information's `Serialize` (block-sparsity scan of
+    // the dense Y, block gathering) costs far more than copying its bytes.
+    // `DdfBody` is serde-transparent: the message itself encodes to the same bytes.
+    let body = canopy_transport::codec::encode_body_to_vec(msg).map_err(LinkError::Encode)?;
     if compression == Compression::Zstd && kind == MessageKind::DDF_DELTA {
-        let frame = canopy_transport::codec::compress_body(&body).map_err(LinkError::Encode)?;
+        let frame = canopy_transport::codec::compress_body(&PreEncoded(&body))
+            .map_err(LinkError::Encode)?;
         meta.compressed = true;
         return link.send(&meta, &PreEncoded(&frame));
     }
-    link.send(&meta, &body)
+    link.send(&meta, &PreEncoded(&body))
 }
 
 /// Decodes a received DDF message (None for other kinds).

@@ -5,9 +5,8 @@
 //! receiver can hold messages back and release them on time without a helper thread); wrap both
 //! ends of a link with the same windows to cut both directions. Sending passes straight through.
 //!
-//! Every message taken from the inner link at time `t` (from the injectable [`Clock`]) is
-//! copied out of the backend buffer (the layer may hold more messages than a shared-memory
-//! backend lets a receiver borrow) and goes through, in order:
+//! Every message taken from the inner link at time `t` (from the injectable [`Clock`]) goes
+//! through, in order:
 //! 1. outage / partition windows `[start, end)` containing `t`: with [`OutagePolicy::Drop`] the
 //!    message is dropped; with [`OutagePolicy::Queue`] it is held (up to a bound, beyond which
 //!    it is dropped) and re-enters the pipeline at the end of the window;
@@ -17,6 +16,14 @@
 //!    find more than `queue_bytes` waiting ahead of it is dropped;
 //! 5. delivery at `done + delay + U[0, jitter)` plus `reorder_delay` with probability
 //!    `reorder` (jitter and reorder both permute the order).
+//!
+//! Zero-copy: the layer takes messages from the inner link one at a time, when the application
+//! asks and nothing it already holds is due. A message that comes out of the pipeline due at
+//! once (no delay, jitter, reordering or bandwidth cap configured, outside outage windows) is
+//! handed to the application as the backend gave it — an iceoryx2 sample or a zenoh buffer,
+//! decoded in place. Only a message the layer must hold (and a duplicate) is copied out of the
+//! backend's buffer, since the layer may hold more messages, for longer, than a shared-memory
+//! backend lends; [`FaultStats::copied`] counts those copies.
 //!
 //! Randomness comes from a `ChaCha8Rng` seeded from [`FaultConfig::seed`] with a fixed number of
 //! draws per message, so a run is reproducible under a simulated clock. [`FaultStats`] always
@@ -257,6 +264,10 @@ pub struct FaultStats {
     pub dropped_bandwidth: u64,
     /// Held now (outage queue + scheduled).
     pub in_flight: u64,
+    /// Messages the layer copied out of a backend's lent buffer because it had to hold them
+    /// (delay, jitter, reordering, bandwidth cap, queued outage, a duplicate); every other
+    /// delivered message was handed over in the backend's buffer, uncopied.
+    pub copied: u64,
 }
 
 impl FaultStats {
@@ -387,8 +398,9 @@ impl<L: Link> FaultyLink<L> {
         }
     }
 
-    /// Steps 2–5 of the pipeline for a message entering at `t`.
-    fn route(&mut self, t: f64, msg: Received) {
+    /// Steps 2–5 of the pipeline for a message entering at `t`: the copies that survive, each
+    /// with its due time (the second only when the message is duplicated).
+    fn route(&mut self, t: f64, msg: Received) -> [Option<(f64, Received)>; 2] {
         // Fixed draws per message keep the random stream aligned across configurations.
         let u_loss: f64 = self.rng.random();
         let u_dup: f64 = self.rng.random();
@@ -396,16 +408,18 @@ impl<L: Link> FaultyLink<L> {
         let u_reo: [f64; 2] = [self.rng.random(), self.rng.random()];
         if u_loss < self.cfg.loss {
             self.stats.dropped_loss += 1;
-            return;
+            return [None, None];
         }
         let copies = if u_dup < self.cfg.duplicate {
             self.stats.duplicated += 1;
             let dup = Received::clone_owned(&msg);
-            vec![msg, dup]
+            [Some(msg), Some(dup)]
         } else {
-            vec![msg]
+            [Some(msg), None]
         };
+        let mut out = [None, None];
         for (k, m) in copies.into_iter().enumerate() {
+            let Some(m) = m else { continue };
             let mut done = t;
             if let Some(bw) = self.cfg.bandwidth {
                 let start = t.max(self.link_free_at);
@@ -422,27 +436,60 @@ impl<L: Link> FaultyLink<L> {
             if u_reo[k] < self.cfg.reorder {
                 due += self.cfg.reorder_delay;
             }
-            self.order += 1;
-            self.scheduled.push(Reverse(Scheduled {
-                due,
-                order: self.order,
-                msg: m,
-            }));
+            out[k] = Some((due, m));
         }
+        out
     }
 
-    /// Step 1 for a message taken from the inner link now.
-    fn admit_inner(&mut self, now: f64, msg: Received) {
+    /// Holds `msg` until `due`: the one place the layer copies a message out of a backend
+    /// buffer (it may hold more messages, for longer, than a backend lends).
+    fn schedule(&mut self, due: f64, msg: Received) {
+        if msg.is_borrowed() {
+            self.stats.copied += 1;
+        }
+        self.order += 1;
+        self.scheduled.push(Reverse(Scheduled {
+            due,
+            order: self.order,
+            msg: msg.into_owned(),
+        }));
+    }
+
+    /// Step 1 for a message taken from the inner link at `now`. Returns it when it is due now
+    /// and nothing held is due before it — handed over as the backend gave it (zero-copy);
+    /// whatever must wait is held (copied).
+    fn offer(&mut self, now: f64, msg: Received) -> Option<Received> {
         self.stats.offered += 1;
         match (self.outage_end(now), self.cfg.outage_policy) {
-            (None, _) => self.route(now, msg),
-            (Some(_), OutagePolicy::Drop) => self.stats.dropped_outage += 1,
+            (None, _) => {
+                let mut now_out = None;
+                for (due, m) in self.route(now, msg).into_iter().flatten() {
+                    let first = self.scheduled.peek().is_none_or(|Reverse(s)| s.due > due);
+                    if now_out.is_none() && due <= now && first {
+                        now_out = Some(m);
+                    } else {
+                        self.schedule(due, m);
+                    }
+                }
+                if now_out.is_some() {
+                    self.stats.delivered += 1;
+                }
+                now_out
+            }
+            (Some(_), OutagePolicy::Drop) => {
+                self.stats.dropped_outage += 1;
+                None
+            }
             (Some(end), OutagePolicy::Queue { max_messages }) => {
                 if self.held.len() >= max_messages {
                     self.stats.dropped_outage_overflow += 1;
                 } else {
-                    self.held.push_back((end, msg));
+                    if msg.is_borrowed() {
+                        self.stats.copied += 1;
+                    }
+                    self.held.push_back((end, msg.into_owned()));
                 }
+                None
             }
         }
     }
@@ -455,23 +502,17 @@ impl<L: Link> FaultyLink<L> {
                 // A later window may have started at `end`: re-check at the release time.
                 match self.outage_end(end) {
                     Some(e2) if e2 > end => keep.push_back((e2, m)),
-                    _ => self.route(end, m),
+                    _ => {
+                        for (due, c) in self.route(end, m).into_iter().flatten() {
+                            self.schedule(due, c);
+                        }
+                    }
                 }
             } else {
                 keep.push_back((end, m));
             }
         }
         self.held = keep;
-    }
-
-    fn pull_inner(&mut self) -> Result<(), LinkError> {
-        while let Some(m) = self.inner.try_recv()? {
-            let now = self.clock.now();
-            // Owned copy: the layer may hold many messages, more than a shared-memory backend
-            // lets a receiver borrow at once.
-            self.admit_inner(now, m.into_owned());
-        }
-        Ok(())
     }
 
     fn pop_due(&mut self, now: f64) -> Option<Received> {
@@ -483,12 +524,22 @@ impl<L: Link> FaultyLink<L> {
         None
     }
 
+    /// The next message due now: one already held, else the next one from the inner link that
+    /// is due at once (taken one at a time, so it is handed over zero-copy; messages that must
+    /// wait are held and the next is taken).
     fn step(&mut self) -> Result<Option<Received>, LinkError> {
         let now = self.clock.now();
         self.update_outage_events(now);
         self.release_held(now);
-        self.pull_inner()?;
-        Ok(self.pop_due(now))
+        if let Some(m) = self.pop_due(now) {
+            return Ok(Some(m));
+        }
+        while let Some(m) = self.inner.try_recv()? {
+            if let Some(m) = self.offer(now, m) {
+                return Ok(Some(m));
+            }
+        }
+        Ok(None)
     }
 
     fn next_due(&self) -> Option<f64> {
@@ -533,8 +584,10 @@ impl<L: Link> Link for FaultyLink<L> {
             if let Some(m) = self.inner.recv_timeout(wait)? {
                 let now = self.clock.now();
                 self.update_outage_events(now);
-                let m = m.into_owned();
-                self.admit_inner(now, m);
+                self.release_held(now);
+                if let Some(m) = self.offer(now, m) {
+                    return Ok(Some(m));
+                }
             }
         }
     }

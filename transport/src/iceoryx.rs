@@ -4,7 +4,9 @@
 //! - `canopy/link/{a}-{b}/data`: publish-subscribe of dynamic `[u8]` slices. The publisher
 //!   measures the encoded size, loans an uninitialised sample of exactly that length and the
 //!   codec encodes header and body straight into it (no intermediate heap copy); the subscriber
-//!   decodes straight from the received sample, which the [`Received`] guard keeps borrowed.
+//!   decodes straight from the received sample, which the [`Received`] guard keeps borrowed
+//!   (while the application holds `max_borrowed - 1` samples, further messages arrive as
+//!   owned copies, so `receive` never runs out of loans).
 //! - `canopy/link/{a}-{b}/wake`: an event service; the sender notifies after each sample so a
 //!   receiver blocked in [`Link::recv_timeout`] wakes up without polling.
 //!
@@ -39,6 +41,7 @@
 
 use std::mem::MaybeUninit;
 use std::sync::Arc;
+use std::sync::atomic::{AtomicUsize, Ordering};
 use std::time::{Duration, Instant};
 
 use iceoryx2::identifiers::UniqueNodeId;
@@ -77,7 +80,9 @@ pub struct IceoryxConfig {
     pub run_prefix: String,
     /// Samples a subscriber can hold before the publisher discards (per direction).
     pub subscriber_buffer: usize,
-    /// Samples the application may hold at once as [`Received`] guards.
+    /// Samples the subscriber may lend at once. The link lends the application at most
+    /// `max_borrowed - 1` samples as zero-copy [`Received`] guards (one stays free so the next
+    /// receive can proceed); messages received while that many are held arrive as owned copies.
     pub max_borrowed: usize,
     /// Publishers per direction service: the peer, plus headroom for a restarting peer or a
     /// diagnostic tool (and the intruder in the conformance tests).
@@ -213,11 +218,31 @@ fn make_publisher(
         .map_err(err)
 }
 
-struct SampleBytes(Sample<Svc, [u8], ()>);
+/// A received sample lent to the application; counted in `lent` while it lives.
+struct SampleBytes {
+    sample: Sample<Svc, [u8], ()>,
+    lent: Arc<AtomicUsize>,
+}
+
+impl SampleBytes {
+    fn new(sample: Sample<Svc, [u8], ()>, lent: &Arc<AtomicUsize>) -> Self {
+        lent.fetch_add(1, Ordering::Relaxed);
+        Self {
+            sample,
+            lent: lent.clone(),
+        }
+    }
+}
+
+impl Drop for SampleBytes {
+    fn drop(&mut self) {
+        self.lent.fetch_sub(1, Ordering::Relaxed);
+    }
+}
 
 impl MessageBytes for SampleBytes {
     fn bytes(&self) -> &[u8] {
-        self.0.payload()
+        self.sample.payload()
     }
 }
 
@@ -234,6 +259,8 @@ pub struct IceoryxLink {
     _out_wake: EventSvc,
     _in_wake: EventSvc,
     stats: Arc<StatsCell>,
+    /// Samples lent to the application as [`Received`] guards right now.
+    lent: Arc<AtomicUsize>,
     tracker: PeerTracker,
     last_liveness: Option<Instant>,
     iox_config: Config,
@@ -297,6 +324,7 @@ impl IceoryxLink {
             _out_wake: out_wake,
             _in_wake: in_wake,
             stats: StatsCell::new(),
+            lent: Arc::new(AtomicUsize::new(0)),
             tracker: PeerTracker::new(),
             last_liveness: None,
             iox_config,
@@ -390,13 +418,19 @@ impl IceoryxLink {
 
     fn take(&mut self) -> Result<Option<Received>, LinkError> {
         loop {
-            match self.subscriber.receive().map_err(err)? {
-                None => return Ok(None),
-                Some(sample) => {
-                    if let Some(r) = admit(SampleBytes(sample), &self.cfg, &self.stats) {
-                        return Ok(Some(r));
-                    }
-                }
+            let Some(sample) = self.subscriber.receive().map_err(err)? else {
+                return Ok(None);
+            };
+            // Lend the sample itself (zero-copy) while that leaves one borrow free for the next
+            // receive; otherwise copy it out and give the sample back at once, so holding any
+            // number of guards never makes `receive` fail.
+            let admitted = if self.lent.load(Ordering::Relaxed) + 1 < self.ix.max_borrowed {
+                admit(SampleBytes::new(sample, &self.lent), &self.cfg, &self.stats)
+            } else {
+                admit(sample.payload().to_vec(), &self.cfg, &self.stats)
+            };
+            if let Some(r) = admitted {
+                return Ok(Some(r));
             }
         }
     }

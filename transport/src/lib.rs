@@ -17,7 +17,8 @@
 //! - [`net`]: zenoh backend for links between hosts (peer mode, explicit endpoints, liveliness,
 //!   user/password authentication).
 //! - [`fault`]: seeded fault injection over any link (delay, jitter, loss, duplication,
-//!   reordering, bandwidth cap, outages and partitions) with an injectable [`fault::Clock`].
+//!   reordering, bandwidth cap, outages and partitions) with an injectable [`fault::Clock`];
+//!   messages it does not hold pass through in the backend's buffer (zero-copy).
 #![deny(unsafe_code)]
 
 pub mod codec;

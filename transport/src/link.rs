@@ -255,16 +255,35 @@ impl StatsCell {
 pub trait MessageBytes: Send {
     /// The whole message: header then body.
     fn bytes(&self) -> &[u8];
+    /// True when the bytes are lent by the backend (a shared-memory sample, a zenoh buffer) and
+    /// holding them ties up backend resources; false for an owned heap buffer.
+    fn is_borrowed(&self) -> bool {
+        true
+    }
+    /// The bytes as an owned `Vec`: a copy, unless they already are one.
+    fn into_vec(self: Box<Self>) -> Vec<u8> {
+        self.bytes().to_vec()
+    }
 }
 
 impl MessageBytes for Vec<u8> {
     fn bytes(&self) -> &[u8] {
         self
     }
+    fn is_borrowed(&self) -> bool {
+        false
+    }
+    fn into_vec(self: Box<Self>) -> Vec<u8> {
+        *self
+    }
 }
 
 /// A received message whose envelope passed every check and whose sender is the link's peer.
-/// It owns the backend buffer; [`Received::decode`] decodes the body from it without copying.
+/// It owns the backend buffer (an iceoryx2 sample, a zenoh payload, a `Vec`) and gives it back
+/// when dropped; [`Received::decode`] / [`Received::decode_owned`] decode the body straight from
+/// it, without copying the message. Backends that lend a bounded number of buffers (iceoryx2)
+/// hand out owned copies once the application holds all but one of them, so holding many
+/// guards is allowed, only no longer zero-copy.
 pub struct Received {
     header: Header,
     storage: Box<dyn MessageBytes>,
@@ -297,10 +316,16 @@ impl Received {
     pub fn message_bytes(&self) -> &[u8] {
         self.storage.bytes()
     }
+    /// True while the bytes are the backend's own buffer (zero-copy: a shared-memory sample,
+    /// a zenoh payload), false once they are an owned heap copy.
+    pub fn is_borrowed(&self) -> bool {
+        self.storage.is_borrowed()
+    }
     /// Copies the message out of the backend buffer (releasing e.g. the shared-memory sample)
-    /// so it can be held for long; the decode-rejection counter stays attached to the link.
+    /// so it can be held for long; an owned message is moved, not copied. The decode-rejection
+    /// counter stays attached to the link.
     pub fn into_owned(self) -> Received {
-        let bytes = self.storage.bytes().to_vec();
+        let bytes = self.storage.into_vec();
         Received {
             header: self.header,
             storage: Box::new(bytes),

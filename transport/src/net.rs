@@ -8,7 +8,9 @@
 //! - data `a → b` is published on `{prefix}/link/{a}/{b}` with `CongestionControl::Block`
 //!   (the default `Drop` loses fragments of large messages) over zenoh's default reliable
 //!   channel; `b`
-//!   subscribes to it and queues samples (bounded) for the synchronous receive calls;
+//!   subscribes to it and queues samples (bounded; a full queue holds zenoh's receive task for
+//!   up to `overflow_wait`, slowing the sender through TCP, before it drops) for the
+//!   synchronous receive calls;
 //! - liveliness: each link declares the token `{prefix}/alive/{a}/{b}` *after* its subscriber,
 //!   and watches `{prefix}/alive/{b}/{a}` with history: `Put` = peer up, `Delete` = peer down
 //!   (session closed, process died, or transport lease expired).
@@ -27,7 +29,7 @@ use std::io::Write;
 use std::path::PathBuf;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering};
-use std::sync::mpsc::{self, Receiver, RecvTimeoutError, TrySendError};
+use std::sync::mpsc::{self, Receiver, RecvTimeoutError, SyncSender, TrySendError};
 use std::time::Duration;
 
 use zenoh::Wait;
@@ -82,8 +84,14 @@ pub struct ZenohConfig {
     pub connect: Vec<String>,
     /// Optional user/password authentication.
     pub auth: Option<ZenohAuth>,
-    /// Messages queued per link before further ones are dropped (counted as overflow).
+    /// Messages queued per link for the application. When the queue is full, zenoh's receive
+    /// task waits up to `overflow_wait` for room (so a fast sender is slowed down through
+    /// TCP, as zenoh's own FIFO handler does, instead of losing messages) and then drops the
+    /// message (counted as overflow).
     pub receive_queue: usize,
+    /// How long a message waits for room in a full receive queue before it is dropped. Kept far
+    /// below `lease`: zenoh's receive task reads nothing else from that peer meanwhile.
+    pub overflow_wait: Duration,
     /// Transport lease: a silent peer is declared lost after this long.
     pub lease: Duration,
     /// First reconnection delay to a `connect` endpoint (doubles up to 8×).
@@ -99,6 +107,7 @@ impl ZenohConfig {
             connect,
             auth: None,
             receive_queue: 1024,
+            overflow_wait: Duration::from_millis(100),
             lease: Duration::from_secs(3),
             reconnect_period: Duration::from_millis(200),
         }
@@ -292,17 +301,16 @@ impl ZenohTransport {
             .map_err(err)?;
         let (data_tx, data_rx) = mpsc::sync_channel::<ZBytes>(self.cfg.receive_queue.max(1));
         let overflow_stats = stats.clone();
+        let overflow_wait = self.cfg.overflow_wait;
         let subscriber = self
             .session
             .0
             .declare_subscriber(self.data_key(peer, self.local))
-            .callback(
-                move |sample| match data_tx.try_send(sample.payload().clone()) {
-                    Ok(()) => {}
-                    Err(TrySendError::Full(_)) => overflow_stats.on_dropped_overflow(),
-                    Err(TrySendError::Disconnected(_)) => {}
-                },
-            )
+            .callback(move |sample| {
+                enqueue(&data_tx, sample.payload().clone(), overflow_wait, || {
+                    overflow_stats.on_dropped_overflow()
+                })
+            })
             .wait()
             .map_err(err)?;
         let (live_tx, live_rx) = mpsc::channel::<bool>();
@@ -380,6 +388,30 @@ impl ZenohTransport {
     }
 }
 
+/// How often a callback facing a full receive queue looks for room again.
+const OVERFLOW_POLL: Duration = Duration::from_micros(20);
+
+/// Queues a received payload for the application; when the queue is full, waits up to `wait`
+/// for room (polling every [`OVERFLOW_POLL`]), then drops it and calls `on_drop`.
+fn enqueue(tx: &SyncSender<ZBytes>, z: ZBytes, wait: Duration, on_drop: impl FnOnce()) {
+    let mut z = match tx.try_send(z) {
+        Ok(()) | Err(TrySendError::Disconnected(_)) => return,
+        Err(TrySendError::Full(z)) => z,
+    };
+    let deadline = std::time::Instant::now() + wait;
+    loop {
+        if std::time::Instant::now() >= deadline {
+            on_drop();
+            return;
+        }
+        std::thread::sleep(OVERFLOW_POLL);
+        z = match tx.try_send(z) {
+            Ok(()) | Err(TrySendError::Disconnected(_)) => return,
+            Err(TrySendError::Full(z)) => z,
+        };
+    }
+}
+
 /// A received zenoh payload: kept as is when contiguous (decoded in place), else flattened.
 enum ZPayload {
     Contiguous(ZBytes),
@@ -391,6 +423,15 @@ impl MessageBytes for ZPayload {
         match self {
             // Constructed only when `slices()` yields exactly one slice.
             ZPayload::Contiguous(z) => z.slices().next().unwrap_or(&[]),
+            ZPayload::Flat(v) => v,
+        }
+    }
+    fn is_borrowed(&self) -> bool {
+        matches!(self, ZPayload::Contiguous(_))
+    }
+    fn into_vec(self: Box<Self>) -> Vec<u8> {
+        match *self {
+            ZPayload::Contiguous(z) => z.slices().next().unwrap_or(&[]).to_vec(),
             ZPayload::Flat(v) => v,
         }
     }
@@ -500,6 +541,7 @@ impl Link for ZenohLink {
         // Messages that stream arrive within microseconds of each other: a short spin catches the
         // next one without parking this thread and waking it per message.
         let spin_until = std::time::Instant::now() + SPIN.min(timeout);
+        let mut polls = 0u32;
         loop {
             match self.data_rx.try_recv() {
                 Ok(z) => {
@@ -508,11 +550,14 @@ impl Link for ZenohLink {
                     }
                     continue;
                 }
-                Err(_) if std::time::Instant::now() < spin_until => {
+                Err(_) => {
+                    // The clock is read every 16 polls, not on every one.
+                    polls += 1;
+                    if polls.is_multiple_of(16) && std::time::Instant::now() >= spin_until {
+                        break;
+                    }
                     std::hint::spin_loop();
-                    continue;
                 }
-                Err(_) => break,
             }
         }
         loop {

@@ -1,4 +1,5 @@
-//! One conformance suite run against every backend (in-memory, iceoryx2, zenoh).
+//! One conformance suite run against every backend (in-memory, iceoryx2, zenoh), bare and
+//! under the fault layer with no fault configured (the production path of fusion links).
 //!
 //! Each test is generic over [`Backend`], a factory that creates (and re-creates) the endpoints of
 //! a link and can inject raw bytes into one direction. Every test uses its own iceoryx2 prefix /
@@ -9,8 +10,11 @@ use std::collections::HashMap;
 use std::sync::atomic::{AtomicU32, Ordering};
 use std::time::{Duration, Instant};
 
+use std::sync::Arc;
+
 use canopy_transport::codec::{self, CodecError, DEFAULT_MAX_BODY_LEN, PreEncoded};
 use canopy_transport::envelope::HEADER_LEN;
+use canopy_transport::fault::{Clock, FaultConfig, FaultyLink, ManualClock};
 use canopy_transport::iceoryx::{IceoryxConfig, IceoryxLink, IceoryxRawSender, unique_run_prefix};
 use canopy_transport::memory::{InMemoryHub, InMemoryLink};
 use canopy_transport::net::{ZenohAuth, ZenohConfig, ZenohLink, ZenohTransport};
@@ -192,6 +196,35 @@ impl Backend for Zenoh {
             self.intruders.push(t);
         }
         self.intruders[0].raw_put(from, to, bytes).unwrap();
+    }
+}
+
+// ---------------------------------------------------------------- production path
+
+/// A backend's links under the fault layer with no fault configured: what every fusion link of
+/// `canopy run` and `canopy sim` is. The whole suite runs on it too, so the zero-copy hand-over
+/// through the layer behaves like the bare link.
+struct Faulty<B>(B);
+
+impl<B: Backend> Backend for Faulty<B> {
+    type L = FaultyLink<B::L>;
+    fn new(test: &str) -> Self {
+        Self(B::new(test))
+    }
+    fn endpoint(&mut self, local: NodeId, peer: NodeId) -> FaultyLink<B::L> {
+        let clock: Arc<dyn Clock> = Arc::new(ManualClock::new(0.0));
+        FaultyLink::new(
+            self.0.endpoint(local, peer),
+            FaultConfig::none(u64::from(local)),
+            clock,
+        )
+        .unwrap()
+    }
+    fn release(&mut self, local: NodeId) {
+        self.0.release(local);
+    }
+    fn inject(&mut self, from: NodeId, to: NodeId, bytes: Vec<u8>) {
+        self.0.inject(from, to, bytes);
     }
 }
 
@@ -421,6 +454,27 @@ fn compressed_body_round_trips<B: Backend>(test: &str) {
     assert!(lb.stats().rejected.body >= 3);
 }
 
+/// The application may hold more received messages at once than iceoryx2 lends samples (4 by
+/// default): every one arrives, in order, and decodes while the others are still held.
+fn many_messages_held_at_once<B: Backend>(test: &str) {
+    let mut b = B::new(test);
+    let (mut la, mut lb) = connected_pair(&mut b);
+    // Above iceoryx2's default lending limit, within its subscriber buffer (16).
+    const N: u64 = 10;
+    for i in 0..N {
+        la.send(&meta(i), &WireVector::from_slice(&[i as f64]))
+            .unwrap();
+    }
+    let held: Vec<_> = (0..N)
+        .map(|_| lb.recv_timeout(RECV_TIMEOUT).unwrap().expect("message"))
+        .collect();
+    for (i, m) in held.iter().enumerate() {
+        assert_eq!(m.header().seq, i as u64);
+        assert_eq!(m.decode::<WireVector>().unwrap().as_slice(), &[i as f64]);
+    }
+    assert_eq!(lb.stats().received_messages, N);
+}
+
 /// Opaque kinds this build does not know are passed up, not rejected.
 fn unknown_kind_passed_up<B: Backend>(test: &str) {
     let mut b = B::new(test);
@@ -470,6 +524,10 @@ macro_rules! conformance {
                 ));
             }
             #[test]
+            fn many_messages_held_at_once() {
+                super::many_messages_held_at_once::<$backend>(concat!(stringify!($module), "held"));
+            }
+            #[test]
             fn unknown_kind_passed_up() {
                 super::unknown_kind_passed_up::<$backend>(concat!(stringify!($module), "kind"));
             }
@@ -480,6 +538,9 @@ macro_rules! conformance {
 conformance!(memory, Memory);
 conformance!(iceoryx, Iceoryx);
 conformance!(zenoh, Zenoh);
+conformance!(memory_faulty, Faulty<Memory>);
+conformance!(iceoryx_faulty, Faulty<Iceoryx>);
+conformance!(zenoh_faulty, Faulty<Zenoh>);
 
 /// zenoh access control: a session without the right credentials cannot connect, so nothing it
 /// publishes reaches the victim (who still talks to its real peer).

@@ -296,7 +296,7 @@ impl FusionLinks {
     pub fn send(&mut self, now: f64, out: Vec<Outgoing>) {
         for o in out {
             if let Some(link) = self.links.get_mut(&o.to.0) {
-                let _ = send_ddf(link, now, o.message, self.compression);
+                let _ = send_ddf(link, now, &o.message, self.compression);
             }
         }
     }
