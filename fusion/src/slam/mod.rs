@@ -26,6 +26,7 @@
 
 mod association;
 mod bearing;
+mod ci_fuse;
 mod deferred;
 mod fuse;
 mod info_cache;
@@ -35,6 +36,7 @@ pub mod triangulation;
 mod update;
 
 pub use bearing::{BearingConfig, BearingInit, BearingStats, TrackGate, TrackId, TrackInfo};
+pub use ci_fuse::CiReport;
 pub use fuse::{ForgetReport, FuseMethod, FuseReport, VANISHED_RTOL};
 pub use layout::{Layout, PoseId, Slot, SlotKind};
 

@@ -1416,3 +1416,207 @@ fn carry_predictions_rejects_what_is_not_a_vehicle_part() {
         to_dense(&g.joint_covariance())
     );
 }
+
+/// A random submap over `known` existing feature ids and `new` unseen ones (ids 900..), in the
+/// filter's origin: means near the filter's estimates, covariance S Sᵀ + 0.3 I.
+fn random_submap(
+    f: &SlamFilter,
+    known: &[FeatureId],
+    new: usize,
+    rng: &mut ChaCha8Rng,
+) -> crate::ci::Submap {
+    let ids: Vec<FeatureId> = known
+        .iter()
+        .copied()
+        .chain((0..new).map(|k| 900 + k as FeatureId))
+        .collect();
+    let n = 3 * ids.len();
+    let s = DMatrix::from_fn(n, n, |_, _| rng.random::<f64>() - 0.5);
+    let p = &s * s.transpose() + DMatrix::identity(n, n) * 0.3;
+    let mut packed = Vec::new();
+    for j in 0..n {
+        for i in 0..=j {
+            packed.push(p[(i, j)]);
+        }
+    }
+    let origin = f.origin();
+    let offset_mean = (0..n)
+        .map(|r| {
+            let base = f
+                .feature(ids[r / 3])
+                .map_or(rng.random_range(-50.0..50.0), |m| m[r % 3]);
+            base + rng.random_range(-1.0..1.0) - origin[r % 3]
+        })
+        .collect();
+    crate::ci::Submap {
+        ids,
+        origin: origin.into(),
+        offset_mean,
+        covariance_packed: packed,
+    }
+}
+
+/// The dense information-form CI of the filter's joint with an embedded submap at weight ω:
+/// Y' = ω Y + (1 − ω) E B Eᵀ, y' = ω Y x + (1 − ω) E B μ (new features appended after the
+/// filter's states, in submap order). Returns (x', P', ids of the appended features).
+fn dense_ci(
+    f: &SlamFilter,
+    s: &crate::ci::Submap,
+    omega: f64,
+) -> (DVector<f64>, DMatrix<f64>, Vec<FeatureId>) {
+    let p = f.joint_covariance();
+    let n = p.nrows();
+    let x = f.state_vector();
+    let new: Vec<FeatureId> = s
+        .ids
+        .iter()
+        .copied()
+        .filter(|id| f.layout().feature_offset(*id).is_none())
+        .collect();
+    let m = n + 3 * new.len();
+    let p = DMatrix::from_fn(n, n, |i, j| p[(i, j)]);
+    let y = p.clone().try_inverse().unwrap();
+    let mut big = DMatrix::zeros(m, m);
+    big.view_mut((0, 0), (n, n)).copy_from(&(&y * omega));
+    let xv = DVector::from_fn(n, |i, _| x[i]);
+    let mut vec = DVector::zeros(m);
+    vec.rows_mut(0, n).copy_from(&(&y * &xv * omega));
+    let row_of = |id: FeatureId| -> usize {
+        f.layout()
+            .feature_offset(id)
+            .unwrap_or_else(|| n + 3 * new.iter().position(|&u| u == id).unwrap())
+    };
+    let ps = s.covariance();
+    let ns = ps.nrows();
+    let b = DMatrix::from_fn(ns, ns, |i, j| ps[(i, j)])
+        .try_inverse()
+        .unwrap();
+    let mu = DVector::from_fn(ns, |i, _| s.offset_mean[i] + s.origin[i % 3]);
+    let bmu = &b * mu;
+    let rows: Vec<usize> = (0..ns).map(|r| row_of(s.ids[r / 3]) + r % 3).collect();
+    for i in 0..ns {
+        vec[rows[i]] += (1.0 - omega) * bmu[i];
+        for j in 0..ns {
+            big[(rows[i], rows[j])] += (1.0 - omega) * b[(i, j)];
+        }
+    }
+    let cov = big.try_inverse().unwrap();
+    let mean = &cov * vec;
+    (mean, (&cov + cov.transpose()) * 0.5, new)
+}
+
+/// Covariance-form CI of a submap (Kalman update of the ω-scaled prior, new features through
+/// the submap's conditional) equals the dense information-form CI of the joint at the same ω,
+/// for known-only, new-only and mixed submaps, both criteria; the chosen ω is the minimum of
+/// the criterion evaluated densely on a fine grid; bad submaps change nothing.
+#[test]
+fn covariance_form_ci_equals_the_dense_information_form() {
+    use crate::ci::CiCriterion;
+    let mut rng = ChaCha8Rng::seed_from_u64(11);
+    for (known, new) in [(vec![100, 103, 104], 0), (vec![], 2), (vec![101, 105], 3)] {
+        for criterion in [CiCriterion::Trace, CiCriterion::Determinant] {
+            let mut f = random_local_filter(6, &mut rng);
+            let s = random_submap(&f, &known, new, &mut rng);
+            let (p_before, x_before) = (f.joint_covariance(), f.state_vector());
+            let report = f.fuse_submap_ci(&s, criterion).unwrap();
+            assert_eq!((report.known, report.added), (known.len(), new));
+            let (want_x, want_p, appended) =
+                dense_ci_of(&p_before, &x_before, &f, &s, report.omega);
+            let got_p = f.joint_covariance();
+            let got_x = f.state_vector();
+            // Old state i keeps its index; appended features map through the layout.
+            let n_old = p_before.nrows();
+            let idx: Vec<usize> = (0..n_old)
+                .chain(appended.iter().flat_map(|id| {
+                    let o = f.layout().feature_offset(*id).unwrap();
+                    o..o + 3
+                }))
+                .collect();
+            let scale = want_p.abs().max();
+            for (a, &i) in idx.iter().enumerate() {
+                // Dense inversions of matrices with condition ~1e3: 1e-9 relative.
+                assert!(
+                    (got_x[i] - want_x[a]).abs() < 1e-8,
+                    "{known:?}+{new} x[{a}]"
+                );
+                for (b, &j) in idx.iter().enumerate() {
+                    assert!(
+                        (got_p[(i, j)] - want_p[(a, b)]).abs() < 1e-9 * scale,
+                        "{known:?}+{new} {criterion:?} P[{a},{b}] {} vs {}",
+                        got_p[(i, j)],
+                        want_p[(a, b)]
+                    );
+                }
+            }
+            // ω is the criterion's minimum: no grid point does better (beyond the search's
+            // tolerance, 1e-9 relative).
+            let objective = |omega: f64| {
+                let g = SlamFilter::clone(&f);
+                let (_, p, app) = dense_ci_of(&p_before, &x_before, &g, &s, omega);
+                let map: Vec<usize> = (0..n_old)
+                    .filter(|&i| i >= VEHICLE_DIM)
+                    .chain((0..3 * app.len()).map(|k| n_old + k))
+                    .collect();
+                let pm = DMatrix::from_fn(map.len(), map.len(), |i, j| p[(map[i], map[j])]);
+                match criterion {
+                    CiCriterion::Trace => pm.trace(),
+                    CiCriterion::Determinant => pm.determinant().ln(),
+                }
+            };
+            let at = objective(report.omega);
+            for k in 1..200 {
+                let w = k as f64 / 200.0;
+                assert!(
+                    at <= objective(w) + 1e-9 * at.abs().max(1.0),
+                    "{known:?}+{new} {criterion:?}: ω = {} gives {at}, ω = {w} gives {}",
+                    report.omega,
+                    objective(w)
+                );
+            }
+        }
+    }
+    // Invalid submaps: nothing changes.
+    let mut f = random_local_filter(4, &mut rng);
+    let before = snapshot(&f);
+    let good = random_submap(&f, &[100, 101], 1, &mut rng);
+    let mut nan = good.clone();
+    nan.offset_mean[2] = f64::NAN;
+    let mut not_pd = good.clone();
+    not_pd.covariance_packed[0] = -1.0;
+    let mut moved = good.clone();
+    moved.origin[0] += 1.0;
+    for bad in [nan, not_pd, moved] {
+        assert!(
+            f.fuse_submap_ci(&bad, crate::ci::CiCriterion::Trace)
+                .is_err()
+        );
+        assert_eq!(snapshot(&f), before);
+    }
+}
+
+/// [`dense_ci`] from a saved joint (the filter `f` is only used for its layout: the old states
+/// keep their indices and new features are appended in submap order).
+fn dense_ci_of(
+    p: &Mat<f64>,
+    x: &Col<f64>,
+    f: &SlamFilter,
+    s: &crate::ci::Submap,
+    omega: f64,
+) -> (DVector<f64>, DMatrix<f64>, Vec<FeatureId>) {
+    let n = p.nrows();
+    let new: Vec<FeatureId> = s
+        .ids
+        .iter()
+        .copied()
+        .filter(|id| f.layout().feature_offset(*id).is_none_or(|o| o >= n))
+        .collect();
+    let mut g = f.clone();
+    g.x = x.clone();
+    g.p = p.clone();
+    for id in &new {
+        let _ = g.layout.remove(SlotKind::Feature(*id));
+    }
+    let (mean, cov, app) = dense_ci(&g, s, omega);
+    debug_assert_eq!(app, new);
+    (mean, cov, app)
+}
