@@ -389,8 +389,7 @@ fn main() {
                 let d = make_delta(&f, ids.clone());
                 let now = (3 * rep + col) as f64;
                 t[col].push(time(&mut || {
-                    let y = f.map_information().unwrap();
-                    black_box(node.on_round(now, &y).unwrap());
+                    black_box(node.on_round(now, &mut f).unwrap());
                     f.fuse_map_information(&d).unwrap();
                 }));
             }

@@ -553,20 +553,20 @@ impl SubmapTracker {
             .or_else(|| self.confirmed.get(&id).copied())
     }
 
-    /// Priorities at time `now` of every feature of `marginal` whose covariance block is
-    /// positive definite (`timeout`: how long an unacknowledged send counts).
+    /// Priorities at time `now` of every feature whose covariance block (`blocks`: feature and
+    /// its 3 × 3 P_ff) is positive definite (`timeout`: how long an unacknowledged send
+    /// counts).
     pub fn priorities(
         &self,
-        marginal: &MapMarginal,
+        blocks: &[(FeatureId, Matrix3<f64>)],
         now: f64,
         timeout: f64,
     ) -> Vec<FeaturePriority> {
-        marginal
-            .ids
+        blocks
             .iter()
-            .enumerate()
-            .filter_map(|(b, &id)| {
-                let logdet_now = block_log_det(&marginal.covariance, b)?;
+            .filter_map(|&(id, p_ff)| {
+                let d = p_ff.determinant();
+                let logdet_now = (d > 0.0 && d.is_finite()).then(|| d.ln())?;
                 Some(match self.counted(id, now, timeout) {
                     Some((logdet, t)) => FeaturePriority {
                         id,
@@ -1025,10 +1025,13 @@ mod tests {
 
     #[test]
     fn tracker_priorities_follow_information_gain() {
-        let cov = |s: f64| MapMarginal {
+        let marginal = |s: f64| MapMarginal {
             ids: vec![1, 2],
             mean: Col::zeros(6),
             covariance: diag(&[s, s, s, 1.0, 1.0, 1.0]),
+        };
+        let cov = |s: f64| -> Vec<(FeatureId, Matrix3<f64>)> {
+            vec![(1, Matrix3::identity() * s), (2, Matrix3::identity())]
         };
         // Unacknowledged sends count for this long.
         let timeout = 3.0;
@@ -1040,7 +1043,7 @@ mod tests {
         );
         t.record_sent(
             1,
-            &Submap::from_marginal(&cov(4.0), &[1, 2], Vector3::zeros()),
+            &Submap::from_marginal(&marginal(4.0), &[1, 2], Vector3::zeros()),
             3.0,
             timeout,
         );
@@ -1064,7 +1067,7 @@ mod tests {
         // acknowledged send once the timeout passes.
         t.record_sent(
             2,
-            &Submap::from_marginal(&cov(1.0), &[2], Vector3::zeros()),
+            &Submap::from_marginal(&marginal(1.0), &[2], Vector3::zeros()),
             101.0,
             timeout,
         );

@@ -127,6 +127,10 @@ pub enum InfoError {
     /// The symmetric eigenvalue solver did not converge.
     #[error("symmetric eigenvalue solver did not converge")]
     Eigen,
+    /// The estimator could not form its map information (e.g. a map covariance that is not
+    /// positive definite); the message says why.
+    #[error("estimator: {0}")]
+    Estimator(String),
 }
 
 /// Which 3 × 3 feature blocks of a (delta) map information are non-zero beyond a threshold.

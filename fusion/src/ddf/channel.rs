@@ -3,9 +3,9 @@
 
 use super::message::{Body, DdfMessage, Header, Hello, MAX_SUBMAP_ACKS};
 use super::node::{DdfConfig, DdfError};
-use super::{FuseTarget, LinkMode};
+use super::{FuseTarget, LinkMode, MapSource};
 use crate::ci::{self, Submap, SubmapTracker};
-use crate::info::{InfoError, MapInformation, MapMarginal};
+use crate::info::{InfoError, MapInformation};
 use crate::topology::NodeId;
 use nalgebra::Vector3;
 use serde::{Deserialize, Serialize};
@@ -123,11 +123,50 @@ pub(crate) struct Channel {
     tracker: SubmapTracker,
     /// Number of the last submap sent on this link.
     submap_seq: u64,
-    /// Submaps received since the last round, in arrival order (fused at the next round).
-    pending_submaps: VecDeque<(u64, Submap)>,
     /// Numbers of the submaps fused since the last acknowledgement sent.
     submap_acks: Vec<u64>,
     pub(crate) stats: ChannelStats,
+}
+
+/// The node's map information, formed on first use in a round (only exact links need it).
+pub(crate) struct LazyInformation<'a> {
+    source: &'a mut dyn MapSource,
+    origin: Vector3<f64>,
+    value: Option<MapInformation>,
+}
+
+impl<'a> LazyInformation<'a> {
+    pub(crate) fn new(source: &'a mut dyn MapSource, origin: Vector3<f64>) -> Self {
+        Self {
+            source,
+            origin,
+            value: None,
+        }
+    }
+
+    /// The information, validated and in the node's origin.
+    pub(crate) fn get(&mut self) -> Result<&MapInformation, DdfError> {
+        if self.value.is_none() {
+            let info = self
+                .source
+                .information()
+                .map_err(DdfError::InvalidEstimate)?;
+            info.validate().map_err(DdfError::InvalidEstimate)?;
+            if info.origin != self.origin {
+                return Err(DdfError::InvalidEstimate(InfoError::OriginMismatch {
+                    left: self.origin.into(),
+                    right: info.origin.into(),
+                }));
+            }
+            self.value = Some(info);
+        }
+        Ok(self.value.as_ref().expect("just set"))
+    }
+
+    /// The source itself (covariance-form reads).
+    pub(crate) fn source(&self) -> &dyn MapSource {
+        &*self.source
+    }
 }
 
 /// What a channel needs to know about its node.
@@ -168,7 +207,6 @@ impl Channel {
             received_total: MapInformation::zero(origin),
             tracker: SubmapTracker::default(),
             submap_seq: 0,
-            pending_submaps: VecDeque::new(),
             submap_acks: Vec::new(),
             stats: ChannelStats::default(),
         }
@@ -190,13 +228,8 @@ impl Channel {
         self.budget = budget;
     }
 
-    /// The submaps received since the last round, in arrival order.
-    pub(crate) fn take_pending_submaps(&mut self) -> VecDeque<(u64, Submap)> {
-        std::mem::take(&mut self.pending_submaps)
-    }
-
     /// Submap `seq` was fused: acknowledged with the next round's messages.
-    pub(crate) fn submap_fused(&mut self, seq: u64) {
+    fn submap_fused(&mut self, seq: u64) {
         self.stats.submaps_fused += 1;
         if self.submap_acks.len() < MAX_SUBMAP_ACKS {
             self.submap_acks.push(seq);
@@ -261,7 +294,6 @@ impl Channel {
         self.reset_pair(ctx.origin);
         // The restarted peer lost what it had from us.
         self.tracker.clear();
-        self.pending_submaps.clear();
         self.submap_acks.clear();
     }
 
@@ -470,11 +502,12 @@ impl Channel {
             }
             Body::Submap { seq, submap } => {
                 self.switch_to_ci(ctx.origin);
-                if self.pending_submaps.len() >= ctx.config.max_buffer {
-                    self.pending_submaps.pop_front();
-                    self.stats.submaps_dropped += 1;
+                // Fused as it arrives: each CI fusion is consistent whatever the correlation
+                // with what was fused before it.
+                match target.fuse_submap(&submap, ctx.config.ci_criterion) {
+                    Ok(()) => self.submap_fused(seq),
+                    Err(_) => self.stats.ci_failures += 1,
                 }
-                self.pending_submaps.push_back((seq, submap));
                 Ok(())
             }
             Body::SubmapAck { seqs } => {
@@ -666,7 +699,7 @@ impl Channel {
     pub(crate) fn round_exact(
         &mut self,
         now: f64,
-        current: &MapInformation,
+        current: &mut LazyInformation<'_>,
         ctx: &NodeCtx<'_>,
     ) -> Result<Vec<DdfMessage>, DdfError> {
         let mut out = Vec::new();
@@ -687,7 +720,7 @@ impl Channel {
                 }
             }
             Pair::Synced => {
-                self.send_delta(current, ctx, &mut out)?;
+                self.send_delta(current.get()?, ctx, &mut out)?;
                 if self.gap_since.is_some_and(|t| now - t >= cfg.gap_timeout)
                     && self.last_nack.is_none_or(|t| now - t >= cfg.gap_timeout)
                 {
@@ -713,7 +746,7 @@ impl Channel {
     pub(crate) fn round_finish(
         &mut self,
         now: f64,
-        marginal: Option<&MapMarginal>,
+        source: &dyn MapSource,
         ctx: &NodeCtx<'_>,
     ) -> Vec<DdfMessage> {
         let mut out = Vec::new();
@@ -726,7 +759,7 @@ impl Channel {
                 let ack = self.msg(ctx, Body::SubmapAck { seqs });
                 out.push(ack);
             }
-            self.send_submap(now, marginal, ctx, &mut out);
+            self.send_submap(now, source, ctx, &mut out);
         }
         if self
             .last_hello
@@ -785,26 +818,28 @@ impl Channel {
     fn send_submap(
         &mut self,
         now: f64,
-        marginal: Option<&MapMarginal>,
+        source: &dyn MapSource,
         ctx: &NodeCtx<'_>,
         out: &mut Vec<DdfMessage>,
     ) {
-        let Some(marginal) = marginal else {
-            // The node could not form its covariance (its map is not positive definite).
-            self.stats.ci_failures += 1;
-            return;
-        };
-        if marginal.is_empty() {
+        let blocks = source.feature_covariances();
+        if blocks.is_empty() {
             return;
         }
         let budget = self.budget.unwrap_or(usize::MAX);
         let timeout = ctx.config.submap_ack_timeout;
-        let ids = ci::select_submap(self.tracker.priorities(marginal, now, timeout), budget);
+        let ids = ci::select_submap(self.tracker.priorities(&blocks, now, timeout), budget);
         if ids.is_empty() {
             self.stats.budget_starved += 1;
             return;
         }
-        let submap = Submap::from_marginal(marginal, &ids, ctx.origin);
+        let marginal = source.marginal(&ids);
+        if marginal.ids.len() != ids.len() || marginal.covariance.llt(faer::Side::Lower).is_err() {
+            // The estimator could not give a positive definite marginal of its own features.
+            self.stats.ci_failures += 1;
+            return;
+        }
+        let submap = Submap::from_marginal(&marginal, &ids, ctx.origin);
         self.submap_seq += 1;
         let seq = self.submap_seq;
         self.tracker.record_sent(seq, &submap, now, timeout);

@@ -1,11 +1,11 @@
 //! The per-process DDF state machine: one [`DdfNode`] per vehicle or hub, one channel per
 //! configured neighbour.
 
-use super::channel::{Channel, ChannelStats, NodeCtx};
+use super::channel::{Channel, ChannelStats, LazyInformation, NodeCtx};
 use super::message::{DdfMessage, Outgoing};
-use super::{FuseRejected, FuseTarget, LinkMode, Mode};
-use crate::ci::{self, CiCriterion};
-use crate::info::{InfoError, MapInformation};
+use super::{FuseRejected, FuseTarget, LinkMode, MapSource, Mode};
+use crate::ci::CiCriterion;
+use crate::info::InfoError;
 use crate::topology::{NodeId, Topology, TopologyError};
 use nalgebra::Vector3;
 use serde::{Deserialize, Serialize};
@@ -133,10 +133,6 @@ pub struct NodeStats {
 pub struct RoundOutput {
     /// Messages to send.
     pub messages: Vec<Outgoing>,
-    /// The change that covariance intersection with the submaps received since the last round
-    /// makes to the estimate (fused − current), to be added to it like a delta (usually
-    /// indefinite). `None` when no submap was pending.
-    pub ci_delta: Option<MapInformation>,
 }
 
 /// A read-only view of one channel.
@@ -283,76 +279,40 @@ impl DdfNode {
         }
     }
 
-    /// One fusion round. `current` is this node's map information (Y_i, y_i) now (eqs. 21.86,
-    /// 21.87 of its map marginal; the hub's running sum). Fuses pending CI submaps against it
-    /// (returned as [`RoundOutput::ci_delta`]), and for every link that is up: a Hello when
-    /// due, the Sync while initiating, the channel-filter delta d = Y_i − C_ik when it is not
-    /// empty (C_ik += d), a Nack when a gap persists, or a submap on a CI link.
+    /// One fusion round. `source` is this node's estimator: its map information (Y_i, y_i)
+    /// (eqs. 21.86, 21.87; formed only if an exact link sends a delta) and the covariance form
+    /// of a few features (CI links). For every link that is up: a Hello when due, the Sync
+    /// while initiating, the channel-filter delta d = Y_i − C_ik when it is not empty
+    /// (C_ik += d), a Nack when a gap persists, or the acknowledgements and a submap on a CI
+    /// link.
     pub fn on_round(
         &mut self,
         now: f64,
-        current: &MapInformation,
+        source: &mut dyn MapSource,
     ) -> Result<RoundOutput, DdfError> {
         Self::check_time(now)?;
-        current.validate().map_err(DdfError::InvalidEstimate)?;
-        if current.origin != self.origin {
-            return Err(DdfError::InvalidEstimate(InfoError::OriginMismatch {
-                left: self.origin.into(),
-                right: current.origin.into(),
-            }));
-        }
-        // CI with the submaps received since the last round.
-        let mut fused: Option<MapInformation> = None;
-        let criterion = self.config.ci_criterion;
-        for channel in self.channels.values_mut() {
-            // Every submap of the round, in arrival order: each CI fusion is consistent
-            // whatever the correlation with what was fused before it.
-            for (seq, submap) in channel.take_pending_submaps() {
-                let base = fused.as_ref().unwrap_or(current);
-                match ci::fuse_submap(base, &submap, criterion) {
-                    Ok(r) => {
-                        channel.submap_fused(seq);
-                        fused = Some(r.fused);
-                    }
-                    Err(_) => channel.stats.ci_failures += 1,
-                }
-            }
-        }
-        let ci_delta = match fused {
-            Some(f) => Some(f.sub(current).map_err(DdfError::Internal)?),
-            None => None,
-        };
         let ctx = NodeCtx {
             id: self.id,
             epoch: self.epoch,
             origin: self.origin,
             config: &self.config,
         };
+        let mut info = LazyInformation::new(source, self.origin);
         // Exact parts first: a delta that does not fit its budget switches its link to CI.
         let mut per_channel: BTreeMap<NodeId, Vec<DdfMessage>> = BTreeMap::new();
         for (&peer, channel) in self.channels.iter_mut() {
-            per_channel.insert(peer, channel.round_exact(now, current, &ctx)?);
+            per_channel.insert(peer, channel.round_exact(now, &mut info, &ctx)?);
         }
-        // The covariance form, only if a CI link will send a submap.
-        let needs_marginal = self
-            .channels
-            .values()
-            .any(|c| c.mode() == LinkMode::Ci && c.link_up());
-        let marginal = if needs_marginal {
-            current.to_marginal().ok()
-        } else {
-            None
-        };
         let mut messages = Vec::new();
         for (&peer, channel) in self.channels.iter_mut() {
             let mut out = per_channel.remove(&peer).unwrap_or_default();
-            out.extend(channel.round_finish(now, marginal.as_ref(), &ctx));
+            out.extend(channel.round_finish(now, info.source(), &ctx));
             messages.extend(
                 out.into_iter()
                     .map(|message| Outgoing { to: peer, message }),
             );
         }
-        Ok(RoundOutput { messages, ci_delta })
+        Ok(RoundOutput { messages })
     }
 
     /// Handles a message from `from`. Information to fuse goes to `target` (the caller's

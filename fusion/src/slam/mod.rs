@@ -32,6 +32,7 @@ mod fuse;
 mod info_cache;
 pub mod layout;
 mod multiview;
+mod source;
 pub mod triangulation;
 mod update;
 

@@ -332,10 +332,7 @@ impl Sim {
         let ids: Vec<NodeId> = self.nodes.keys().copied().collect();
         for id in ids {
             let node = self.nodes.get_mut(&id).unwrap();
-            let out = node.ddf.on_round(now, &node.estimate).unwrap();
-            if let Some(d) = out.ci_delta {
-                node.estimate.add_assign(&d).unwrap();
-            }
+            let out = node.ddf.on_round(now, &mut node.estimate).unwrap();
             for o in out.messages {
                 self.send(id, o.to, &o.message);
             }
