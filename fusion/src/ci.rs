@@ -286,6 +286,43 @@ impl Submap {
         }
     }
 
+    /// The submap in the key space of `keys` (module [`crate::keys`]): ids renamed to their
+    /// canonical keys; when two of its features turn out to be one, the later one is left out
+    /// (a submap is a marginal: dropping features keeps it valid and conservative).
+    pub fn rekeyed(&self, keys: &crate::keys::KeyMap) -> Submap {
+        if !keys.touches(&self.ids) {
+            return self.clone();
+        }
+        let mut seen = HashSet::new();
+        let keep: Vec<(usize, FeatureId)> = self
+            .ids
+            .iter()
+            .enumerate()
+            .filter_map(|(b, &id)| {
+                let c = keys.canonical(id);
+                seen.insert(c).then_some((b, c))
+            })
+            .collect();
+        let rows: Vec<usize> = keep
+            .iter()
+            .flat_map(|&(b, _)| (0..FEATURE_DIM).map(move |a| FEATURE_DIM * b + a))
+            .collect();
+        let p = self.covariance();
+        let n = rows.len();
+        let mut packed = Vec::with_capacity(n * (n + 1) / 2);
+        for j in 0..n {
+            for i in 0..=j {
+                packed.push(p[(rows[i], rows[j])]);
+            }
+        }
+        Submap {
+            ids: keep.iter().map(|&(_, c)| c).collect(),
+            origin: self.origin,
+            offset_mean: rows.iter().map(|&r| self.offset_mean[r]).collect(),
+            covariance_packed: packed,
+        }
+    }
+
     /// An upper bound of the bytes of a submap of `features` features on the wire.
     pub fn wire_bytes_for(features: usize) -> usize {
         let n = FEATURE_DIM * features;

@@ -347,6 +347,10 @@ impl FuseTarget for Refusing {
     ) -> Result<(), FuseRejected> {
         self.inner.fuse_submap(submap, criterion)
     }
+
+    fn merge(&mut self, merge: &canopy_fusion::keys::Merge) -> Result<(), FuseRejected> {
+        self.inner.merge(merge)
+    }
 }
 
 /// A refused delta is not recorded: it stays pending, is retried with the next message, and

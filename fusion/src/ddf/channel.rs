@@ -1,15 +1,17 @@
 //! One channel filter: node i's record of what it shares with neighbour k, and the per-link
 //! protocol state (sequence numbers, reorder buffer, epochs, sync, CI fallback).
 
-use super::message::{Body, DdfMessage, Header, Hello, MAX_SUBMAP_ACKS};
+use super::message::{Body, DdfMessage, Header, Hello, MAX_LIST, MAX_SUBMAP_ACKS};
 use super::node::{DdfConfig, DdfError};
 use super::{FuseTarget, LinkMode, MapSource};
 use crate::ci::{self, Submap, SubmapTracker};
 use crate::info::{InfoError, MapInformation};
+use crate::keys::{KeyMap, Merge};
+use crate::sensor::FeatureId;
 use crate::topology::NodeId;
 use nalgebra::Vector3;
 use serde::{Deserialize, Serialize};
-use std::collections::{BTreeMap, VecDeque};
+use std::collections::{BTreeMap, HashSet, VecDeque};
 
 /// Counters of one channel (one neighbour), for metrics and tests.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
@@ -125,6 +127,12 @@ pub(crate) struct Channel {
     submap_seq: u64,
     /// Numbers of the submaps fused since the last acknowledgement sent.
     submap_acks: Vec<u64>,
+    /// Merges to tell the peer (sent first in the next round).
+    facts_out: Vec<Merge>,
+    /// The peer's epoch changed: it must be told every merge this node holds.
+    pub(crate) needs_all_facts: bool,
+    /// Keys whose descriptors the peer's current epoch has been sent.
+    described: HashSet<FeatureId>,
     pub(crate) stats: ChannelStats,
 }
 
@@ -132,14 +140,20 @@ pub(crate) struct Channel {
 pub(crate) struct LazyInformation<'a> {
     source: &'a mut dyn MapSource,
     origin: Vector3<f64>,
+    keys: &'a KeyMap,
     value: Option<MapInformation>,
 }
 
 impl<'a> LazyInformation<'a> {
-    pub(crate) fn new(source: &'a mut dyn MapSource, origin: Vector3<f64>) -> Self {
+    pub(crate) fn new(
+        source: &'a mut dyn MapSource,
+        origin: Vector3<f64>,
+        keys: &'a KeyMap,
+    ) -> Self {
         Self {
             source,
             origin,
+            keys,
             value: None,
         }
     }
@@ -158,7 +172,9 @@ impl<'a> LazyInformation<'a> {
                     right: info.origin.into(),
                 }));
             }
-            self.value = Some(info);
+            // In the node's key space (an estimate that could not apply a merge yet still
+            // shares its information under the merged keys).
+            self.value = Some(info.rekeyed(self.keys));
         }
         Ok(self.value.as_ref().expect("just set"))
     }
@@ -208,6 +224,9 @@ impl Channel {
             tracker: SubmapTracker::default(),
             submap_seq: 0,
             submap_acks: Vec::new(),
+            facts_out: Vec::new(),
+            needs_all_facts: false,
+            described: HashSet::new(),
             stats: ChannelStats::default(),
         }
     }
@@ -295,6 +314,52 @@ impl Channel {
         // The restarted peer lost what it had from us.
         self.tracker.clear();
         self.submap_acks.clear();
+        self.described.clear();
+        self.needs_all_facts = true;
+    }
+
+    /// Applies a merge to everything this channel holds (module [`crate::keys`]): S, R,
+    /// R_total, buffered deltas and a pending Sync baseline; the fact is queued for the peer.
+    pub(crate) fn rekey(&mut self, keys: &KeyMap, fact: Merge) {
+        self.sent = self.sent.rekeyed(keys);
+        self.received = self.received.rekeyed(keys);
+        self.received_total = self.received_total.rekeyed(keys);
+        for d in self.buffer.values_mut() {
+            *d = d.rekeyed(keys);
+        }
+        if let Pair::Initiating { baseline, .. } = &mut self.pair {
+            *baseline = baseline.rekeyed(keys);
+        }
+        self.facts_out.push(fact);
+    }
+
+    /// Queues merges for the peer.
+    pub(crate) fn queue_facts(&mut self, facts: &[Merge]) {
+        self.facts_out.extend_from_slice(facts);
+    }
+
+    /// A `Describe` of the keys of `ids` this peer epoch has not been sent yet (`None` when
+    /// there are none or the estimator knows no descriptor for them).
+    fn describe_new(
+        &mut self,
+        ids: &[FeatureId],
+        source: &dyn MapSource,
+        ctx: &NodeCtx<'_>,
+    ) -> Option<DdfMessage> {
+        let new: Vec<FeatureId> = ids
+            .iter()
+            .copied()
+            .filter(|k| !self.described.contains(k))
+            .collect();
+        if new.is_empty() {
+            return None;
+        }
+        self.described.extend(&new);
+        let features = source.descriptors(&new);
+        if features.is_empty() {
+            return None;
+        }
+        Some(self.msg(ctx, Body::Describe { features }))
     }
 
     /// Decides this node's role in an undecided epoch pair, and initiates if it is ours:
@@ -515,6 +580,8 @@ impl Channel {
                 self.tracker.acknowledge(&seqs);
                 Ok(())
             }
+            // Handled by the node (they concern every channel); nothing left to do here.
+            Body::Merges { .. } | Body::Describe { .. } => Ok(()),
             _ if self.mode == LinkMode::Ci || !addressed => {
                 // Exact-protocol messages on a CI link, or not addressed to this epoch.
                 self.stats.stale += 1;
@@ -703,6 +770,17 @@ impl Channel {
         ctx: &NodeCtx<'_>,
     ) -> Result<Vec<DdfMessage>, DdfError> {
         let mut out = Vec::new();
+        if self.link_up && !self.facts_out.is_empty() {
+            for chunk in std::mem::take(&mut self.facts_out).chunks(MAX_LIST) {
+                let msg = self.msg(
+                    ctx,
+                    Body::Merges {
+                        merges: chunk.to_vec(),
+                    },
+                );
+                out.push(msg);
+            }
+        }
         self.decide(now, ctx, &mut out);
         if !self.link_up || self.mode != LinkMode::Exact {
             return Ok(out);
@@ -720,7 +798,7 @@ impl Channel {
                 }
             }
             Pair::Synced => {
-                self.send_delta(current.get()?, ctx, &mut out)?;
+                self.send_delta(current, ctx, &mut out)?;
                 if self.gap_since.is_some_and(|t| now - t >= cfg.gap_timeout)
                     && self.last_nack.is_none_or(|t| now - t >= cfg.gap_timeout)
                 {
@@ -773,10 +851,11 @@ impl Channel {
 
     fn send_delta(
         &mut self,
-        current: &MapInformation,
+        lazy: &mut LazyInformation<'_>,
         ctx: &NodeCtx<'_>,
         out: &mut Vec<DdfMessage>,
     ) -> Result<(), DdfError> {
+        let current = lazy.get()?;
         // d = Y_i − C_ik with C_ik = S + R (design.md §4).
         let d = current
             .sub_both(&self.sent, &self.received)
@@ -802,6 +881,9 @@ impl Channel {
             return Ok(());
         }
         self.sent.add_assign(&d).map_err(DdfError::Internal)?;
+        if let Some(describe) = self.describe_new(&d.ids, lazy.source(), ctx) {
+            out.push(describe);
+        }
         self.seq_sent += 1;
         self.stats.deltas_sent += 1;
         let msg = self.msg(
@@ -840,6 +922,9 @@ impl Channel {
             return;
         }
         let submap = Submap::from_marginal(&marginal, &ids, ctx.origin);
+        if let Some(describe) = self.describe_new(&submap.ids, source, ctx) {
+            out.push(describe);
+        }
         self.submap_seq += 1;
         let seq = self.submap_seq;
         self.tracker.record_sent(seq, &submap, now, timeout);
@@ -885,6 +970,29 @@ impl Channel {
                         what: "submap acknowledgements",
                         expected: MAX_SUBMAP_ACKS,
                         found: seqs.len(),
+                    });
+                }
+                Ok(())
+            }
+            Body::Merges { merges } => {
+                if merges.len() > MAX_LIST {
+                    return Err(InfoError::Dimension {
+                        what: "merges",
+                        expected: MAX_LIST,
+                        found: merges.len(),
+                    });
+                }
+                if let Some(m) = merges.iter().find(|m| m.into >= m.from) {
+                    return Err(InfoError::DuplicateId(m.from));
+                }
+                Ok(())
+            }
+            Body::Describe { features } => {
+                if features.len() > MAX_LIST {
+                    return Err(InfoError::Dimension {
+                        what: "descriptors",
+                        expected: MAX_LIST,
+                        found: features.len(),
                     });
                 }
                 Ok(())

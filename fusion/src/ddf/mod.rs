@@ -80,12 +80,13 @@ mod message;
 mod node;
 
 pub use channel::ChannelStats;
-pub use message::{Body, DdfMessage, Header, Hello, MAX_SUBMAP_ACKS, Outgoing};
+pub use message::{Body, DdfMessage, Header, Hello, MAX_LIST, MAX_SUBMAP_ACKS, Outgoing};
 pub use node::{ChannelView, DdfConfig, DdfError, DdfNode, DeltaPrecision, NodeStats, RoundOutput};
 
 use crate::ci::{CiCriterion, Submap};
 use crate::info::{InfoError, MapInformation, MapMarginal};
-use crate::sensor::FeatureId;
+use crate::keys::Merge;
+use crate::sensor::{Appearance, FeatureId};
 use crate::topology::NodeId;
 use nalgebra::Matrix3;
 use serde::{Deserialize, Serialize};
@@ -133,6 +134,28 @@ pub trait FuseTarget {
     /// Fuses a submap received on a CI link by covariance intersection (ω by `criterion`). A
     /// refusal is counted and the submap is not acknowledged (its features go out again).
     fn fuse_submap(&mut self, submap: &Submap, criterion: CiCriterion) -> Result<(), FuseRejected>;
+    /// Applies a correspondence (module [`crate::keys`]) to the estimate: `from` and `into`
+    /// become one feature named `into` (or `from` is renamed when only it is held). A refusal
+    /// is counted; the node's bookkeeping is merged anyway, and outgoing information is
+    /// re-keyed, so the estimate may hold the two a while longer without harm.
+    fn merge(&mut self, merge: &Merge) -> Result<(), FuseRejected>;
+    /// Whether to adopt a correspondence a neighbour adopted (`false`: this estimate has
+    /// evidence against it, e.g. the two features are far apart; the node then keeps them
+    /// apart, which is exact too).
+    fn accept_merge(&mut self, merge: &Merge) -> bool {
+        let _ = merge;
+        true
+    }
+    /// Correspondences between keys of a received delta (in this node's key space) and the
+    /// estimate's own features, proposed before it is fused (cross-vehicle association).
+    fn associate(&mut self, delta: &MapInformation) -> Vec<Merge> {
+        let _ = delta;
+        Vec::new()
+    }
+    /// Appearance descriptors of keys a neighbour is about to use.
+    fn describe(&mut self, features: &[(FeatureId, Appearance)]) {
+        let _ = features;
+    }
 }
 
 /// What a node reads from its estimator in a round: the map information only when an exact
@@ -145,6 +168,11 @@ pub trait MapSource {
     fn feature_covariances(&self) -> Vec<(FeatureId, Matrix3<f64>)>;
     /// The marginal (x_S, P_S) of `ids` (in that order; unknown ids are skipped).
     fn marginal(&self, ids: &[FeatureId]) -> MapMarginal;
+    /// Appearance descriptors of `ids`, where known (sent with keys new to a link).
+    fn descriptors(&self, ids: &[FeatureId]) -> Vec<(FeatureId, Appearance)> {
+        let _ = ids;
+        Vec::new()
+    }
 }
 
 fn rejected(e: impl std::fmt::Display) -> FuseRejected {
@@ -164,6 +192,13 @@ impl FuseTarget for MapInformation {
         *self = crate::ci::fuse_submap(self, submap, criterion)
             .map_err(rejected)?
             .fused;
+        Ok(())
+    }
+
+    fn merge(&mut self, merge: &Merge) -> Result<(), FuseRejected> {
+        let mut keys = crate::keys::KeyMap::default();
+        keys.adopt(merge.from, merge.into);
+        *self = self.rekeyed(&keys);
         Ok(())
     }
 }

@@ -2,10 +2,13 @@
 //! configured neighbour.
 
 use super::channel::{Channel, ChannelStats, LazyInformation, NodeCtx};
+use super::message::Body;
 use super::message::{DdfMessage, Outgoing};
 use super::{FuseRejected, FuseTarget, LinkMode, MapSource, Mode};
 use crate::ci::CiCriterion;
 use crate::info::InfoError;
+use crate::keys::{KeyMap, Merge};
+use crate::sensor::FeatureId;
 use crate::topology::{NodeId, Topology, TopologyError};
 use nalgebra::Vector3;
 use serde::{Deserialize, Serialize};
@@ -126,6 +129,16 @@ pub enum DdfError {
 pub struct NodeStats {
     /// Messages from nodes that are not neighbours (rejected).
     pub unknown_sender: u64,
+    /// Correspondences adopted (own proposals and neighbours' facts).
+    #[serde(default)]
+    pub merges_adopted: u64,
+    /// Neighbours' facts this node's estimate had evidence against (kept apart).
+    #[serde(default)]
+    pub merges_refused: u64,
+    /// Adopted correspondences the estimator could not apply yet (its outgoing information is
+    /// re-keyed meanwhile).
+    #[serde(default)]
+    pub merges_failed: u64,
 }
 
 /// What [`DdfNode::on_round`] asks the caller to do.
@@ -160,6 +173,8 @@ pub struct DdfNode {
     origin: Vector3<f64>,
     config: DdfConfig,
     channels: BTreeMap<NodeId, Channel>,
+    /// Correspondences adopted (module [`crate::keys`]).
+    keys: KeyMap,
     stats: NodeStats,
 }
 
@@ -183,6 +198,7 @@ impl DdfNode {
             origin,
             config,
             channels,
+            keys: KeyMap::default(),
             stats: NodeStats::default(),
         }
     }
@@ -297,7 +313,13 @@ impl DdfNode {
             origin: self.origin,
             config: &self.config,
         };
-        let mut info = LazyInformation::new(source, self.origin);
+        let all = self.keys.merges();
+        for channel in self.channels.values_mut() {
+            if std::mem::take(&mut channel.needs_all_facts) && !all.is_empty() {
+                channel.queue_facts(&all);
+            }
+        }
+        let mut info = LazyInformation::new(source, self.origin, &self.keys);
         // Exact parts first: a delta that does not fit its budget switches its link to CI.
         let mut per_channel: BTreeMap<NodeId, Vec<DdfMessage>> = BTreeMap::new();
         for (&peer, channel) in self.channels.iter_mut() {
@@ -313,6 +335,72 @@ impl DdfNode {
             );
         }
         Ok(RoundOutput { messages })
+    }
+
+    /// The correspondences this node adopted.
+    pub fn keys(&self) -> &KeyMap {
+        &self.keys
+    }
+
+    /// Adopts "a and b name one feature" (module [`crate::keys`]): every channel filter, the
+    /// buffered deltas and the estimate (`target.merge`) are re-keyed, and the fact is queued
+    /// for every neighbour. Returns the effective merge (`None`: already one).
+    pub fn adopt_merge(
+        &mut self,
+        a: FeatureId,
+        b: FeatureId,
+        target: &mut dyn FuseTarget,
+    ) -> Option<Merge> {
+        let m = self.keys.adopt(a, b)?;
+        for channel in self.channels.values_mut() {
+            channel.rekey(&self.keys, m);
+        }
+        self.stats.merges_adopted += 1;
+        if target.merge(&m).is_err() {
+            self.stats.merges_failed += 1;
+        }
+        Some(m)
+    }
+
+    /// Node-level handling before the channel sees a message: facts and descriptors concern
+    /// every channel; information is brought into this node's key space, and the estimator may
+    /// associate the delta's keys with its own features first (each adopted merge re-keys the
+    /// delta again). Returns `None` when nothing is left for the channel.
+    fn prepare(
+        &mut self,
+        mut message: DdfMessage,
+        target: &mut dyn FuseTarget,
+    ) -> Option<DdfMessage> {
+        match &mut message.body {
+            Body::Merges { merges } => {
+                for m in std::mem::take(merges) {
+                    if target.accept_merge(&m) {
+                        self.adopt_merge(m.from, m.into, target);
+                    } else {
+                        self.stats.merges_refused += 1;
+                    }
+                }
+                return None;
+            }
+            Body::Describe { features } => {
+                for f in features.iter_mut() {
+                    f.0 = self.keys.canonical(f.0);
+                }
+                target.describe(features);
+                return None;
+            }
+            Body::Delta { info, .. } | Body::Cumulative { info, .. } => {
+                *info = info.rekeyed(&self.keys);
+                for m in target.associate(info) {
+                    self.adopt_merge(m.from, m.into, target);
+                }
+                *info = info.rekeyed(&self.keys);
+            }
+            Body::Sync { baseline, .. } => *baseline = baseline.rekeyed(&self.keys),
+            Body::Submap { submap, .. } => *submap = submap.rekeyed(&self.keys),
+            Body::Hello(_) | Body::Nack { .. } | Body::SubmapAck { .. } => {}
+        }
+        Some(message)
     }
 
     /// Handles a message from `from`. Information to fuse goes to `target` (the caller's
@@ -331,12 +419,6 @@ impl DdfNode {
     ) -> Result<Vec<Outgoing>, DdfError> {
         Self::check_time(now)?;
         let origin = self.origin;
-        let ctx = NodeCtx {
-            id: self.id,
-            epoch: self.epoch,
-            origin,
-            config: &self.config,
-        };
         let Some(channel) = self.channels.get_mut(&from) else {
             self.stats.unknown_sender += 1;
             return Err(DdfError::UnknownSender(from));
@@ -346,6 +428,22 @@ impl DdfNode {
             channel.stats.rejected += 1;
             return Err(DdfError::InvalidMessage { from, source });
         }
+        let Some(message) = self.prepare(message, target) else {
+            if let Some(c) = self.channels.get_mut(&from) {
+                c.stats.messages_received += 1;
+            }
+            return Ok(Vec::new());
+        };
+        let ctx = NodeCtx {
+            id: self.id,
+            epoch: self.epoch,
+            origin,
+            config: &self.config,
+        };
+        let channel = self
+            .channels
+            .get_mut(&from)
+            .ok_or(DdfError::UnknownSender(from))?;
         let replies = channel.on_message(now, message, &ctx, target)?;
         Ok(replies
             .into_iter()

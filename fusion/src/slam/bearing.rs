@@ -327,6 +327,15 @@ pub(super) struct BearingState {
 }
 
 impl BearingState {
+    /// A merged feature key: tracks that carried it as their descriptor carry the new one.
+    pub(super) fn rename_descriptor(&mut self, from: FeatureId, into: FeatureId) {
+        for t in &mut self.tracks {
+            if t.descriptor == from {
+                t.descriptor = into;
+            }
+        }
+    }
+
     pub(super) fn new(pose_frame: Option<PoseFrame>) -> Self {
         Self {
             config: BearingConfig::default(),

@@ -2,11 +2,14 @@
 //! demand (exact links), covariance blocks and marginals (CI links), fuse-back of deltas and
 //! covariance-form CI of submaps.
 
-use super::SlamFilter;
+use super::update::HBlock;
+use super::{SlamError, SlamFilter, SlotKind};
 use crate::ci::{CiCriterion, Submap};
 use crate::ddf::{FuseRejected, FuseTarget, MapSource};
 use crate::info::{InfoError, MapInformation, MapMarginal};
+use crate::keys::Merge;
 use crate::sensor::FeatureId;
+use faer::{Col, Mat};
 use nalgebra::Matrix3;
 
 impl MapSource for SlamFilter {
@@ -38,20 +41,68 @@ impl MapSource for SlamFilter {
     }
 }
 
+fn refused(e: SlamError) -> FuseRejected {
+    FuseRejected {
+        reason: e.to_string(),
+    }
+}
+
 impl FuseTarget for SlamFilter {
     fn fuse(&mut self, delta: &MapInformation) -> Result<(), FuseRejected> {
         self.fuse_map_information(delta)
             .map(|_| ())
-            .map_err(|e| FuseRejected {
-                reason: e.to_string(),
-            })
+            .map_err(refused)
     }
 
     fn fuse_submap(&mut self, submap: &Submap, criterion: CiCriterion) -> Result<(), FuseRejected> {
         self.fuse_submap_ci(submap, criterion)
             .map(|_| ())
-            .map_err(|e| FuseRejected {
-                reason: e.to_string(),
-            })
+            .map_err(refused)
+    }
+
+    fn merge(&mut self, merge: &Merge) -> Result<(), FuseRejected> {
+        self.merge_features(merge).map_err(refused)
+    }
+}
+
+impl SlamFilter {
+    /// Applies a correspondence (module [`crate::keys`]): when both keys are features, the
+    /// constraint x_from = x_into is imposed exactly (a Kalman update with H = [I, −I] and
+    /// R = 0, eqs. 21.56–21.60) and `from` is marginalised out (its rows and columns cut):
+    /// the information of the rest is Tᵀ Y T, the merge of design.md §8. When only `from` is
+    /// held it is renamed `into`; otherwise nothing changes. Tracks keyed by `from` follow.
+    /// On error (the two features' difference has no positive variance) nothing changes.
+    pub fn merge_features(&mut self, merge: &Merge) -> Result<(), SlamError> {
+        let (from, into) = (merge.from, merge.into);
+        let (Some(a), b) = (
+            self.layout.feature_offset(from),
+            self.layout.feature_offset(into),
+        ) else {
+            return Ok(());
+        };
+        self.bearing.rename_descriptor(from, into);
+        let Some(b) = b else {
+            self.layout.rename_feature(from, into);
+            self.bump_map_generation(false);
+            return Ok(());
+        };
+        self.flush();
+        let blocks = [
+            HBlock {
+                row: 0,
+                col: a,
+                mat: Mat::identity(3, 3),
+            },
+            HBlock {
+                row: 0,
+                col: b,
+                mat: -Mat::<f64>::identity(3, 3),
+            },
+        ];
+        let nu = Col::from_fn(3, |i| self.x[b + i] - self.x[a + i]);
+        self.bump_map_generation(false);
+        self.blocks_update(&blocks, &nu, Mat::zeros(3, 3))?;
+        self.remove_block(SlotKind::Feature(from));
+        Ok(())
     }
 }

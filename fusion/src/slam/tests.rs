@@ -1620,3 +1620,71 @@ fn dense_ci_of(
     debug_assert_eq!(app, new);
     (mean, cov, app)
 }
+
+/// A merge of two features equals the dense re-keying of the joint information Y' = Tᵀ Y T,
+/// y' = Tᵀ y (design.md §8: condition on x_from = x_into, marginalise x_from); a merge of a key
+/// the filter holds alone renames it; unknown keys change nothing.
+#[test]
+fn merging_features_equals_the_dense_re_keying() {
+    let mut rng = ChaCha8Rng::seed_from_u64(21);
+    let mut f = random_local_filter(5, &mut rng);
+    let (from, into) = (103, 101);
+    let p = f.joint_covariance();
+    let n = p.nrows();
+    let p = DMatrix::from_fn(n, n, |i, j| p[(i, j)]);
+    let x = f.state_vector();
+    let x = DVector::from_fn(n, |i, _| x[i]);
+    let y = p.clone().try_inverse().unwrap();
+    let (a, b) = (
+        f.layout().feature_offset(from).unwrap(),
+        f.layout().feature_offset(into).unwrap(),
+    );
+    // T: n × (n − 3); old state i ← new state t(i); `from`'s rows read `into`'s.
+    let keep: Vec<usize> = (0..n).filter(|i| !(a..a + 3).contains(i)).collect();
+    let mut t = DMatrix::zeros(n, n - 3);
+    for (c, &i) in keep.iter().enumerate() {
+        t[(i, c)] = 1.0;
+    }
+    let b_new = keep.iter().position(|&i| i == b).unwrap();
+    for k in 0..3 {
+        t[(a + k, b_new + k)] = 1.0;
+    }
+    let y_new = t.transpose() * &y * &t;
+    let p_want = y_new.clone().try_inverse().unwrap();
+    let x_want = &p_want * (t.transpose() * (&y * &x));
+    f.merge_features(&crate::keys::Merge { from, into })
+        .unwrap();
+    assert!(f.layout().feature_offset(from).is_none());
+    let p_got = f.joint_covariance();
+    let x_got = f.state_vector();
+    let scale = p_want.abs().max();
+    for i in 0..n - 3 {
+        // Dense inversions of a ~30-state joint with condition ~10: 1e-10 relative.
+        assert!(
+            (x_got[i] - x_want[i]).abs() < 1e-9 * (1.0 + x_want[i].abs()),
+            "x[{i}]"
+        );
+        for j in 0..n - 3 {
+            assert!(
+                (p_got[(i, j)] - p_want[(i, j)]).abs() < 1e-10 * scale,
+                "P[{i},{j}]"
+            );
+        }
+    }
+    // Rename and no-op.
+    let before = snapshot(&f);
+    f.merge_features(&crate::keys::Merge {
+        from: 999,
+        into: 998,
+    })
+    .unwrap();
+    assert_eq!(snapshot(&f), before);
+    let off = f.layout().feature_offset(104).unwrap();
+    f.merge_features(&crate::keys::Merge {
+        from: 104,
+        into: 50,
+    })
+    .unwrap();
+    assert_eq!(f.layout().feature_offset(50), Some(off));
+    assert!(f.layout().feature_offset(104).is_none());
+}
