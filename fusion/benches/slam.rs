@@ -231,6 +231,7 @@ fn main() {
                     Observation {
                         descriptor: *id,
                         z: Measurement::RangeBearing(Vector3::new(z[0] + 0.1, z[1], z[2])),
+                        appearance: None,
                     }
                 })
                 .collect();
@@ -275,6 +276,7 @@ fn main() {
                     Observation {
                         descriptor: *id,
                         z: Measurement::RangeBearing(Vector3::new(z[0] + 0.1, z[1], z[2])),
+                        appearance: None,
                     }
                 })
                 .collect();
@@ -346,6 +348,7 @@ fn main() {
                     Observation {
                         descriptor: id,
                         z: Measurement::RangeBearing(Vector3::new(z[0] + 0.05, z[1], z[2])),
+                        appearance: None,
                     }
                 })
                 .collect();

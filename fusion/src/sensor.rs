@@ -46,10 +46,16 @@ pub enum Measurement {
 /// One feature observation from the terrain sensor.
 #[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct Observation {
-    /// The feature descriptor as extracted by the sensor (may be wrong in robustness tests).
+    /// What the sensor calls the observed thing: the tracker's (short-lived) track id, or, in
+    /// the perfect-identity ablation of the simulator, the true feature id. May be wrong in
+    /// robustness tests.
     pub descriptor: FeatureId,
     /// The measurement.
     pub z: Measurement,
+    /// The appearance descriptor extracted with it (`None`: the sensor gives none; then the
+    /// tracker id is all association has).
+    #[serde(default)]
+    pub appearance: Option<Appearance>,
 }
 
 /// All observations of one terrain-sensor frame.

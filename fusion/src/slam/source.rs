@@ -8,7 +8,7 @@ use crate::ci::{CiCriterion, Submap};
 use crate::ddf::{FuseRejected, FuseTarget, MapSource};
 use crate::info::{InfoError, MapInformation, MapMarginal};
 use crate::keys::Merge;
-use crate::sensor::FeatureId;
+use crate::sensor::{Appearance, FeatureId};
 use faer::{Col, Mat};
 use nalgebra::Matrix3;
 
@@ -23,6 +23,12 @@ impl MapSource for SlamFilter {
         self.layout
             .features()
             .map(|(id, off)| (id, Matrix3::from_fn(|i, j| self.p[(off + i, off + j)])))
+            .collect()
+    }
+
+    fn descriptors(&self, ids: &[FeatureId]) -> Vec<(FeatureId, Appearance)> {
+        ids.iter()
+            .filter_map(|&f| self.appearance.of(f).map(|a| (f, a)))
             .collect()
     }
 
@@ -63,6 +69,12 @@ impl FuseTarget for SlamFilter {
     fn merge(&mut self, merge: &Merge) -> Result<(), FuseRejected> {
         self.merge_features(merge).map_err(refused)
     }
+
+    fn describe(&mut self, features: &[(FeatureId, Appearance)]) {
+        for (f, a) in features {
+            self.appearance.described(*f, a);
+        }
+    }
 }
 
 impl SlamFilter {
@@ -81,6 +93,7 @@ impl SlamFilter {
             return Ok(());
         };
         self.bearing.rename_descriptor(from, into);
+        self.appearance.merge(from, into);
         let Some(b) = b else {
             self.layout.rename_feature(from, into);
             self.bump_map_generation(false);

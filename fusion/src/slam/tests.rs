@@ -269,6 +269,7 @@ fn invalid_observations_are_rejected_alone() {
     let good = Observation {
         descriptor: 100,
         z: rb(&observe(&f, 0, &truth, &f.feature(100).unwrap())),
+        appearance: None,
     };
     let before = snapshot(&f);
     let mut frames = Vec::new();
@@ -283,6 +284,7 @@ fn invalid_observations_are_rejected_alone() {
         let bad = Observation {
             descriptor: 7,
             z: Measurement::RangeBearing(z),
+            appearance: None,
         };
         frames.push(ObservationFrame {
             time: 1.0,
@@ -296,6 +298,7 @@ fn invalid_observations_are_rejected_alone() {
             Observation {
                 descriptor: 7,
                 z: Measurement::Pixel(nalgebra::Vector2::new(1.0, 2.0)),
+                appearance: None,
             },
         ],
     });
@@ -336,6 +339,7 @@ fn invalid_observations_are_rejected_alone() {
         let bad = Observation {
             descriptor: 7,
             z: Measurement::RangeBearing(Vector3::new(range, 0.1, 0.2)),
+            appearance: None,
         };
         let r = g
             .process_frame(
@@ -392,6 +396,7 @@ fn stacked_joseph_update_matches_the_dense_reference() {
         obs.push(Observation {
             descriptor: *id,
             z: rb(&z),
+            appearance: None,
         });
     }
     let r1 = model.noise_covariance();
@@ -475,6 +480,7 @@ fn feature_initialization_matches_eq_21_52() {
                     observations: vec![Observation {
                         descriptor: 9,
                         z: rb(&z),
+                        appearance: None,
                     }],
                 },
             )
@@ -810,6 +816,7 @@ fn association_scene(
             Observation {
                 descriptor: *id,
                 z: rb(&observe(&f, 0, &truth, &m)),
+                appearance: None,
             }
         })
         .collect();
@@ -940,6 +947,7 @@ fn nearest_neighbour_without_descriptors_and_descriptor_gating() {
     let far = Observation {
         descriptor: 10,
         z: Measurement::RangeBearing(Vector3::new(150.0, 1.0, 0.2)),
+        appearance: None,
     };
     let r = g
         .process_frame(
@@ -1028,6 +1036,7 @@ fn map_information_cache_follows_map_changes() {
     let update = Observation {
         descriptor: 101,
         z: rb(&(z + DVector::from_vec(vec![0.2, 0.001, 0.0]))),
+        appearance: None,
     };
     let r = f
         .process_frame(
@@ -1044,6 +1053,7 @@ fn map_information_cache_follows_map_changes() {
     let new = Observation {
         descriptor: 55,
         z: rb(&DVector::from_vec(vec![90.0, 0.3, -0.2])),
+        appearance: None,
     };
     let r = f
         .process_frame(
@@ -1193,6 +1203,7 @@ fn map_information_is_maintained_without_reinversion() {
                 Observation {
                     descriptor: id,
                     z: rb(&(z + DVector::from_vec(vec![0.1, 0.0005, -0.0005]))),
+                    appearance: None,
                 }
             })
             .chain([Observation {
@@ -1202,6 +1213,7 @@ fn map_information_is_maintained_without_reinversion() {
                     0.2,
                     -0.3,
                 ])),
+                appearance: None,
             }])
             .collect();
         let r = f
