@@ -10,13 +10,14 @@
 //!
 //! Run: `cargo bench -p canopy-fusion --bench fusion_round`.
 
-use canopy_fusion::ddf::{Body, DdfConfig, DdfNode, FuseTarget, Outgoing};
-use canopy_fusion::info::{MapInformation, MapMarginal};
+use canopy_fusion::ddf::{Body, DdfConfig, DdfNode, FuseTarget, MapSource, Outgoing};
+use canopy_fusion::info::{InfoError, MapInformation, MapMarginal};
+use canopy_fusion::sensor::FeatureId;
 use canopy_fusion::topology::NodeId;
 use criterion::{BatchSize, Criterion};
 use faer::linalg::solvers::DenseSolveCore;
 use faer::{Col, Mat, Side};
-use nalgebra::Vector3;
+use nalgebra::{Matrix3, Vector3};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use std::hint::black_box;
@@ -103,7 +104,7 @@ fn synced_node(base: &MapInformation) -> DdfNode {
     };
     pump(&mut queue, &mut a, &mut b);
     // A sends the base map once, so that the next round's delta is only what is new.
-    let out = a.on_round(1.0, base).unwrap();
+    let out = a.on_round(1.0, &mut base.clone()).unwrap();
     queue.extend(out.messages.into_iter().map(|o| (A, o)));
     pump(&mut queue, &mut a, &mut b);
     assert!(a.channel(B).unwrap().synced);
@@ -125,10 +126,25 @@ fn case(n: usize) -> Case {
     Case { n, marginal, node }
 }
 
+/// Hands the node the information it was given, without copying it.
+struct Given(Option<MapInformation>);
+
+impl MapSource for Given {
+    fn information(&mut self) -> Result<MapInformation, InfoError> {
+        Ok(self.0.take().expect("read once per round"))
+    }
+    fn feature_covariances(&self) -> Vec<(FeatureId, Matrix3<f64>)> {
+        Vec::new()
+    }
+    fn marginal(&self, _: &[FeatureId]) -> MapMarginal {
+        unreachable!("exact links only")
+    }
+}
+
 /// The round under test: Y = P⁻¹, y = Y(x − o) (21.86, 21.87), then the channel's delta.
 fn fusion_round(c: &Case, node: &mut DdfNode) -> Vec<Outgoing> {
     let info = MapInformation::from_marginal(&c.marginal, origin()).unwrap();
-    node.on_round(2.0, &info).unwrap().messages
+    node.on_round(2.0, &mut Given(Some(info))).unwrap().messages
 }
 
 fn faer_inverse(p: &Mat<f64>) -> Mat<f64> {

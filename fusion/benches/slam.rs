@@ -231,6 +231,7 @@ fn main() {
                     Observation {
                         descriptor: *id,
                         z: Measurement::RangeBearing(Vector3::new(z[0] + 0.1, z[1], z[2])),
+                        appearance: None,
                     }
                 })
                 .collect();
@@ -275,6 +276,7 @@ fn main() {
                     Observation {
                         descriptor: *id,
                         z: Measurement::RangeBearing(Vector3::new(z[0] + 0.1, z[1], z[2])),
+                        appearance: None,
                     }
                 })
                 .collect();
@@ -346,6 +348,7 @@ fn main() {
                     Observation {
                         descriptor: id,
                         z: Measurement::RangeBearing(Vector3::new(z[0] + 0.05, z[1], z[2])),
+                        appearance: None,
                     }
                 })
                 .collect();
@@ -389,8 +392,7 @@ fn main() {
                 let d = make_delta(&f, ids.clone());
                 let now = (3 * rep + col) as f64;
                 t[col].push(time(&mut || {
-                    let y = f.map_information().unwrap();
-                    black_box(node.on_round(now, &y).unwrap());
+                    black_box(node.on_round(now, &mut f).unwrap());
                     f.fuse_map_information(&d).unwrap();
                 }));
             }

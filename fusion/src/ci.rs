@@ -286,6 +286,43 @@ impl Submap {
         }
     }
 
+    /// The submap in the key space of `keys` (module [`crate::keys`]): ids renamed to their
+    /// canonical keys; when two of its features turn out to be one, the later one is left out
+    /// (a submap is a marginal: dropping features keeps it valid and conservative).
+    pub fn rekeyed(&self, keys: &crate::keys::KeyMap) -> Submap {
+        if !keys.touches(&self.ids) {
+            return self.clone();
+        }
+        let mut seen = HashSet::new();
+        let keep: Vec<(usize, FeatureId)> = self
+            .ids
+            .iter()
+            .enumerate()
+            .filter_map(|(b, &id)| {
+                let c = keys.canonical(id);
+                seen.insert(c).then_some((b, c))
+            })
+            .collect();
+        let rows: Vec<usize> = keep
+            .iter()
+            .flat_map(|&(b, _)| (0..FEATURE_DIM).map(move |a| FEATURE_DIM * b + a))
+            .collect();
+        let p = self.covariance();
+        let n = rows.len();
+        let mut packed = Vec::with_capacity(n * (n + 1) / 2);
+        for j in 0..n {
+            for i in 0..=j {
+                packed.push(p[(rows[i], rows[j])]);
+            }
+        }
+        Submap {
+            ids: keep.iter().map(|&(_, c)| c).collect(),
+            origin: self.origin,
+            offset_mean: rows.iter().map(|&r| self.offset_mean[r]).collect(),
+            covariance_packed: packed,
+        }
+    }
+
     /// An upper bound of the bytes of a submap of `features` features on the wire.
     pub fn wire_bytes_for(features: usize) -> usize {
         let n = FEATURE_DIM * features;
@@ -553,20 +590,20 @@ impl SubmapTracker {
             .or_else(|| self.confirmed.get(&id).copied())
     }
 
-    /// Priorities at time `now` of every feature of `marginal` whose covariance block is
-    /// positive definite (`timeout`: how long an unacknowledged send counts).
+    /// Priorities at time `now` of every feature whose covariance block (`blocks`: feature and
+    /// its 3 × 3 P_ff) is positive definite (`timeout`: how long an unacknowledged send
+    /// counts).
     pub fn priorities(
         &self,
-        marginal: &MapMarginal,
+        blocks: &[(FeatureId, Matrix3<f64>)],
         now: f64,
         timeout: f64,
     ) -> Vec<FeaturePriority> {
-        marginal
-            .ids
+        blocks
             .iter()
-            .enumerate()
-            .filter_map(|(b, &id)| {
-                let logdet_now = block_log_det(&marginal.covariance, b)?;
+            .filter_map(|&(id, p_ff)| {
+                let d = p_ff.determinant();
+                let logdet_now = (d > 0.0 && d.is_finite()).then(|| d.ln())?;
                 Some(match self.counted(id, now, timeout) {
                     Some((logdet, t)) => FeaturePriority {
                         id,
@@ -1025,10 +1062,13 @@ mod tests {
 
     #[test]
     fn tracker_priorities_follow_information_gain() {
-        let cov = |s: f64| MapMarginal {
+        let marginal = |s: f64| MapMarginal {
             ids: vec![1, 2],
             mean: Col::zeros(6),
             covariance: diag(&[s, s, s, 1.0, 1.0, 1.0]),
+        };
+        let cov = |s: f64| -> Vec<(FeatureId, Matrix3<f64>)> {
+            vec![(1, Matrix3::identity() * s), (2, Matrix3::identity())]
         };
         // Unacknowledged sends count for this long.
         let timeout = 3.0;
@@ -1040,7 +1080,7 @@ mod tests {
         );
         t.record_sent(
             1,
-            &Submap::from_marginal(&cov(4.0), &[1, 2], Vector3::zeros()),
+            &Submap::from_marginal(&marginal(4.0), &[1, 2], Vector3::zeros()),
             3.0,
             timeout,
         );
@@ -1064,7 +1104,7 @@ mod tests {
         // acknowledged send once the timeout passes.
         t.record_sent(
             2,
-            &Submap::from_marginal(&cov(1.0), &[2], Vector3::zeros()),
+            &Submap::from_marginal(&marginal(1.0), &[2], Vector3::zeros()),
             101.0,
             timeout,
         );

@@ -127,6 +127,10 @@ pub enum InfoError {
     /// The symmetric eigenvalue solver did not converge.
     #[error("symmetric eigenvalue solver did not converge")]
     Eigen,
+    /// The estimator could not form its map information (e.g. a map covariance that is not
+    /// positive definite); the message says why.
+    #[error("estimator: {0}")]
+    Estimator(String),
 }
 
 /// Which 3 × 3 feature blocks of a (delta) map information are non-zero beyond a threshold.
@@ -741,6 +745,51 @@ impl MapInformation {
             origin: self.origin,
             matrix: Mat::from_fn(n, n, |r, c| self.matrix[(rows[r], rows[c])]),
             vector: Col::from_fn(n, |r| self.vector[rows[r]]),
+        }
+    }
+
+    /// The same information in the key space of `keys` (module [`crate::keys`]): Y′ = Tᵀ Y T,
+    /// y′ = Tᵀ y, i.e. the rows and columns of every merged key are added to those of its
+    /// canonical key. Blocks keep their first-appearance order; a map no merge touches is
+    /// returned as is.
+    pub fn rekeyed(&self, keys: &crate::keys::KeyMap) -> MapInformation {
+        if !keys.touches(&self.ids) {
+            return self.clone();
+        }
+        let mut ids: Vec<FeatureId> = Vec::new();
+        let mut index: HashMap<FeatureId, usize> = HashMap::new();
+        let target: Vec<usize> = self
+            .ids
+            .iter()
+            .map(|&k| {
+                let c = keys.canonical(k);
+                *index.entry(c).or_insert_with(|| {
+                    ids.push(c);
+                    ids.len() - 1
+                })
+            })
+            .collect();
+        let n = FEATURE_DIM * ids.len();
+        let mut matrix = Mat::zeros(n, n);
+        let mut vector = Col::zeros(n);
+        let d = FEATURE_DIM;
+        for (bj, &tj) in target.iter().enumerate() {
+            for a in 0..d {
+                vector[d * tj + a] += self.vector[d * bj + a];
+            }
+            for (bi, &ti) in target.iter().enumerate() {
+                for c in 0..d {
+                    for r in 0..d {
+                        matrix[(d * ti + r, d * tj + c)] += self.matrix[(d * bi + r, d * bj + c)];
+                    }
+                }
+            }
+        }
+        MapInformation {
+            ids,
+            origin: self.origin,
+            matrix,
+            vector,
         }
     }
 

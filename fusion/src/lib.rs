@@ -18,6 +18,7 @@
 //!   (descriptor, NN, JCBB), Joseph updates, feature initialization (range-bearing, and
 //!   bearing-only with stored poses and delayed triangulation), fuse-back of map information.
 //! - [`info`]: map information keyed by feature id (21.86, 21.87), its algebra, (21.98, 21.99).
+//! - [`keys`]: feature keys and correspondences (merges as linear re-keyings of information).
 //! - [`ci`]: covariance intersection for bandwidth-limited links (full and submap forms).
 //! - [`ddf`]: the channel-filter protocol as a sans-IO state machine (decentralized, central).
 //! - [`topology`]: fusion-network graphs and tree validation (channel filters need a tree).
@@ -31,6 +32,7 @@ pub mod geodesy;
 pub mod imu;
 pub mod info;
 pub mod ins;
+pub mod keys;
 pub mod observation;
 pub mod rotation;
 pub mod runtime;

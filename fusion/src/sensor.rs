@@ -9,6 +9,15 @@ use nalgebra::{Matrix3, Vector2, Vector3};
 /// map information between vehicles; association inside one vehicle can work without it.
 pub type FeatureId = u64;
 
+/// A 256-bit binary appearance descriptor (e.g. ORB/BRIEF-like): what a camera can tell about
+/// a feature without knowing which one it is. Compared by Hamming distance.
+pub type Appearance = [u64; 4];
+
+/// Hamming distance between two appearance descriptors (0–256).
+pub fn hamming(a: &Appearance, b: &Appearance) -> u32 {
+    a.iter().zip(b).map(|(x, y)| (x ^ y).count_ones()).sum()
+}
+
 /// One IMU sample (eq. 21.13, 21.14 notation): measured specific force f̂^b [m/s²] and measured
 /// body rate ω̂^b_ib [rad/s] over the interval ending at `time`.
 #[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -37,10 +46,16 @@ pub enum Measurement {
 /// One feature observation from the terrain sensor.
 #[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct Observation {
-    /// The feature descriptor as extracted by the sensor (may be wrong in robustness tests).
+    /// What the sensor calls the observed thing: the tracker's (short-lived) track id, or, in
+    /// the perfect-identity ablation of the simulator, the true feature id. May be wrong in
+    /// robustness tests.
     pub descriptor: FeatureId,
     /// The measurement.
     pub z: Measurement,
+    /// The appearance descriptor extracted with it (`None`: the sensor gives none; then the
+    /// tracker id is all association has).
+    #[serde(default)]
+    pub appearance: Option<Appearance>,
 }
 
 /// All observations of one terrain-sensor frame.

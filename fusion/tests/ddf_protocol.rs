@@ -70,9 +70,6 @@ impl Net {
     fn round(&mut self, id: NodeId, now: f64) -> Vec<(NodeId, Outgoing)> {
         let (node, est) = self.nodes.get_mut(&id).unwrap();
         let out = node.on_round(now, est).unwrap();
-        if let Some(d) = out.ci_delta {
-            est.add_assign(&d).unwrap();
-        }
         out.messages.into_iter().map(|o| (id, o)).collect()
     }
 
@@ -313,7 +310,7 @@ fn bad_input_is_rejected_counted_and_harmless() {
     let mut broken = obs.clone();
     broken.vector[0] = f64::NAN;
     assert!(matches!(
-        node.on_round(1.0, &broken),
+        node.on_round(1.0, &mut broken),
         Err(DdfError::InvalidEstimate(_))
     ));
     assert!(matches!(
@@ -341,6 +338,18 @@ impl FuseTarget for Refusing {
             });
         }
         self.inner.fuse(delta)
+    }
+
+    fn fuse_submap(
+        &mut self,
+        submap: &canopy_fusion::ci::Submap,
+        criterion: canopy_fusion::ci::CiCriterion,
+    ) -> Result<(), FuseRejected> {
+        self.inner.fuse_submap(submap, criterion)
+    }
+
+    fn merge(&mut self, merge: &canopy_fusion::keys::Merge) -> Result<(), FuseRejected> {
+        self.inner.merge(merge)
     }
 }
 

@@ -87,6 +87,7 @@ fn observe(
         out.push(Observation {
             descriptor: *id,
             z: Measurement::RangeBearing(Vector3::new(z[0], z[1], z[2])),
+            appearance: None,
         });
     }
     out

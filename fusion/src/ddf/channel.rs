@@ -1,15 +1,17 @@
 //! One channel filter: node i's record of what it shares with neighbour k, and the per-link
 //! protocol state (sequence numbers, reorder buffer, epochs, sync, CI fallback).
 
-use super::message::{Body, DdfMessage, Header, Hello, MAX_SUBMAP_ACKS};
+use super::message::{Body, DdfMessage, Header, Hello, MAX_LIST, MAX_SUBMAP_ACKS};
 use super::node::{DdfConfig, DdfError};
-use super::{FuseTarget, LinkMode};
+use super::{FuseTarget, LinkMode, MapSource};
 use crate::ci::{self, Submap, SubmapTracker};
-use crate::info::{InfoError, MapInformation, MapMarginal};
+use crate::info::{InfoError, MapInformation};
+use crate::keys::{KeyMap, Merge};
+use crate::sensor::FeatureId;
 use crate::topology::NodeId;
 use nalgebra::Vector3;
 use serde::{Deserialize, Serialize};
-use std::collections::{BTreeMap, VecDeque};
+use std::collections::{BTreeMap, HashSet, VecDeque};
 
 /// Counters of one channel (one neighbour), for metrics and tests.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
@@ -123,11 +125,64 @@ pub(crate) struct Channel {
     tracker: SubmapTracker,
     /// Number of the last submap sent on this link.
     submap_seq: u64,
-    /// Submaps received since the last round, in arrival order (fused at the next round).
-    pending_submaps: VecDeque<(u64, Submap)>,
     /// Numbers of the submaps fused since the last acknowledgement sent.
     submap_acks: Vec<u64>,
+    /// Merges to tell the peer (sent first in the next round).
+    facts_out: Vec<Merge>,
+    /// The peer's epoch changed: it must be told every merge this node holds.
+    pub(crate) needs_all_facts: bool,
+    /// Keys whose descriptors the peer's current epoch has been sent.
+    described: HashSet<FeatureId>,
     pub(crate) stats: ChannelStats,
+}
+
+/// The node's map information, formed on first use in a round (only exact links need it).
+pub(crate) struct LazyInformation<'a> {
+    source: &'a mut dyn MapSource,
+    origin: Vector3<f64>,
+    keys: &'a KeyMap,
+    value: Option<MapInformation>,
+}
+
+impl<'a> LazyInformation<'a> {
+    pub(crate) fn new(
+        source: &'a mut dyn MapSource,
+        origin: Vector3<f64>,
+        keys: &'a KeyMap,
+    ) -> Self {
+        Self {
+            source,
+            origin,
+            keys,
+            value: None,
+        }
+    }
+
+    /// The information, validated and in the node's origin.
+    pub(crate) fn get(&mut self) -> Result<&MapInformation, DdfError> {
+        if self.value.is_none() {
+            let info = self
+                .source
+                .information()
+                .map_err(DdfError::InvalidEstimate)?;
+            info.validate().map_err(DdfError::InvalidEstimate)?;
+            if info.origin != self.origin {
+                return Err(DdfError::InvalidEstimate(InfoError::OriginMismatch {
+                    left: self.origin.into(),
+                    right: info.origin.into(),
+                }));
+            }
+            // In the node's key space (an estimate that could not apply a merge yet still
+            // shares its information under the merged keys).
+            self.value = Some(info.rekeyed(self.keys));
+        }
+        Ok(self.value.as_ref().expect("just set"))
+    }
+
+    /// The source itself (covariance-form reads).
+    pub(crate) fn source(&self) -> &dyn MapSource {
+        &*self.source
+    }
 }
 
 /// What a channel needs to know about its node.
@@ -168,8 +223,10 @@ impl Channel {
             received_total: MapInformation::zero(origin),
             tracker: SubmapTracker::default(),
             submap_seq: 0,
-            pending_submaps: VecDeque::new(),
             submap_acks: Vec::new(),
+            facts_out: Vec::new(),
+            needs_all_facts: false,
+            described: HashSet::new(),
             stats: ChannelStats::default(),
         }
     }
@@ -190,13 +247,8 @@ impl Channel {
         self.budget = budget;
     }
 
-    /// The submaps received since the last round, in arrival order.
-    pub(crate) fn take_pending_submaps(&mut self) -> VecDeque<(u64, Submap)> {
-        std::mem::take(&mut self.pending_submaps)
-    }
-
     /// Submap `seq` was fused: acknowledged with the next round's messages.
-    pub(crate) fn submap_fused(&mut self, seq: u64) {
+    fn submap_fused(&mut self, seq: u64) {
         self.stats.submaps_fused += 1;
         if self.submap_acks.len() < MAX_SUBMAP_ACKS {
             self.submap_acks.push(seq);
@@ -261,8 +313,53 @@ impl Channel {
         self.reset_pair(ctx.origin);
         // The restarted peer lost what it had from us.
         self.tracker.clear();
-        self.pending_submaps.clear();
         self.submap_acks.clear();
+        self.described.clear();
+        self.needs_all_facts = true;
+    }
+
+    /// Applies a merge to everything this channel holds (module [`crate::keys`]): S, R,
+    /// R_total, buffered deltas and a pending Sync baseline; the fact is queued for the peer.
+    pub(crate) fn rekey(&mut self, keys: &KeyMap, fact: Merge) {
+        self.sent = self.sent.rekeyed(keys);
+        self.received = self.received.rekeyed(keys);
+        self.received_total = self.received_total.rekeyed(keys);
+        for d in self.buffer.values_mut() {
+            *d = d.rekeyed(keys);
+        }
+        if let Pair::Initiating { baseline, .. } = &mut self.pair {
+            *baseline = baseline.rekeyed(keys);
+        }
+        self.facts_out.push(fact);
+    }
+
+    /// Queues merges for the peer.
+    pub(crate) fn queue_facts(&mut self, facts: &[Merge]) {
+        self.facts_out.extend_from_slice(facts);
+    }
+
+    /// A `Describe` of the keys of `ids` this peer epoch has not been sent yet (`None` when
+    /// there are none or the estimator knows no descriptor for them).
+    fn describe_new(
+        &mut self,
+        ids: &[FeatureId],
+        source: &dyn MapSource,
+        ctx: &NodeCtx<'_>,
+    ) -> Option<DdfMessage> {
+        let new: Vec<FeatureId> = ids
+            .iter()
+            .copied()
+            .filter(|k| !self.described.contains(k))
+            .collect();
+        if new.is_empty() {
+            return None;
+        }
+        self.described.extend(&new);
+        let features = source.descriptors(&new);
+        if features.is_empty() {
+            return None;
+        }
+        Some(self.msg(ctx, Body::Describe { features }))
     }
 
     /// Decides this node's role in an undecided epoch pair, and initiates if it is ours:
@@ -470,11 +567,12 @@ impl Channel {
             }
             Body::Submap { seq, submap } => {
                 self.switch_to_ci(ctx.origin);
-                if self.pending_submaps.len() >= ctx.config.max_buffer {
-                    self.pending_submaps.pop_front();
-                    self.stats.submaps_dropped += 1;
+                // Fused as it arrives: each CI fusion is consistent whatever the correlation
+                // with what was fused before it.
+                match target.fuse_submap(&submap, ctx.config.ci_criterion) {
+                    Ok(()) => self.submap_fused(seq),
+                    Err(_) => self.stats.ci_failures += 1,
                 }
-                self.pending_submaps.push_back((seq, submap));
                 Ok(())
             }
             Body::SubmapAck { seqs } => {
@@ -482,6 +580,8 @@ impl Channel {
                 self.tracker.acknowledge(&seqs);
                 Ok(())
             }
+            // Handled by the node (they concern every channel); nothing left to do here.
+            Body::Merges { .. } | Body::Describe { .. } => Ok(()),
             _ if self.mode == LinkMode::Ci || !addressed => {
                 // Exact-protocol messages on a CI link, or not addressed to this epoch.
                 self.stats.stale += 1;
@@ -666,10 +766,21 @@ impl Channel {
     pub(crate) fn round_exact(
         &mut self,
         now: f64,
-        current: &MapInformation,
+        current: &mut LazyInformation<'_>,
         ctx: &NodeCtx<'_>,
     ) -> Result<Vec<DdfMessage>, DdfError> {
         let mut out = Vec::new();
+        if self.link_up && !self.facts_out.is_empty() {
+            for chunk in std::mem::take(&mut self.facts_out).chunks(MAX_LIST) {
+                let msg = self.msg(
+                    ctx,
+                    Body::Merges {
+                        merges: chunk.to_vec(),
+                    },
+                );
+                out.push(msg);
+            }
+        }
         self.decide(now, ctx, &mut out);
         if !self.link_up || self.mode != LinkMode::Exact {
             return Ok(out);
@@ -713,7 +824,7 @@ impl Channel {
     pub(crate) fn round_finish(
         &mut self,
         now: f64,
-        marginal: Option<&MapMarginal>,
+        source: &dyn MapSource,
         ctx: &NodeCtx<'_>,
     ) -> Vec<DdfMessage> {
         let mut out = Vec::new();
@@ -726,7 +837,7 @@ impl Channel {
                 let ack = self.msg(ctx, Body::SubmapAck { seqs });
                 out.push(ack);
             }
-            self.send_submap(now, marginal, ctx, &mut out);
+            self.send_submap(now, source, ctx, &mut out);
         }
         if self
             .last_hello
@@ -740,10 +851,11 @@ impl Channel {
 
     fn send_delta(
         &mut self,
-        current: &MapInformation,
+        lazy: &mut LazyInformation<'_>,
         ctx: &NodeCtx<'_>,
         out: &mut Vec<DdfMessage>,
     ) -> Result<(), DdfError> {
+        let current = lazy.get()?;
         // d = Y_i − C_ik with C_ik = S + R (design.md §4).
         let d = current
             .sub_both(&self.sent, &self.received)
@@ -769,6 +881,9 @@ impl Channel {
             return Ok(());
         }
         self.sent.add_assign(&d).map_err(DdfError::Internal)?;
+        if let Some(describe) = self.describe_new(&d.ids, lazy.source(), ctx) {
+            out.push(describe);
+        }
         self.seq_sent += 1;
         self.stats.deltas_sent += 1;
         let msg = self.msg(
@@ -785,26 +900,31 @@ impl Channel {
     fn send_submap(
         &mut self,
         now: f64,
-        marginal: Option<&MapMarginal>,
+        source: &dyn MapSource,
         ctx: &NodeCtx<'_>,
         out: &mut Vec<DdfMessage>,
     ) {
-        let Some(marginal) = marginal else {
-            // The node could not form its covariance (its map is not positive definite).
-            self.stats.ci_failures += 1;
-            return;
-        };
-        if marginal.is_empty() {
+        let blocks = source.feature_covariances();
+        if blocks.is_empty() {
             return;
         }
         let budget = self.budget.unwrap_or(usize::MAX);
         let timeout = ctx.config.submap_ack_timeout;
-        let ids = ci::select_submap(self.tracker.priorities(marginal, now, timeout), budget);
+        let ids = ci::select_submap(self.tracker.priorities(&blocks, now, timeout), budget);
         if ids.is_empty() {
             self.stats.budget_starved += 1;
             return;
         }
-        let submap = Submap::from_marginal(marginal, &ids, ctx.origin);
+        let marginal = source.marginal(&ids);
+        if marginal.ids.len() != ids.len() || marginal.covariance.llt(faer::Side::Lower).is_err() {
+            // The estimator could not give a positive definite marginal of its own features.
+            self.stats.ci_failures += 1;
+            return;
+        }
+        let submap = Submap::from_marginal(&marginal, &ids, ctx.origin);
+        if let Some(describe) = self.describe_new(&submap.ids, source, ctx) {
+            out.push(describe);
+        }
         self.submap_seq += 1;
         let seq = self.submap_seq;
         self.tracker.record_sent(seq, &submap, now, timeout);
@@ -850,6 +970,29 @@ impl Channel {
                         what: "submap acknowledgements",
                         expected: MAX_SUBMAP_ACKS,
                         found: seqs.len(),
+                    });
+                }
+                Ok(())
+            }
+            Body::Merges { merges } => {
+                if merges.len() > MAX_LIST {
+                    return Err(InfoError::Dimension {
+                        what: "merges",
+                        expected: MAX_LIST,
+                        found: merges.len(),
+                    });
+                }
+                if let Some(m) = merges.iter().find(|m| m.into >= m.from) {
+                    return Err(InfoError::DuplicateId(m.from));
+                }
+                Ok(())
+            }
+            Body::Describe { features } => {
+                if features.len() > MAX_LIST {
+                    return Err(InfoError::Dimension {
+                        what: "descriptors",
+                        expected: MAX_LIST,
+                        found: features.len(),
                     });
                 }
                 Ok(())

@@ -3,6 +3,8 @@
 
 use crate::ci::Submap;
 use crate::info::MapInformation;
+use crate::keys::Merge;
+use crate::sensor::{Appearance, FeatureId};
 use crate::topology::NodeId;
 use serde::{Deserialize, Serialize};
 
@@ -103,7 +105,23 @@ pub enum Body {
         /// Numbers of the fused submaps (at most [`MAX_SUBMAP_ACKS`]).
         seqs: Vec<u64>,
     },
+    /// Correspondences the sender adopted (module [`crate::keys`]): the receiver may adopt them
+    /// too. Independent of epochs and sequence numbers (a merge is idempotent and order does
+    /// not matter for the bookkeeping).
+    Merges {
+        /// The merges (at most [`MAX_LIST`]).
+        merges: Vec<Merge>,
+    },
+    /// Appearance descriptors of keys the sender is about to use on this link for the first
+    /// time (so the receiver can associate them with its own features).
+    Describe {
+        /// Key and descriptor (at most [`MAX_LIST`]).
+        features: Vec<(FeatureId, Appearance)>,
+    },
 }
+
+/// Most entries of one [`Body::Merges`] or [`Body::Describe`] (more is rejected as malformed).
+pub const MAX_LIST: usize = 65_536;
 
 /// Most submap numbers one [`Body::SubmapAck`] carries (more is rejected as malformed).
 pub const MAX_SUBMAP_ACKS: usize = 256;
@@ -128,6 +146,8 @@ impl DdfMessage {
             Body::Sync { .. } => "sync",
             Body::Submap { .. } => "submap",
             Body::SubmapAck { .. } => "submap-ack",
+            Body::Merges { .. } => "merges",
+            Body::Describe { .. } => "describe",
         }
     }
 
@@ -145,6 +165,8 @@ impl DdfMessage {
                 Body::Sync { baseline, .. } => 9 + 1 + baseline.block_sparse_wire_bytes(),
                 Body::Submap { submap, .. } => 9 + submap.wire_bytes(),
                 Body::SubmapAck { seqs } => 9 + 9 * seqs.len(),
+                Body::Merges { merges } => 9 + 18 * merges.len(),
+                Body::Describe { features } => 9 + (9 + 4 * 9) * features.len(),
             }
     }
 }

@@ -64,11 +64,12 @@
 //! When a link's byte budget cannot carry the delta, the link switches to CI for good, in both
 //! directions (the peer switches on the first submap or on a Hello with `ci` set): its channel
 //! filter is retired, and each round a budgeted [`Submap`](crate::ci::Submap) of the
-//! highest-priority features is sent and fused by [`crate::ci::fuse_submap`]. Submaps are
+//! highest-priority features is sent and fused by the receiver's estimator
+//! ([`FuseTarget::fuse_submap`]: the EKF in covariance form, `SlamFilter::fuse_submap_ci`; a
+//! plain information map by [`crate::ci::fuse_submap`]) as it arrives. Submaps are
 //! numbered and the receiver acknowledges those it fused (`SubmapAck`); a feature whose submap
 //! was never acknowledged (lost, or refused) counts as unsent again after
-//! `submap_ack_timeout`, so every feature eventually crosses the link. Every submap received
-//! between two rounds is fused, in arrival order. Exact-protocol
+//! `submap_ack_timeout`, so every feature eventually crosses the link. Exact-protocol
 //! messages still in flight on that link are dropped (information lost, never double counted).
 //! The CI change of the estimate reaches the node's exact links as part of Y_i − C_ij, so
 //! deltas there may be indefinite: payloads are validated as finite and symmetric, positive
@@ -79,11 +80,15 @@ mod message;
 mod node;
 
 pub use channel::ChannelStats;
-pub use message::{Body, DdfMessage, Header, Hello, MAX_SUBMAP_ACKS, Outgoing};
+pub use message::{Body, DdfMessage, Header, Hello, MAX_LIST, MAX_SUBMAP_ACKS, Outgoing};
 pub use node::{ChannelView, DdfConfig, DdfError, DdfNode, DeltaPrecision, NodeStats, RoundOutput};
 
-use crate::info::MapInformation;
+use crate::ci::{CiCriterion, Submap};
+use crate::info::{InfoError, MapInformation, MapMarginal};
+use crate::keys::Merge;
+use crate::sensor::{Appearance, FeatureId};
 use crate::topology::NodeId;
+use nalgebra::Matrix3;
 use serde::{Deserialize, Serialize};
 
 /// How a team fuses maps.
@@ -126,14 +131,108 @@ pub struct FuseRejected {
 pub trait FuseTarget {
     /// Adds `delta` (aligned by feature id; new features augment the map).
     fn fuse(&mut self, delta: &MapInformation) -> Result<(), FuseRejected>;
+    /// Fuses a submap received on a CI link by covariance intersection (ω by `criterion`). A
+    /// refusal is counted and the submap is not acknowledged (its features go out again).
+    fn fuse_submap(&mut self, submap: &Submap, criterion: CiCriterion) -> Result<(), FuseRejected>;
+    /// Applies a correspondence (module [`crate::keys`]) to the estimate: `from` and `into`
+    /// become one feature named `into` (or `from` is renamed when only it is held). A refusal
+    /// is counted; the node's bookkeeping is merged anyway, and outgoing information is
+    /// re-keyed, so the estimate may hold the two a while longer without harm.
+    fn merge(&mut self, merge: &Merge) -> Result<(), FuseRejected>;
+    /// Whether to adopt a correspondence a neighbour adopted (`false`: this estimate has
+    /// evidence against it, e.g. the two features are far apart; the node then keeps them
+    /// apart, which is exact too).
+    fn accept_merge(&mut self, merge: &Merge) -> bool {
+        let _ = merge;
+        true
+    }
+    /// Correspondences between keys of a received delta (in this node's key space) and the
+    /// estimate's own features, proposed before it is fused (cross-vehicle association).
+    fn associate(&mut self, delta: &MapInformation) -> Vec<Merge> {
+        let _ = delta;
+        Vec::new()
+    }
+    /// Appearance descriptors of keys a neighbour is about to use.
+    fn describe(&mut self, features: &[(FeatureId, Appearance)]) {
+        let _ = features;
+    }
+}
+
+/// What a node reads from its estimator in a round: the map information only when an exact
+/// link sends a delta (forming Y = P⁻¹ is the expensive part), the covariance form of a few
+/// features when a CI link sends a submap.
+pub trait MapSource {
+    /// The map information (Y, y) (eqs. 21.86, 21.87) in the node's origin.
+    fn information(&mut self) -> Result<MapInformation, InfoError>;
+    /// Every map feature with its 3 × 3 covariance block (submap priorities).
+    fn feature_covariances(&self) -> Vec<(FeatureId, Matrix3<f64>)>;
+    /// The marginal (x_S, P_S) of `ids` (in that order; unknown ids are skipped).
+    fn marginal(&self, ids: &[FeatureId]) -> MapMarginal;
+    /// Appearance descriptors of `ids`, where known (sent with keys new to a link).
+    fn descriptors(&self, ids: &[FeatureId]) -> Vec<(FeatureId, Appearance)> {
+        let _ = ids;
+        Vec::new()
+    }
+}
+
+fn rejected(e: impl std::fmt::Display) -> FuseRejected {
+    FuseRejected {
+        reason: e.to_string(),
+    }
 }
 
 /// A plain information accumulator (the hub's estimate, and the stand-in for the EKF's map in
-/// linear-Gaussian tests): adds every delta.
+/// linear-Gaussian tests): adds every delta; fuses submaps by information-form CI.
 impl FuseTarget for MapInformation {
     fn fuse(&mut self, delta: &MapInformation) -> Result<(), FuseRejected> {
-        self.add_assign(delta).map_err(|e| FuseRejected {
-            reason: e.to_string(),
-        })
+        self.add_assign(delta).map_err(rejected)
+    }
+
+    fn fuse_submap(&mut self, submap: &Submap, criterion: CiCriterion) -> Result<(), FuseRejected> {
+        *self = crate::ci::fuse_submap(self, submap, criterion)
+            .map_err(rejected)?
+            .fused;
+        Ok(())
+    }
+
+    fn merge(&mut self, merge: &Merge) -> Result<(), FuseRejected> {
+        let mut keys = crate::keys::KeyMap::default();
+        keys.adopt(merge.from, merge.into);
+        *self = self.rekeyed(&keys);
+        Ok(())
+    }
+}
+
+/// Map information as its own source (the hub, tests): the covariance form by one inversion.
+impl MapSource for MapInformation {
+    fn information(&mut self) -> Result<MapInformation, InfoError> {
+        Ok(self.clone())
+    }
+
+    fn feature_covariances(&self) -> Vec<(FeatureId, Matrix3<f64>)> {
+        let Ok(m) = self.to_marginal() else {
+            return Vec::new();
+        };
+        m.ids
+            .iter()
+            .enumerate()
+            .map(|(b, &id)| {
+                (
+                    id,
+                    Matrix3::from_fn(|i, j| m.covariance[(3 * b + i, 3 * b + j)]),
+                )
+            })
+            .collect()
+    }
+
+    fn marginal(&self, ids: &[FeatureId]) -> MapMarginal {
+        match self.to_marginal() {
+            Ok(m) => m.restrict(ids),
+            Err(_) => MapMarginal {
+                ids: Vec::new(),
+                mean: faer::Col::zeros(0),
+                covariance: faer::Mat::zeros(0, 0),
+            },
+        }
     }
 }

@@ -1,11 +1,14 @@
 //! The per-process DDF state machine: one [`DdfNode`] per vehicle or hub, one channel per
 //! configured neighbour.
 
-use super::channel::{Channel, ChannelStats, NodeCtx};
+use super::channel::{Channel, ChannelStats, LazyInformation, NodeCtx};
+use super::message::Body;
 use super::message::{DdfMessage, Outgoing};
-use super::{FuseRejected, FuseTarget, LinkMode, Mode};
-use crate::ci::{self, CiCriterion};
-use crate::info::{InfoError, MapInformation};
+use super::{FuseRejected, FuseTarget, LinkMode, MapSource, Mode};
+use crate::ci::CiCriterion;
+use crate::info::InfoError;
+use crate::keys::{KeyMap, Merge};
+use crate::sensor::FeatureId;
 use crate::topology::{NodeId, Topology, TopologyError};
 use nalgebra::Vector3;
 use serde::{Deserialize, Serialize};
@@ -126,6 +129,16 @@ pub enum DdfError {
 pub struct NodeStats {
     /// Messages from nodes that are not neighbours (rejected).
     pub unknown_sender: u64,
+    /// Correspondences adopted (own proposals and neighbours' facts).
+    #[serde(default)]
+    pub merges_adopted: u64,
+    /// Neighbours' facts this node's estimate had evidence against (kept apart).
+    #[serde(default)]
+    pub merges_refused: u64,
+    /// Adopted correspondences the estimator could not apply yet (its outgoing information is
+    /// re-keyed meanwhile).
+    #[serde(default)]
+    pub merges_failed: u64,
 }
 
 /// What [`DdfNode::on_round`] asks the caller to do.
@@ -133,10 +146,6 @@ pub struct NodeStats {
 pub struct RoundOutput {
     /// Messages to send.
     pub messages: Vec<Outgoing>,
-    /// The change that covariance intersection with the submaps received since the last round
-    /// makes to the estimate (fused − current), to be added to it like a delta (usually
-    /// indefinite). `None` when no submap was pending.
-    pub ci_delta: Option<MapInformation>,
 }
 
 /// A read-only view of one channel.
@@ -164,6 +173,8 @@ pub struct DdfNode {
     origin: Vector3<f64>,
     config: DdfConfig,
     channels: BTreeMap<NodeId, Channel>,
+    /// Correspondences adopted (module [`crate::keys`]).
+    keys: KeyMap,
     stats: NodeStats,
 }
 
@@ -187,6 +198,7 @@ impl DdfNode {
             origin,
             config,
             channels,
+            keys: KeyMap::default(),
             stats: NodeStats::default(),
         }
     }
@@ -283,76 +295,112 @@ impl DdfNode {
         }
     }
 
-    /// One fusion round. `current` is this node's map information (Y_i, y_i) now (eqs. 21.86,
-    /// 21.87 of its map marginal; the hub's running sum). Fuses pending CI submaps against it
-    /// (returned as [`RoundOutput::ci_delta`]), and for every link that is up: a Hello when
-    /// due, the Sync while initiating, the channel-filter delta d = Y_i − C_ik when it is not
-    /// empty (C_ik += d), a Nack when a gap persists, or a submap on a CI link.
+    /// One fusion round. `source` is this node's estimator: its map information (Y_i, y_i)
+    /// (eqs. 21.86, 21.87; formed only if an exact link sends a delta) and the covariance form
+    /// of a few features (CI links). For every link that is up: a Hello when due, the Sync
+    /// while initiating, the channel-filter delta d = Y_i − C_ik when it is not empty
+    /// (C_ik += d), a Nack when a gap persists, or the acknowledgements and a submap on a CI
+    /// link.
     pub fn on_round(
         &mut self,
         now: f64,
-        current: &MapInformation,
+        source: &mut dyn MapSource,
     ) -> Result<RoundOutput, DdfError> {
         Self::check_time(now)?;
-        current.validate().map_err(DdfError::InvalidEstimate)?;
-        if current.origin != self.origin {
-            return Err(DdfError::InvalidEstimate(InfoError::OriginMismatch {
-                left: self.origin.into(),
-                right: current.origin.into(),
-            }));
-        }
-        // CI with the submaps received since the last round.
-        let mut fused: Option<MapInformation> = None;
-        let criterion = self.config.ci_criterion;
-        for channel in self.channels.values_mut() {
-            // Every submap of the round, in arrival order: each CI fusion is consistent
-            // whatever the correlation with what was fused before it.
-            for (seq, submap) in channel.take_pending_submaps() {
-                let base = fused.as_ref().unwrap_or(current);
-                match ci::fuse_submap(base, &submap, criterion) {
-                    Ok(r) => {
-                        channel.submap_fused(seq);
-                        fused = Some(r.fused);
-                    }
-                    Err(_) => channel.stats.ci_failures += 1,
-                }
-            }
-        }
-        let ci_delta = match fused {
-            Some(f) => Some(f.sub(current).map_err(DdfError::Internal)?),
-            None => None,
-        };
         let ctx = NodeCtx {
             id: self.id,
             epoch: self.epoch,
             origin: self.origin,
             config: &self.config,
         };
+        let all = self.keys.merges();
+        for channel in self.channels.values_mut() {
+            if std::mem::take(&mut channel.needs_all_facts) && !all.is_empty() {
+                channel.queue_facts(&all);
+            }
+        }
+        let mut info = LazyInformation::new(source, self.origin, &self.keys);
         // Exact parts first: a delta that does not fit its budget switches its link to CI.
         let mut per_channel: BTreeMap<NodeId, Vec<DdfMessage>> = BTreeMap::new();
         for (&peer, channel) in self.channels.iter_mut() {
-            per_channel.insert(peer, channel.round_exact(now, current, &ctx)?);
+            per_channel.insert(peer, channel.round_exact(now, &mut info, &ctx)?);
         }
-        // The covariance form, only if a CI link will send a submap.
-        let needs_marginal = self
-            .channels
-            .values()
-            .any(|c| c.mode() == LinkMode::Ci && c.link_up());
-        let marginal = if needs_marginal {
-            current.to_marginal().ok()
-        } else {
-            None
-        };
         let mut messages = Vec::new();
         for (&peer, channel) in self.channels.iter_mut() {
             let mut out = per_channel.remove(&peer).unwrap_or_default();
-            out.extend(channel.round_finish(now, marginal.as_ref(), &ctx));
+            out.extend(channel.round_finish(now, info.source(), &ctx));
             messages.extend(
                 out.into_iter()
                     .map(|message| Outgoing { to: peer, message }),
             );
         }
-        Ok(RoundOutput { messages, ci_delta })
+        Ok(RoundOutput { messages })
+    }
+
+    /// The correspondences this node adopted.
+    pub fn keys(&self) -> &KeyMap {
+        &self.keys
+    }
+
+    /// Adopts "a and b name one feature" (module [`crate::keys`]): every channel filter, the
+    /// buffered deltas and the estimate (`target.merge`) are re-keyed, and the fact is queued
+    /// for every neighbour. Returns the effective merge (`None`: already one).
+    pub fn adopt_merge(
+        &mut self,
+        a: FeatureId,
+        b: FeatureId,
+        target: &mut dyn FuseTarget,
+    ) -> Option<Merge> {
+        let m = self.keys.adopt(a, b)?;
+        for channel in self.channels.values_mut() {
+            channel.rekey(&self.keys, m);
+        }
+        self.stats.merges_adopted += 1;
+        if target.merge(&m).is_err() {
+            self.stats.merges_failed += 1;
+        }
+        Some(m)
+    }
+
+    /// Node-level handling before the channel sees a message: facts and descriptors concern
+    /// every channel; information is brought into this node's key space, and the estimator may
+    /// associate the delta's keys with its own features first (each adopted merge re-keys the
+    /// delta again). Returns `None` when nothing is left for the channel.
+    fn prepare(
+        &mut self,
+        mut message: DdfMessage,
+        target: &mut dyn FuseTarget,
+    ) -> Option<DdfMessage> {
+        match &mut message.body {
+            Body::Merges { merges } => {
+                for m in std::mem::take(merges) {
+                    if target.accept_merge(&m) {
+                        self.adopt_merge(m.from, m.into, target);
+                    } else {
+                        self.stats.merges_refused += 1;
+                    }
+                }
+                return None;
+            }
+            Body::Describe { features } => {
+                for f in features.iter_mut() {
+                    f.0 = self.keys.canonical(f.0);
+                }
+                target.describe(features);
+                return None;
+            }
+            Body::Delta { info, .. } | Body::Cumulative { info, .. } => {
+                *info = info.rekeyed(&self.keys);
+                for m in target.associate(info) {
+                    self.adopt_merge(m.from, m.into, target);
+                }
+                *info = info.rekeyed(&self.keys);
+            }
+            Body::Sync { baseline, .. } => *baseline = baseline.rekeyed(&self.keys),
+            Body::Submap { submap, .. } => *submap = submap.rekeyed(&self.keys),
+            Body::Hello(_) | Body::Nack { .. } | Body::SubmapAck { .. } => {}
+        }
+        Some(message)
     }
 
     /// Handles a message from `from`. Information to fuse goes to `target` (the caller's
@@ -371,12 +419,6 @@ impl DdfNode {
     ) -> Result<Vec<Outgoing>, DdfError> {
         Self::check_time(now)?;
         let origin = self.origin;
-        let ctx = NodeCtx {
-            id: self.id,
-            epoch: self.epoch,
-            origin,
-            config: &self.config,
-        };
         let Some(channel) = self.channels.get_mut(&from) else {
             self.stats.unknown_sender += 1;
             return Err(DdfError::UnknownSender(from));
@@ -386,6 +428,22 @@ impl DdfNode {
             channel.stats.rejected += 1;
             return Err(DdfError::InvalidMessage { from, source });
         }
+        let Some(message) = self.prepare(message, target) else {
+            if let Some(c) = self.channels.get_mut(&from) {
+                c.stats.messages_received += 1;
+            }
+            return Ok(Vec::new());
+        };
+        let ctx = NodeCtx {
+            id: self.id,
+            epoch: self.epoch,
+            origin,
+            config: &self.config,
+        };
+        let channel = self
+            .channels
+            .get_mut(&from)
+            .ok_or(DdfError::UnknownSender(from))?;
         let replies = channel.on_message(now, message, &ctx, target)?;
         Ok(replies
             .into_iter()

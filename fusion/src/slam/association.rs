@@ -148,6 +148,7 @@ impl SlamFilter {
         model: &ObservationModel,
         zs: &[DVector<f64>],
         descriptors: &[FeatureId],
+        appearances: &[Option<crate::sensor::Appearance>],
     ) -> AssociationPlan {
         let voff = self.layout.vehicle_block(vehicle);
         let state = self
@@ -212,7 +213,9 @@ impl SlamFilter {
                     }
                 }
             }
-            AssociationMode::NearestNeighbour | AssociationMode::Jcbb { .. } => {
+            AssociationMode::NearestNeighbour
+            | AssociationMode::Jcbb { .. }
+            | AssociationMode::Appearance { .. } => {
                 let features: Vec<(FeatureId, usize, Vector3<f64>, f64)> = self
                     .layout
                     .features()
@@ -221,15 +224,48 @@ impl SlamFilter {
                         (id, off, self.vec3_at(off), trace)
                     })
                     .collect();
+                // Appearance mode: a track that follows a feature is tried against it alone;
+                // other observations against features that look alike (and, like every gating
+                // mode, are close enough to pass the gate).
+                let looks = match self.config.association.mode {
+                    AssociationMode::Appearance { max_distance, .. } => Some(max_distance),
+                    _ => None,
+                };
+                let mut repeated = HashSet::new();
+                let mut seen_tracks = HashSet::new();
+                for (i, &t) in descriptors.iter().enumerate() {
+                    if looks.is_some() && !seen_tracks.insert(t) {
+                        repeated.insert(i);
+                    }
+                }
                 // Per observation: the nearest feature inside the wider new-feature gate.
                 let mut near: Vec<Option<(FeatureId, f64)>> = vec![None; zs.len()];
                 let mut cands: Vec<Vec<UpdateItem>> = zs
                     .iter()
                     .enumerate()
                     .map(|(i, z)| {
+                        if repeated.contains(&i) {
+                            return Vec::new();
+                        }
+                        if looks.is_some()
+                            && let Some(f) = self.appearance.linked(vehicle, descriptors[i])
+                            && let Some(off) = self.layout.feature_offset(f)
+                            && let Ok(c) = self.candidate(&ctx, i, z, f, off)
+                            && c.nis <= gate
+                        {
+                            near[i] = Some((f, c.nis));
+                            return vec![c];
+                        }
                         let bound = self.prefilter_bound(&ctx, z);
                         let mut v: Vec<UpdateItem> = features
                             .iter()
+                            .filter(|(id, _, _, _)| match looks {
+                                None => true,
+                                Some(max) => self
+                                    .appearance
+                                    .distance(&appearances[i], *id)
+                                    .is_some_and(|d| d <= max),
+                            })
                             .filter(|(_, _, m, trace)| match &bound {
                                 // 4× the linearized bound: margin for nonlinearity.
                                 Some((m_obs, tr_obs)) => {
@@ -248,7 +284,8 @@ impl SlamFilter {
                     })
                     .collect();
                 let chosen: Vec<Option<usize>> = match self.config.association.mode {
-                    AssociationMode::Jcbb { max_nodes } => {
+                    AssociationMode::Jcbb { max_nodes }
+                    | AssociationMode::Appearance { max_nodes, .. } => {
                         let max_dof = d * zs.len();
                         for dof in 1..=max_dof {
                             self.gate(dof);
@@ -263,6 +300,10 @@ impl SlamFilter {
                     _ => greedy_nearest_neighbour(&cands),
                 };
                 for (i, choice) in chosen.iter().enumerate() {
+                    if repeated.contains(&i) {
+                        plan.outcomes[i] = ObservationOutcome::Rejected(RejectReason::Ambiguous);
+                        continue;
+                    }
                     match choice {
                         Some(k) => {
                             let c = cands[i].swap_remove(*k);

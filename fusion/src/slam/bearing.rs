@@ -327,6 +327,15 @@ pub(super) struct BearingState {
 }
 
 impl BearingState {
+    /// A merged feature key: tracks that carried it as their descriptor carry the new one.
+    pub(super) fn rename_descriptor(&mut self, from: FeatureId, into: FeatureId) {
+        for t in &mut self.tracks {
+            if t.descriptor == from {
+                t.descriptor = into;
+            }
+        }
+    }
+
     pub(super) fn new(pose_frame: Option<PoseFrame>) -> Self {
         Self {
             config: BearingConfig::default(),
@@ -380,7 +389,10 @@ impl SlamFilter {
     pub fn set_bearing_config(&mut self, config: BearingConfig) -> Result<(), SlamError> {
         config.validate()?;
         if config.initialization == BearingInit::MultiView
-            && self.config.association.mode != AssociationMode::Descriptor
+            && !matches!(
+                self.config.association.mode,
+                AssociationMode::Descriptor | AssociationMode::Appearance { .. }
+            )
         {
             return Err(SlamError::InvalidConfig(
                 "bearing: multi-view initialization associates tracks by descriptor (tracker ids)"
@@ -691,7 +703,8 @@ impl SlamFilter {
             (passed, best)
         };
         match self.config.association.mode {
-            AssociationMode::Descriptor => {
+            // Tracker ids (appearance mode) key tracks like descriptors do.
+            AssociationMode::Descriptor | AssociationMode::Appearance { .. } => {
                 let by_descriptor: HashMap<FeatureId, usize> = self
                     .bearing
                     .tracks

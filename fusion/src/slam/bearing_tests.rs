@@ -191,6 +191,7 @@ fn delayed_initialization_equals_the_dense_computation() {
                         observations: vec![Observation {
                             descriptor: 7,
                             z: z_meas,
+                            appearance: None,
                         }],
                     },
                 )
@@ -417,6 +418,7 @@ fn invalid_camera_observations_are_rejected_alone() {
             observations: vec![Observation {
                 descriptor: 3,
                 z: good,
+                appearance: None,
             }],
         },
     )
@@ -427,6 +429,7 @@ fn invalid_camera_observations_are_rejected_alone() {
     let good = Observation {
         descriptor: 3,
         z: measure(&f, &m, 0.0),
+        appearance: None,
     };
     let (alone, want) = after_frame(&f, 1.0, vec![good]);
     assert!(matches!(
@@ -454,6 +457,7 @@ fn invalid_camera_observations_are_rejected_alone() {
         let bad = Observation {
             descriptor: 4,
             z: bad,
+            appearance: None,
         };
         let (g, r) = after_frame(&f, 1.0, vec![good, bad]);
         assert_eq!(
@@ -493,6 +497,7 @@ fn stored_poses_are_capped_and_old_tracks_dropped() {
                 Observation {
                     descriptor: 100 + 2 * k + j,
                     z: measure(&f, &m, 0.0),
+                    appearance: None,
                 }
             })
             .collect();
@@ -579,6 +584,7 @@ fn mixed_team_keeps_features_before_poses() {
             observations: vec![Observation {
                 descriptor: 50,
                 z: Measurement::Bearing(nalgebra::Vector2::new(zb[0], zb[1])),
+                appearance: None,
             }],
         },
     )
@@ -600,6 +606,7 @@ fn mixed_team_keeps_features_before_poses() {
                 observations: vec![Observation {
                     descriptor: 9,
                     z: Measurement::RangeBearing(Vector3::new(za[0], za[1], za[2])),
+                    appearance: None,
                 }],
             },
         )
@@ -654,6 +661,7 @@ fn fusion_with_stored_poses_matches_the_dense_information_form_and_merges_tracks
                 .map(|(id, m)| Observation {
                     descriptor: *id,
                     z: measure(f, m, 0.0),
+                    appearance: None,
                 })
                 .collect()
         };
@@ -799,6 +807,7 @@ fn correlated_track_gate_matches_a_finite_difference_linearization() {
                 observations: vec![Observation {
                     descriptor: 1,
                     z: z0_meas,
+                    appearance: None,
                 }],
             },
         )
@@ -938,6 +947,7 @@ fn observe_features(f: &mut SlamFilter, ms: &[Vector3<f64>], frames: usize) {
                     m,
                     1e-3 * ((k + i) as f64 - 1.7) * if i % 2 == 0 { 1.0 } else { -0.6 },
                 ),
+                appearance: None,
             })
             .collect();
         let report = f
@@ -1218,6 +1228,7 @@ fn multiview_initializes_through_process_frame() {
                         observations: vec![Observation {
                             descriptor: 7,
                             z: measure(&f, &m, 0.0),
+                            appearance: None,
                         }],
                     },
                 )

@@ -77,6 +77,7 @@ impl SlamFilter {
                 self.config.frame,
                 &self.config.origin,
             )),
+            appearance: Default::default(),
         }
     }
 

@@ -185,6 +185,21 @@ impl Layout {
         offset
     }
 
+    /// Renames a feature block (a key merged into another that this layout does not hold).
+    /// Returns false when `from` is absent or `into` present.
+    pub fn rename_feature(&mut self, from: FeatureId, into: FeatureId) -> bool {
+        let (f, t) = (SlotKind::Feature(from), SlotKind::Feature(into));
+        if self.index.contains_key(&t) {
+            return false;
+        }
+        let Some(i) = self.index.remove(&f) else {
+            return false;
+        };
+        self.slots[i].kind = t;
+        self.index.insert(t, i);
+        true
+    }
+
     /// Removes a non-vehicle block; later blocks move up. Returns the removed slot (its offset is
     /// the range that must be cut from x and P).
     pub fn remove(&mut self, kind: SlotKind) -> Option<Slot> {

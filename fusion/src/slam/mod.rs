@@ -24,17 +24,21 @@
 //! geometry is in [`triangulation`]). The pipeline follows each vehicle's `SensorModel`, so a
 //! centralized filter may mix both kinds.
 
+mod appearance;
 mod association;
 mod bearing;
+mod ci_fuse;
 mod deferred;
 mod fuse;
 mod info_cache;
 pub mod layout;
 mod multiview;
+mod source;
 pub mod triangulation;
 mod update;
 
 pub use bearing::{BearingConfig, BearingInit, BearingStats, TrackGate, TrackId, TrackInfo};
+pub use ci_fuse::CiReport;
 pub use fuse::{ForgetReport, FuseMethod, FuseReport, VANISHED_RTOL};
 pub use layout::{Layout, PoseId, Slot, SlotKind};
 
@@ -68,6 +72,17 @@ pub enum AssociationMode {
     /// at most `max_nodes` hypothesis nodes per frame (then the best hypothesis so far is used).
     Jcbb {
         /// Search budget per frame.
+        max_nodes: usize,
+    },
+    /// No identities (module `appearance`): the descriptor is the tracker's short-lived track
+    /// id, each observation carries a 256-bit appearance descriptor. A track that follows a
+    /// feature is tried against it first; otherwise candidates are the features whose
+    /// descriptor is within `max_distance` bits, gated (21.55) and chosen jointly by JCBB
+    /// (`max_nodes` per frame). New features get this filter's own keys.
+    Appearance {
+        /// Largest Hamming distance (of 256 bits) of a candidate.
+        max_distance: u32,
+        /// JCBB search budget per frame.
         max_nodes: usize,
     },
 }
@@ -352,6 +367,8 @@ pub struct SlamFilter {
     capacity: usize,
     /// Bearing-only tracks, stored observations and stored-pose bookkeeping.
     bearing: bearing::BearingState,
+    /// Appearance of features and tracker links ([`AssociationMode::Appearance`]).
+    appearance: appearance::AppearanceBook,
 }
 
 fn is_symmetric_pd(m: &SMatrix<f64, VEHICLE_DIM, VEHICLE_DIM>) -> bool {
@@ -432,6 +449,7 @@ impl SlamFilter {
         }
         Ok(Self {
             bearing: bearing::BearingState::new(pose_frame),
+            appearance: appearance::AppearanceBook::default(),
             capacity: n,
             map_generation: 0,
             info_cache: info_cache::InfoCache::default(),
@@ -724,7 +742,12 @@ impl SlamFilter {
     /// A fresh feature id: the descriptor if unused, else the next id of this filter's reserved
     /// range.
     fn new_feature_id(&mut self, descriptor: FeatureId) -> FeatureId {
-        if !self.layout.has_feature(descriptor) {
+        // Tracker ids are not feature identities: features get this filter's own keys.
+        let identities = !matches!(
+            self.config.association.mode,
+            AssociationMode::Appearance { .. }
+        );
+        if identities && !self.layout.has_feature(descriptor) {
             return descriptor;
         }
         loop {
@@ -777,7 +800,11 @@ impl SlamFilter {
             .iter()
             .map(|&i| frame.observations[i].descriptor)
             .collect();
-        let plan = self.associate(vehicle, &model, &zs, &descriptors);
+        let appearances: Vec<Option<crate::sensor::Appearance>> = valid
+            .iter()
+            .map(|&i| frame.observations[i].appearance)
+            .collect();
+        let plan = self.associate(vehicle, &model, &zs, &descriptors, &appearances);
         if !plan.updates.is_empty() || !plan.initializations.is_empty() {
             // The map changes below; updates and augmentations keep the cached Y_mm current.
             self.bump_map_generation(true);
@@ -819,6 +846,24 @@ impl SlamFilter {
                         ObservationOutcome::Rejected(RejectReason::NumericalFailure)
                 }
             }
+        }
+        if matches!(
+            self.config.association.mode,
+            AssociationMode::Appearance { .. }
+        ) {
+            for (k, o) in report.outcomes.iter().enumerate() {
+                let (track, a) = (descriptors[k], &appearances[k]);
+                match o {
+                    ObservationOutcome::Associated { feature, .. }
+                    | ObservationOutcome::Initialized { feature } => {
+                        self.appearance.observed(vehicle, track, *feature, a)
+                    }
+                    ObservationOutcome::Stored { .. } => self.appearance.pending(vehicle, track, a),
+                    ObservationOutcome::Rejected(_) => {}
+                }
+            }
+            let layout = &self.layout;
+            self.appearance.retain(|f| layout.has_feature(f));
         }
         // Back to the frame's indexing.
         for (k, &i) in valid.iter().enumerate() {

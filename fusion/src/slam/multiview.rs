@@ -99,7 +99,10 @@ impl SlamFilter {
         let Ok(frame) = self.pose_frame() else {
             return;
         };
-        if self.config.association.mode != AssociationMode::Descriptor {
+        if !matches!(
+            self.config.association.mode,
+            AssociationMode::Descriptor | AssociationMode::Appearance { .. }
+        ) {
             // `set_bearing_config` refuses this combination; keep the filter unchanged.
             for &i in pending {
                 report.outcomes[i] = ObservationOutcome::Rejected(RejectReason::NotInitializable);

@@ -269,6 +269,7 @@ fn invalid_observations_are_rejected_alone() {
     let good = Observation {
         descriptor: 100,
         z: rb(&observe(&f, 0, &truth, &f.feature(100).unwrap())),
+        appearance: None,
     };
     let before = snapshot(&f);
     let mut frames = Vec::new();
@@ -283,6 +284,7 @@ fn invalid_observations_are_rejected_alone() {
         let bad = Observation {
             descriptor: 7,
             z: Measurement::RangeBearing(z),
+            appearance: None,
         };
         frames.push(ObservationFrame {
             time: 1.0,
@@ -296,6 +298,7 @@ fn invalid_observations_are_rejected_alone() {
             Observation {
                 descriptor: 7,
                 z: Measurement::Pixel(nalgebra::Vector2::new(1.0, 2.0)),
+                appearance: None,
             },
         ],
     });
@@ -336,6 +339,7 @@ fn invalid_observations_are_rejected_alone() {
         let bad = Observation {
             descriptor: 7,
             z: Measurement::RangeBearing(Vector3::new(range, 0.1, 0.2)),
+            appearance: None,
         };
         let r = g
             .process_frame(
@@ -392,6 +396,7 @@ fn stacked_joseph_update_matches_the_dense_reference() {
         obs.push(Observation {
             descriptor: *id,
             z: rb(&z),
+            appearance: None,
         });
     }
     let r1 = model.noise_covariance();
@@ -475,6 +480,7 @@ fn feature_initialization_matches_eq_21_52() {
                     observations: vec![Observation {
                         descriptor: 9,
                         z: rb(&z),
+                        appearance: None,
                     }],
                 },
             )
@@ -810,6 +816,7 @@ fn association_scene(
             Observation {
                 descriptor: *id,
                 z: rb(&observe(&f, 0, &truth, &m)),
+                appearance: None,
             }
         })
         .collect();
@@ -940,6 +947,7 @@ fn nearest_neighbour_without_descriptors_and_descriptor_gating() {
     let far = Observation {
         descriptor: 10,
         z: Measurement::RangeBearing(Vector3::new(150.0, 1.0, 0.2)),
+        appearance: None,
     };
     let r = g
         .process_frame(
@@ -1028,6 +1036,7 @@ fn map_information_cache_follows_map_changes() {
     let update = Observation {
         descriptor: 101,
         z: rb(&(z + DVector::from_vec(vec![0.2, 0.001, 0.0]))),
+        appearance: None,
     };
     let r = f
         .process_frame(
@@ -1044,6 +1053,7 @@ fn map_information_cache_follows_map_changes() {
     let new = Observation {
         descriptor: 55,
         z: rb(&DVector::from_vec(vec![90.0, 0.3, -0.2])),
+        appearance: None,
     };
     let r = f
         .process_frame(
@@ -1193,6 +1203,7 @@ fn map_information_is_maintained_without_reinversion() {
                 Observation {
                     descriptor: id,
                     z: rb(&(z + DVector::from_vec(vec![0.1, 0.0005, -0.0005]))),
+                    appearance: None,
                 }
             })
             .chain([Observation {
@@ -1202,6 +1213,7 @@ fn map_information_is_maintained_without_reinversion() {
                     0.2,
                     -0.3,
                 ])),
+                appearance: None,
             }])
             .collect();
         let r = f
@@ -1415,4 +1427,276 @@ fn carry_predictions_rejects_what_is_not_a_vehicle_part() {
         to_dense(&snap.joint_covariance()),
         to_dense(&g.joint_covariance())
     );
+}
+
+/// A random submap over `known` existing feature ids and `new` unseen ones (ids 900..), in the
+/// filter's origin: means near the filter's estimates, covariance S Sᵀ + 0.3 I.
+fn random_submap(
+    f: &SlamFilter,
+    known: &[FeatureId],
+    new: usize,
+    rng: &mut ChaCha8Rng,
+) -> crate::ci::Submap {
+    let ids: Vec<FeatureId> = known
+        .iter()
+        .copied()
+        .chain((0..new).map(|k| 900 + k as FeatureId))
+        .collect();
+    let n = 3 * ids.len();
+    let s = DMatrix::from_fn(n, n, |_, _| rng.random::<f64>() - 0.5);
+    let p = &s * s.transpose() + DMatrix::identity(n, n) * 0.3;
+    let mut packed = Vec::new();
+    for j in 0..n {
+        for i in 0..=j {
+            packed.push(p[(i, j)]);
+        }
+    }
+    let origin = f.origin();
+    let offset_mean = (0..n)
+        .map(|r| {
+            let base = f
+                .feature(ids[r / 3])
+                .map_or(rng.random_range(-50.0..50.0), |m| m[r % 3]);
+            base + rng.random_range(-1.0..1.0) - origin[r % 3]
+        })
+        .collect();
+    crate::ci::Submap {
+        ids,
+        origin: origin.into(),
+        offset_mean,
+        covariance_packed: packed,
+    }
+}
+
+/// The dense information-form CI of the filter's joint with an embedded submap at weight ω:
+/// Y' = ω Y + (1 − ω) E B Eᵀ, y' = ω Y x + (1 − ω) E B μ (new features appended after the
+/// filter's states, in submap order). Returns (x', P', ids of the appended features).
+fn dense_ci(
+    f: &SlamFilter,
+    s: &crate::ci::Submap,
+    omega: f64,
+) -> (DVector<f64>, DMatrix<f64>, Vec<FeatureId>) {
+    let p = f.joint_covariance();
+    let n = p.nrows();
+    let x = f.state_vector();
+    let new: Vec<FeatureId> = s
+        .ids
+        .iter()
+        .copied()
+        .filter(|id| f.layout().feature_offset(*id).is_none())
+        .collect();
+    let m = n + 3 * new.len();
+    let p = DMatrix::from_fn(n, n, |i, j| p[(i, j)]);
+    let y = p.clone().try_inverse().unwrap();
+    let mut big = DMatrix::zeros(m, m);
+    big.view_mut((0, 0), (n, n)).copy_from(&(&y * omega));
+    let xv = DVector::from_fn(n, |i, _| x[i]);
+    let mut vec = DVector::zeros(m);
+    vec.rows_mut(0, n).copy_from(&(&y * &xv * omega));
+    let row_of = |id: FeatureId| -> usize {
+        f.layout()
+            .feature_offset(id)
+            .unwrap_or_else(|| n + 3 * new.iter().position(|&u| u == id).unwrap())
+    };
+    let ps = s.covariance();
+    let ns = ps.nrows();
+    let b = DMatrix::from_fn(ns, ns, |i, j| ps[(i, j)])
+        .try_inverse()
+        .unwrap();
+    let mu = DVector::from_fn(ns, |i, _| s.offset_mean[i] + s.origin[i % 3]);
+    let bmu = &b * mu;
+    let rows: Vec<usize> = (0..ns).map(|r| row_of(s.ids[r / 3]) + r % 3).collect();
+    for i in 0..ns {
+        vec[rows[i]] += (1.0 - omega) * bmu[i];
+        for j in 0..ns {
+            big[(rows[i], rows[j])] += (1.0 - omega) * b[(i, j)];
+        }
+    }
+    let cov = big.try_inverse().unwrap();
+    let mean = &cov * vec;
+    (mean, (&cov + cov.transpose()) * 0.5, new)
+}
+
+/// Covariance-form CI of a submap (Kalman update of the ω-scaled prior, new features through
+/// the submap's conditional) equals the dense information-form CI of the joint at the same ω,
+/// for known-only, new-only and mixed submaps, both criteria; the chosen ω is the minimum of
+/// the criterion evaluated densely on a fine grid; bad submaps change nothing.
+#[test]
+fn covariance_form_ci_equals_the_dense_information_form() {
+    use crate::ci::CiCriterion;
+    let mut rng = ChaCha8Rng::seed_from_u64(11);
+    for (known, new) in [(vec![100, 103, 104], 0), (vec![], 2), (vec![101, 105], 3)] {
+        for criterion in [CiCriterion::Trace, CiCriterion::Determinant] {
+            let mut f = random_local_filter(6, &mut rng);
+            let s = random_submap(&f, &known, new, &mut rng);
+            let (p_before, x_before) = (f.joint_covariance(), f.state_vector());
+            let report = f.fuse_submap_ci(&s, criterion).unwrap();
+            assert_eq!((report.known, report.added), (known.len(), new));
+            let (want_x, want_p, appended) =
+                dense_ci_of(&p_before, &x_before, &f, &s, report.omega);
+            let got_p = f.joint_covariance();
+            let got_x = f.state_vector();
+            // Old state i keeps its index; appended features map through the layout.
+            let n_old = p_before.nrows();
+            let idx: Vec<usize> = (0..n_old)
+                .chain(appended.iter().flat_map(|id| {
+                    let o = f.layout().feature_offset(*id).unwrap();
+                    o..o + 3
+                }))
+                .collect();
+            let scale = want_p.abs().max();
+            for (a, &i) in idx.iter().enumerate() {
+                // Dense inversions of matrices with condition ~1e3: 1e-9 relative.
+                assert!(
+                    (got_x[i] - want_x[a]).abs() < 1e-8,
+                    "{known:?}+{new} x[{a}]"
+                );
+                for (b, &j) in idx.iter().enumerate() {
+                    assert!(
+                        (got_p[(i, j)] - want_p[(a, b)]).abs() < 1e-9 * scale,
+                        "{known:?}+{new} {criterion:?} P[{a},{b}] {} vs {}",
+                        got_p[(i, j)],
+                        want_p[(a, b)]
+                    );
+                }
+            }
+            // ω is the criterion's minimum: no grid point does better (beyond the search's
+            // tolerance, 1e-9 relative).
+            let objective = |omega: f64| {
+                let g = SlamFilter::clone(&f);
+                let (_, p, app) = dense_ci_of(&p_before, &x_before, &g, &s, omega);
+                let map: Vec<usize> = (0..n_old)
+                    .filter(|&i| i >= VEHICLE_DIM)
+                    .chain((0..3 * app.len()).map(|k| n_old + k))
+                    .collect();
+                let pm = DMatrix::from_fn(map.len(), map.len(), |i, j| p[(map[i], map[j])]);
+                match criterion {
+                    CiCriterion::Trace => pm.trace(),
+                    CiCriterion::Determinant => pm.determinant().ln(),
+                }
+            };
+            let at = objective(report.omega);
+            for k in 1..200 {
+                let w = k as f64 / 200.0;
+                assert!(
+                    at <= objective(w) + 1e-9 * at.abs().max(1.0),
+                    "{known:?}+{new} {criterion:?}: ω = {} gives {at}, ω = {w} gives {}",
+                    report.omega,
+                    objective(w)
+                );
+            }
+        }
+    }
+    // Invalid submaps: nothing changes.
+    let mut f = random_local_filter(4, &mut rng);
+    let before = snapshot(&f);
+    let good = random_submap(&f, &[100, 101], 1, &mut rng);
+    let mut nan = good.clone();
+    nan.offset_mean[2] = f64::NAN;
+    let mut not_pd = good.clone();
+    not_pd.covariance_packed[0] = -1.0;
+    let mut moved = good.clone();
+    moved.origin[0] += 1.0;
+    for bad in [nan, not_pd, moved] {
+        assert!(
+            f.fuse_submap_ci(&bad, crate::ci::CiCriterion::Trace)
+                .is_err()
+        );
+        assert_eq!(snapshot(&f), before);
+    }
+}
+
+/// [`dense_ci`] from a saved joint (the filter `f` is only used for its layout: the old states
+/// keep their indices and new features are appended in submap order).
+fn dense_ci_of(
+    p: &Mat<f64>,
+    x: &Col<f64>,
+    f: &SlamFilter,
+    s: &crate::ci::Submap,
+    omega: f64,
+) -> (DVector<f64>, DMatrix<f64>, Vec<FeatureId>) {
+    let n = p.nrows();
+    let new: Vec<FeatureId> = s
+        .ids
+        .iter()
+        .copied()
+        .filter(|id| f.layout().feature_offset(*id).is_none_or(|o| o >= n))
+        .collect();
+    let mut g = f.clone();
+    g.x = x.clone();
+    g.p = p.clone();
+    for id in &new {
+        let _ = g.layout.remove(SlotKind::Feature(*id));
+    }
+    let (mean, cov, app) = dense_ci(&g, s, omega);
+    debug_assert_eq!(app, new);
+    (mean, cov, app)
+}
+
+/// A merge of two features equals the dense re-keying of the joint information Y' = Tᵀ Y T,
+/// y' = Tᵀ y (design.md §8: condition on x_from = x_into, marginalise x_from); a merge of a key
+/// the filter holds alone renames it; unknown keys change nothing.
+#[test]
+fn merging_features_equals_the_dense_re_keying() {
+    let mut rng = ChaCha8Rng::seed_from_u64(21);
+    let mut f = random_local_filter(5, &mut rng);
+    let (from, into) = (103, 101);
+    let p = f.joint_covariance();
+    let n = p.nrows();
+    let p = DMatrix::from_fn(n, n, |i, j| p[(i, j)]);
+    let x = f.state_vector();
+    let x = DVector::from_fn(n, |i, _| x[i]);
+    let y = p.clone().try_inverse().unwrap();
+    let (a, b) = (
+        f.layout().feature_offset(from).unwrap(),
+        f.layout().feature_offset(into).unwrap(),
+    );
+    // T: n × (n − 3); old state i ← new state t(i); `from`'s rows read `into`'s.
+    let keep: Vec<usize> = (0..n).filter(|i| !(a..a + 3).contains(i)).collect();
+    let mut t = DMatrix::zeros(n, n - 3);
+    for (c, &i) in keep.iter().enumerate() {
+        t[(i, c)] = 1.0;
+    }
+    let b_new = keep.iter().position(|&i| i == b).unwrap();
+    for k in 0..3 {
+        t[(a + k, b_new + k)] = 1.0;
+    }
+    let y_new = t.transpose() * &y * &t;
+    let p_want = y_new.clone().try_inverse().unwrap();
+    let x_want = &p_want * (t.transpose() * (&y * &x));
+    f.merge_features(&crate::keys::Merge { from, into })
+        .unwrap();
+    assert!(f.layout().feature_offset(from).is_none());
+    let p_got = f.joint_covariance();
+    let x_got = f.state_vector();
+    let scale = p_want.abs().max();
+    for i in 0..n - 3 {
+        // Dense inversions of a ~30-state joint with condition ~10: 1e-10 relative.
+        assert!(
+            (x_got[i] - x_want[i]).abs() < 1e-9 * (1.0 + x_want[i].abs()),
+            "x[{i}]"
+        );
+        for j in 0..n - 3 {
+            assert!(
+                (p_got[(i, j)] - p_want[(i, j)]).abs() < 1e-10 * scale,
+                "P[{i},{j}]"
+            );
+        }
+    }
+    // Rename and no-op.
+    let before = snapshot(&f);
+    f.merge_features(&crate::keys::Merge {
+        from: 999,
+        into: 998,
+    })
+    .unwrap();
+    assert_eq!(snapshot(&f), before);
+    let off = f.layout().feature_offset(104).unwrap();
+    f.merge_features(&crate::keys::Merge {
+        from: 104,
+        into: 50,
+    })
+    .unwrap();
+    assert_eq!(f.layout().feature_offset(50), Some(off));
+    assert!(f.layout().feature_offset(104).is_none());
 }

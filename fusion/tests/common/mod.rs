@@ -2,8 +2,10 @@
 //! static-map data. Shared by the `ddf_*` integration tests (each uses a part of it).
 #![allow(dead_code)]
 
-use canopy_fusion::ddf::{DdfConfig, DdfMessage, DdfNode, Mode};
+use canopy_fusion::ci::{CiCriterion, Submap};
+use canopy_fusion::ddf::{DdfConfig, DdfMessage, DdfNode, FuseRejected, FuseTarget, Mode};
 use canopy_fusion::info::MapInformation;
+use canopy_fusion::keys::{KeyMap, Merge};
 use canopy_fusion::sensor::FeatureId;
 use canopy_fusion::topology::{NodeId, Topology};
 use faer::{Col, Mat};
@@ -191,6 +193,89 @@ pub struct Sim {
     pub all_ever: MapInformation,
     pub delivered: u64,
     pub bytes: u64,
+    /// Cross-vehicle association for keyed runs (`ddf_keys`): `None` = keys are identities.
+    pub oracle: Option<Oracle>,
+}
+
+/// The truth behind per-node keys, and how eagerly a receiver associates a key it does not
+/// hold with one of its own (a correspondence proposed with probability `p` per delta).
+pub struct Oracle {
+    /// Every key → the true feature it names.
+    pub truth: BTreeMap<FeatureId, FeatureId>,
+    /// Probability of associating an unknown key when a delta carries it.
+    pub p: f64,
+    /// Test-only broken variant: the receiver "merges" by copying the information of the other
+    /// key onto its own instead of moving it (both keys keep it: counted twice).
+    pub copy_instead_of_move: bool,
+    /// Merges adopted (proposed and accepted).
+    pub proposed: u64,
+}
+
+impl Oracle {
+    /// The key map that merges every key of a true feature (the centralized view).
+    pub fn truth_keys(&self) -> KeyMap {
+        let mut k = KeyMap::default();
+        let mut first: BTreeMap<FeatureId, FeatureId> = BTreeMap::new();
+        for (&key, &f) in &self.truth {
+            match first.get(&f) {
+                Some(&other) => {
+                    k.adopt(key, other);
+                }
+                None => {
+                    first.insert(f, key);
+                }
+            }
+        }
+        k
+    }
+}
+
+/// The estimate as seen by a node whose receiver associates keys by the oracle.
+struct Associating<'a> {
+    estimate: &'a mut MapInformation,
+    oracle: &'a mut Oracle,
+    rng: &'a mut ChaCha8Rng,
+}
+
+impl FuseTarget for Associating<'_> {
+    fn fuse(&mut self, delta: &MapInformation) -> Result<(), FuseRejected> {
+        self.estimate.fuse(delta)
+    }
+    fn fuse_submap(&mut self, s: &Submap, c: CiCriterion) -> Result<(), FuseRejected> {
+        self.estimate.fuse_submap(s, c)
+    }
+    fn merge(&mut self, m: &Merge) -> Result<(), FuseRejected> {
+        self.estimate.merge(m)
+    }
+    fn associate(&mut self, delta: &MapInformation) -> Vec<Merge> {
+        let held: BTreeMap<FeatureId, FeatureId> = self
+            .estimate
+            .ids
+            .iter()
+            .map(|&k| (self.oracle.truth[&k], k))
+            .collect();
+        let mut out = Vec::new();
+        for &k in &delta.ids {
+            if self.estimate.ids.contains(&k) {
+                continue;
+            }
+            if let Some(&mine) = held.get(&self.oracle.truth[&k])
+                && self.rng.random_bool(self.oracle.p)
+                && let Some(m) = Merge::of(k, mine)
+            {
+                self.oracle.proposed += 1;
+                if self.oracle.copy_instead_of_move {
+                    // The delta's information on k, re-labelled as `mine`, added on top.
+                    let mut copy = delta.restrict(&[k]);
+                    copy.ids = vec![mine];
+                    self.estimate.add_assign(&copy).unwrap();
+                } else {
+                    out.push(m);
+                }
+            }
+        }
+        out
+    }
 }
 
 fn key(a: NodeId, b: NodeId) -> (NodeId, NodeId) {
@@ -232,6 +317,7 @@ impl Sim {
             all_ever: MapInformation::zero(origin()),
             delivered: 0,
             bytes: 0,
+            oracle: None,
         }
     }
 
@@ -314,9 +400,18 @@ impl Sim {
                 bincode::serde::decode_from_slice(&m.bytes, bincode::config::standard()).unwrap();
             let now = self.now();
             let node = self.nodes.get_mut(&m.to).unwrap();
-            let out = node
-                .ddf
-                .on_message(now, m.from, msg, &mut node.estimate)
+            let result = match self.oracle.as_mut() {
+                None => node.ddf.on_message(now, m.from, msg, &mut node.estimate),
+                Some(oracle) => {
+                    let mut target = Associating {
+                        estimate: &mut node.estimate,
+                        oracle,
+                        rng: &mut self.rng,
+                    };
+                    node.ddf.on_message(now, m.from, msg, &mut target)
+                }
+            };
+            let out = result
                 .unwrap_or_else(|e| panic!("round {}: {} → {}: {e}", self.round, m.from, m.to));
             self.delivered += 1;
             for o in out {
@@ -332,10 +427,7 @@ impl Sim {
         let ids: Vec<NodeId> = self.nodes.keys().copied().collect();
         for id in ids {
             let node = self.nodes.get_mut(&id).unwrap();
-            let out = node.ddf.on_round(now, &node.estimate).unwrap();
-            if let Some(d) = out.ci_delta {
-                node.estimate.add_assign(&d).unwrap();
-            }
+            let out = node.ddf.on_round(now, &mut node.estimate).unwrap();
             for o in out.messages {
                 self.send(id, o.to, &o.message);
             }
