@@ -10,10 +10,12 @@
 //! [`VehicleAgent`] runs both halves on one thread (`canopy sim`); the vehicle process runs
 //! them on two, the fusion half on copies of the filter the estimator lends it.
 
+use canopy_fusion::ci::{CiCriterion, Submap};
 use canopy_fusion::ddf::{
     DdfConfig, DdfError, DdfMessage, DdfNode, FuseRejected, FuseTarget, Mode, Outgoing,
 };
 use canopy_fusion::info::MapInformation;
+use canopy_fusion::keys::Merge;
 use canopy_fusion::sensor::{ImuSample, ObservationFrame};
 use canopy_fusion::slam::{
     FrameReport, ObservationOutcome, SlamConfig, SlamError, SlamFilter, VehicleSetup,
@@ -169,20 +171,44 @@ pub fn variant_key(debug: &str) -> String {
 /// fusion whatever the number of neighbours. The DDF validated each delta (finite, symmetric,
 /// right origin) before handing it over; a batch the EKF then refuses (a non positive definite
 /// result) is dropped and counted: information lost, never counted twice.
+///
+/// Submaps of CI links and adopted key merges wait for the round the same way, in arrival order
+/// (a submap the EKF then refuses is counted in `ci_refused`; it was acknowledged on arrival).
 struct EkfTarget<'a> {
-    pending: &'a mut Option<MapInformation>,
-    pending_count: &'a mut u64,
+    pending: &'a mut Pending,
+}
+
+/// What a vehicle received since its last round.
+#[derive(Debug, Default)]
+struct Pending {
+    /// Sum of the received deltas.
+    sum: Option<MapInformation>,
+    count: u64,
+    /// Submaps of CI links, in arrival order.
+    submaps: Vec<(Submap, CiCriterion)>,
+    /// Key merges adopted by the DDF node, in order.
+    merges: Vec<Merge>,
 }
 
 impl FuseTarget for EkfTarget<'_> {
     fn fuse(&mut self, delta: &MapInformation) -> Result<(), FuseRejected> {
-        match self.pending.as_mut() {
-            None => *self.pending = Some(delta.clone()),
+        match self.pending.sum.as_mut() {
+            None => self.pending.sum = Some(delta.clone()),
             Some(sum) => sum.add_assign(delta).map_err(|e| FuseRejected {
                 reason: e.to_string(),
             })?,
         }
-        *self.pending_count += 1;
+        self.pending.count += 1;
+        Ok(())
+    }
+
+    fn fuse_submap(&mut self, submap: &Submap, criterion: CiCriterion) -> Result<(), FuseRejected> {
+        self.pending.submaps.push((submap.clone(), criterion));
+        Ok(())
+    }
+
+    fn merge(&mut self, merge: &Merge) -> Result<(), FuseRejected> {
+        self.pending.merges.push(*merge);
         Ok(())
     }
 }
@@ -209,8 +235,12 @@ pub struct FusionCounters {
     pub fuse_refused: u64,
     /// Received DDF messages rejected (unknown sender, invalid payload, bad time).
     pub messages_rejected: u64,
-    /// CI changes fused (bandwidth-limited links).
+    /// Submaps fused by covariance intersection (bandwidth-limited links).
     pub ci_fused: u64,
+    /// Submaps the estimator refused at the round (CI failed numerically).
+    pub ci_refused: u64,
+    /// Key merges the estimator could not apply.
+    pub merges_refused: u64,
     /// Features removed because fused information left them with none (a neighbour's restart
     /// took back what only its lost process had observed).
     pub features_forgotten: u64,
@@ -225,8 +255,7 @@ pub struct FusionCounters {
 pub struct VehicleFusion {
     ddf: Option<DdfNode>,
     /// Received information not yet fused into the EKF (see [`EkfTarget`]).
-    pending: Option<MapInformation>,
-    pending_count: u64,
+    pending: Pending,
     counters: FusionCounters,
 }
 
@@ -256,8 +285,7 @@ impl VehicleFusion {
         };
         Ok(Self {
             ddf,
-            pending: None,
-            pending_count: 0,
+            pending: Pending::default(),
             counters: FusionCounters::default(),
         })
     }
@@ -274,8 +302,8 @@ impl VehicleFusion {
 
     /// Fuses the received information batched since the last call into `filter`.
     pub fn flush(&mut self, filter: &mut SlamFilter) {
-        if let Some(sum) = self.pending.take() {
-            let n = std::mem::take(&mut self.pending_count);
+        if let Some(sum) = self.pending.sum.take() {
+            let n = std::mem::take(&mut self.pending.count);
             // Features whose information the batch cancels exactly (a resynchronisation after a
             // neighbour restarted) are removed, not refused
             // (`SlamFilter::fuse_map_information_forgetting`).
@@ -285,6 +313,17 @@ impl VehicleFusion {
                     self.counters.features_forgotten += r.forgotten.len() as u64;
                 }
                 Err(_) => self.counters.fuse_refused += n,
+            }
+        }
+        for m in std::mem::take(&mut self.pending.merges) {
+            if filter.merge_features(&m).is_err() {
+                self.counters.merges_refused += 1;
+            }
+        }
+        for (submap, criterion) in std::mem::take(&mut self.pending.submaps) {
+            match filter.fuse_submap_ci(&submap, criterion) {
+                Ok(_) => self.counters.ci_fused += 1,
+                Err(_) => self.counters.ci_refused += 1,
             }
         }
     }
@@ -301,20 +340,13 @@ impl VehicleFusion {
         }
         self.counters.rounds += 1;
         self.flush(filter);
-        let info = filter.map_information().map_err(AgentError::Slam)?;
+        // The DDF reads Y only if an exact link sends a delta, and covariance blocks for CI
+        // links.
         let out = self
             .ddf
             .as_mut()
             .expect("checked above")
-            .on_round(now, &info)?;
-        if let Some(ci) = out.ci_delta {
-            // The CI change of the map (possibly indefinite); a refusal leaves the map as it was
-            // (conservative: the CI information is not used).
-            match filter.fuse_map_information(&ci) {
-                Ok(_) => self.counters.ci_fused += 1,
-                Err(_) => self.counters.fuse_refused += 1,
-            }
-        }
+            .on_round(now, filter)?;
         Ok(out.messages)
     }
 
@@ -332,7 +364,6 @@ impl VehicleFusion {
         };
         let mut target = EkfTarget {
             pending: &mut self.pending,
-            pending_count: &mut self.pending_count,
         };
         ddf.on_message(now, from, msg, &mut target).map_err(|e| {
             if !matches!(e, DdfError::FuseRejected { .. }) {
@@ -695,12 +726,7 @@ impl HubAgent {
 
     /// A fusion round.
     pub fn on_round(&mut self, now: f64) -> Result<Vec<Outgoing>, DdfError> {
-        let out = self.ddf.on_round(now, &self.store)?;
-        if let Some(ci) = out.ci_delta {
-            // The hub's store is a plain sum; a CI change that does not apply is dropped.
-            let _ = self.store.add_assign(&ci);
-        }
-        Ok(out.messages)
+        Ok(self.ddf.on_round(now, &mut self.store)?.messages)
     }
 
     /// A DDF message.

@@ -491,7 +491,11 @@ fn parse_observation_lines(
             // The frame was declared empty by a `none` row.
             return Err(bad(format!("frame at t = {t} was declared empty (`none`)")));
         }
-        frame.observations.push(Observation { descriptor, z });
+        frame.observations.push(Observation {
+            descriptor,
+            z,
+            appearance: None,
+        });
     }
     Ok(frames)
 }
@@ -972,10 +976,12 @@ mod tests {
                     Observation {
                         descriptor: 7,
                         z: Measurement::RangeBearing(Vector3::new(150.25, 0.1, -0.7)),
+                        appearance: None,
                     },
                     Observation {
                         descriptor: FRESH_ID_BASE - 1,
                         z: Measurement::Pixel(Vector2::new(320.5, 10.0)),
+                        appearance: None,
                     },
                 ],
             },
@@ -988,6 +994,7 @@ mod tests {
                 observations: vec![Observation {
                     descriptor: 3,
                     z: Measurement::Bearing(Vector2::new(-0.3, 0.2)),
+                    appearance: None,
                 }],
             },
         ];

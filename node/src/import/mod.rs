@@ -524,6 +524,7 @@ pub fn import(args: &ImportArgs) -> Result<ImportSummary, ImportError> {
                 .map(|&(id, n)| Observation {
                     descriptor: id,
                     z: Measurement::Pixel(pinhole.pixel(n)),
+                    appearance: None,
                 })
                 .collect(),
         })

@@ -162,6 +162,7 @@ impl TerrainSensor {
             observations.push(Observation {
                 descriptor: self.descriptor(id, features),
                 z,
+                appearance: None,
             });
             true_ids.push(id);
         }
