@@ -111,6 +111,7 @@ fn filter(n: usize) -> SlamFilter {
 fn filter_with(n: usize, mode: AssociationMode) -> SlamFilter {
     let cfg = SlamConfig {
         frame: NavFrame::Local,
+        local_gravity_mps2: 9.81,
         origin: Vector3::zeros(),
         association: AssociationConfig {
             mode,
@@ -184,7 +185,7 @@ fn main() {
         }) / 20.0;
         // Naive: full n×n ∇F and n×12 ∇G, dense products.
         let prop =
-            ins::propagate_with_jacobians(NavFrame::Local, &f.vehicle_state(0).unwrap(), &sample)
+            ins::propagate_with_jacobians(f.mechanization(), &f.vehicle_state(0).unwrap(), &sample)
                 .unwrap();
         let q = ins::process_noise(&ImuGrade::Tactical.noise(), sample.dt);
         let mut ff = Mat::<f64>::identity(n, n);

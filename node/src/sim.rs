@@ -212,6 +212,7 @@ impl<'s> Sim<'s> {
     fn slam_config(&self, vehicle: u32, association: AssociationConfig) -> SlamConfig {
         SlamConfig {
             frame: self.world.frame(),
+            local_gravity_mps2: self.world.local_gravity(),
             origin: self.world.map_origin(),
             association,
             fresh_id_namespace: vehicle,
