@@ -1459,6 +1459,82 @@ synthesis = "continuous"
         ));
     }
 
+    /// `[world] gravity_mps2` and `[vehicle.imu.truth]`: defaults, and bad values or misplaced
+    /// fields rejected with the dotted path of the field (unknown names by the parser).
+    #[test]
+    fn gravity_and_imu_truth_fields() {
+        let b = Scenario::from_toml_str(BASE).unwrap();
+        // Absent: WGS-84 normal gravity at the default origin (−33.87°, 60 m), 9.796198 m/s²
+        // by the independent `ahrs` implementation (geodesy tests).
+        assert!((b.world.local_gravity() - 9.796_198_401_129_177).abs() < 1e-10);
+        let g =
+            Scenario::from_toml_str(&BASE.replacen("seed = 3", "seed = 3\ngravity_mps2 = 9.8", 1))
+                .unwrap();
+        assert_eq!(g.world.local_gravity(), 9.8);
+        assert_eq!(Scenario::from_toml_str(&g.to_toml_string()).unwrap(), g);
+        assert_eq!(b.vehicles[1].imu.synthesis, ImuSynthesis::Continuous);
+        assert_eq!(b.vehicles[0].imu.synthesis, ImuSynthesis::Exact, "default");
+        assert_eq!(
+            b.vehicles[0].imu.truth.model,
+            ImuTruthModel::Sensor,
+            "default"
+        );
+        let with_truth = |table: &str| {
+            BASE.replacen(
+                "synthesis = \"continuous\"",
+                &format!("synthesis = \"continuous\"\n[vehicle.imu.truth]\n{table}"),
+                1,
+            )
+        };
+        let t = Scenario::from_toml_str(&with_truth(
+            "gyro_scale_factor_ppm = 50\nbias_correlation_time_s = 100",
+        ))
+        .unwrap();
+        let e = t.vehicles[1].imu.truth_errors();
+        assert!((e.gyro_scale_factor - 50e-6).abs() < 1e-20);
+        assert_eq!(e.bias_correlation_time, 100.0);
+        assert_eq!(Scenario::from_toml_str(&t.to_toml_string()).unwrap(), t);
+        for (text, field) in [
+            (
+                BASE.replacen(
+                    "earth_model = \"flat\"",
+                    "earth_model = \"wgs84\"\ngravity_mps2 = 9.8",
+                    1,
+                )
+                .replace("frame = \"local\"\n", ""),
+                "world.gravity_mps2",
+            ),
+            (
+                BASE.replacen("seed = 3", "seed = 3\ngravity_mps2 = 1.0", 1),
+                "world.gravity_mps2",
+            ),
+            (
+                with_truth("model = \"filter\"\ngyro_scale_factor_ppm = 5"),
+                "vehicle[1].imu.truth.gyro_scale_factor_ppm",
+            ),
+            (
+                with_truth("accel_misalignment_mrad = -1"),
+                "vehicle[1].imu.truth.accel_misalignment_mrad",
+            ),
+            (
+                with_truth("bias_correlation_time_s = 0"),
+                "vehicle[1].imu.truth.bias_correlation_time_s",
+            ),
+            (
+                with_truth("gyro_noise_density = nan"),
+                "vehicle[1].imu.truth.gyro_noise_density",
+            ),
+        ] {
+            assert_eq!(invalid_field(&text), field, "{text}");
+        }
+        match Scenario::from_toml_str(&with_truth("gyro_scale_ppm = 5")) {
+            Err(ScenarioError::Parse(e)) => {
+                assert!(e.to_string().contains("gyro_scale_ppm"), "{e}")
+            }
+            other => panic!("expected an unknown-field error, got {other:?}"),
+        }
+    }
+
     #[test]
     fn builtin_default_is_valid_and_round_trips_through_toml() {
         let d = Scenario::builtin_default();
