@@ -90,8 +90,13 @@ pub fn ecef_to_geodetic(p: &Vector3<f64>) -> Geodetic {
             height: p.z.abs() - WGS84_B,
         };
     }
-    // Bowring's initial guess, then fixed-point refinement of tan λ.
-    let mut lat = (p.z / (r * (1.0 - WGS84_E2))).atan();
+    // Bowring's (1976) closed form from the parametric latitude β — accurate to rounding for
+    // heights within ±10 km, so the fixed-point refinement of tan λ below usually stops after
+    // its first, confirming pass (it converges from anywhere, more slowly far from the surface).
+    let second_e2 = WGS84_E2 / (1.0 - WGS84_E2);
+    let (sb, cb) = (p.z * WGS84_A).atan2(r * WGS84_B).sin_cos();
+    let mut lat =
+        (p.z + second_e2 * WGS84_B * sb * sb * sb).atan2(r - WGS84_E2 * WGS84_A * cb * cb * cb);
     for _ in 0..8 {
         let (_, n) = radii_of_curvature(lat);
         let h = if lat.cos().abs() > 1e-3 {
