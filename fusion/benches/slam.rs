@@ -1,5 +1,6 @@
 //! SLAM cost table (a `harness = false` bench printing one table per measurement):
 //!
+//! 0. The INS step alone (mean and Jacobians of one sample) in the global and local frames.
 //! 1. IMU prediction per sample at N = 50, 100, 200, 400 features: the filter's lazy prediction
 //!    (flushed once per 20 samples, i.e. a 5 Hz terrain frame at 100 Hz IMU), the eager variant
 //!    (flushed every sample), and the naive dense ∇F P ∇Fᵀ + ∇G Q ∇Gᵀ measured side by side.
@@ -111,6 +112,7 @@ fn filter(n: usize) -> SlamFilter {
 fn filter_with(n: usize, mode: AssociationMode) -> SlamFilter {
     let cfg = SlamConfig {
         frame: NavFrame::Local,
+        local_gravity_mps2: 9.81,
         origin: Vector3::zeros(),
         association: AssociationConfig {
             mode,
@@ -159,6 +161,40 @@ fn main() {
     // faer reference alike.
     canopy_fusion::runtime::tune_allocator();
     canopy_fusion::runtime::flush_subnormals_to_zero();
+    println!("## INS step alone: mean, ∇F and ∇G of one IMU sample");
+    println!("| frame | per sample [µs] |");
+    println!("|---|---|");
+    let site = canopy_fusion::geodesy::Geodetic::from_degrees(58.0, 14.0, 100.0);
+    let turning = ImuSample {
+        angular_rate: Vector3::new(0.02, -0.01, 0.1),
+        ..imu()
+    };
+    for (name, m, position) in [
+        (
+            "global",
+            ins::Mechanization::global(),
+            canopy_fusion::geodesy::geodetic_to_ecef(&site),
+        ),
+        (
+            "local",
+            ins::Mechanization::local(9.81).unwrap(),
+            Vector3::new(10.0, -20.0, -150.0),
+        ),
+    ] {
+        let x = VehicleState {
+            position,
+            velocity: Vector3::new(14.0, 3.0, -1.0),
+            attitude: Vector3::new(0.1, 0.05, 1.2),
+            accel_bias: Vector3::zeros(),
+            gyro_bias: Vector3::zeros(),
+        };
+        let per = median_time(15, || {
+            for _ in 0..1000 {
+                black_box(ins::propagate_with_jacobians(&m, black_box(&x), &turning).unwrap());
+            }
+        }) / 1000.0;
+        println!("| {name} | {:.3} |", per * 1e6);
+    }
     let sizes = [50usize, 100, 200, 400];
     println!("## IMU prediction per sample (N features, n = 15 + 3N states)");
     println!(
@@ -184,7 +220,7 @@ fn main() {
         }) / 20.0;
         // Naive: full n×n ∇F and n×12 ∇G, dense products.
         let prop =
-            ins::propagate_with_jacobians(NavFrame::Local, &f.vehicle_state(0).unwrap(), &sample)
+            ins::propagate_with_jacobians(f.mechanization(), &f.vehicle_state(0).unwrap(), &sample)
                 .unwrap();
         let q = ins::process_noise(&ImuGrade::Tactical.noise(), sample.dt);
         let mut ff = Mat::<f64>::identity(n, n);

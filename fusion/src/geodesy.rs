@@ -29,8 +29,6 @@ pub const GAMMA_EQUATOR: f64 = 9.780_325_335_9;
 pub const GAMMA_POLE: f64 = 9.832_184_937_8;
 /// Somigliana's constant k = (b γ_p − a γ_e) / (a γ_e).
 pub const SOMIGLIANA_K: f64 = 0.001_931_852_652_41;
-/// Gravity of the flat, non-rotating local-SLAM world [m/s²] (text after eq. 21.31).
-pub const LOCAL_GRAVITY: f64 = 9.81;
 
 /// A geodetic position: latitude λ and longitude l in radians, height above the ellipsoid in metres.
 #[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -92,8 +90,13 @@ pub fn ecef_to_geodetic(p: &Vector3<f64>) -> Geodetic {
             height: p.z.abs() - WGS84_B,
         };
     }
-    // Bowring's initial guess, then fixed-point refinement of tan λ.
-    let mut lat = (p.z / (r * (1.0 - WGS84_E2))).atan();
+    // Bowring's (1976) closed form from the parametric latitude β — accurate to rounding for
+    // heights within ±10 km, so the fixed-point refinement of tan λ below usually stops after
+    // its first, confirming pass (it converges from anywhere, more slowly far from the surface).
+    let second_e2 = WGS84_E2 / (1.0 - WGS84_E2);
+    let (sb, cb) = (p.z * WGS84_A).atan2(r * WGS84_B).sin_cos();
+    let mut lat =
+        (p.z + second_e2 * WGS84_B * sb * sb * sb).atan2(r - WGS84_E2 * WGS84_A * cb * cb * cb);
     for _ in 0..8 {
         let (_, n) = radii_of_curvature(lat);
         let h = if lat.cos().abs() > 1e-3 {
@@ -174,6 +177,17 @@ pub fn geodetic_from_ecef_jacobian(g: &Geodetic) -> Matrix3<f64> {
     scale * ecef_from_ned(g.lat, g.lon).transpose()
 }
 
+/// The small rotation of the local-level NED frame per unit ECEF displacement at `g`: the
+/// matrix R with C_n^e(p + dp) = C_n^e(p) exp([(R dp)×]) to first order. It is the transport
+/// rate per unit velocity, ω_en^n = (l̇ cos λ, −λ̇, −l̇ sin λ) (cf. [`transport_rate_ned`]),
+/// composed with ∂(λ, l, h)/∂p^e.
+pub fn ned_rotation_from_position(g: &Geodetic) -> Matrix3<f64> {
+    let (s, c) = g.lat.sin_cos();
+    // Rows: rotation about north, east, down; columns: dλ, dl, dh.
+    let from_geo = Matrix3::new(0.0, c, 0.0, -1.0, 0.0, 0.0, 0.0, -s, 0.0);
+    from_geo * geodetic_from_ecef_jacobian(g)
+}
+
 /// Earth rate in ECEF, ω_ie^e (eq. 21.6).
 pub fn earth_rate_ecef() -> Vector3<f64> {
     Vector3::new(0.0, 0.0, EARTH_RATE)
@@ -229,13 +243,22 @@ pub fn normal_gravity_partials(lat: f64, height: f64) -> (f64, f64) {
 /// Local (plumb-bob) gravity g_l^e at an ECEF position: γ along the ellipsoid normal, pointing
 /// down. This is the left-hand side of eq. 21.9.
 pub fn gravity_ecef(p: &Vector3<f64>) -> Vector3<f64> {
-    let g = ecef_to_geodetic(p);
+    gravity_ecef_at(&ecef_to_geodetic(p))
+}
+
+/// [`gravity_ecef`] at a position given geodetically (saves the ECEF → geodetic conversion).
+pub fn gravity_ecef_at(g: &Geodetic) -> Vector3<f64> {
     ecef_from_ned(g.lat, g.lon) * Vector3::new(0.0, 0.0, normal_gravity(g.lat, g.height))
 }
 
 /// ∂g_l^e/∂p^e of [`gravity_ecef`] (used in ∇F of the global mechanization).
 pub fn gravity_ecef_jacobian(p: &Vector3<f64>) -> Matrix3<f64> {
-    let g = ecef_to_geodetic(p);
+    gravity_ecef_jacobian_at(&ecef_to_geodetic(p))
+}
+
+/// [`gravity_ecef_jacobian`] at a position given geodetically.
+pub fn gravity_ecef_jacobian_at(g: &Geodetic) -> Matrix3<f64> {
+    let g = *g;
     let gamma = normal_gravity(g.lat, g.height);
     let (dg_dlat, dg_dh) = normal_gravity_partials(g.lat, g.height);
     let c = ecef_from_ned(g.lat, g.lon);
@@ -368,6 +391,63 @@ mod tests {
         // Free-air gradient ≈ −3.086e-6 s⁻² at mid latitudes.
         let grad = (normal_gravity(0.7, 1000.0) - normal_gravity(0.7, 0.0)) / 1000.0;
         assert!((grad + 3.086e-6).abs() < 0.01e-6, "{grad}");
+    }
+
+    #[test]
+    fn normal_gravity_matches_an_independent_implementation() {
+        // (lat °, h m, γ m/s²) printed by the PyPI package `ahrs` 0.4.0,
+        // `ahrs.utils.WGS().normal_gravity(lat, h)` (Somigliana with γ_e, γ_p derived from GM, ω,
+        // a, f, and the second-order height series of NIMA TR8350.2 eq. 4-3); the two 50° rows are
+        // also the examples printed in its documentation. Its γ_e differs from the published
+        // 9.7803253359 by 4e-12, so agreement to 1e-10 m/s² is expected.
+        const AHRS: [(f64, f64, f64); 8] = [
+            (0.0, 0.0, 9.780_325_335_904_06),
+            (45.0, 0.0, 9.806_197_769_377_293),
+            (50.0, 0.0, 9.810_702_135_603_085),
+            (50.0, 100.0, 9.810_393_625_316_983),
+            (58.0, 0.0, 9.817_575_614_887_524),
+            (58.0, 150.0, 9.817_112_940_527_085),
+            (-33.87, 60.0, 9.796_198_401_129_177),
+            (30.0, 3000.0, 9.783_993_902_739_748),
+        ];
+        for (lat, h, gamma) in AHRS {
+            let ours = normal_gravity(lat.to_radians(), h);
+            assert!(
+                (ours - gamma).abs() < 1e-10,
+                "{lat}° {h} m: {ours} vs {gamma}"
+            );
+        }
+    }
+
+    #[test]
+    fn ned_rotation_from_position_matches_finite_differences() {
+        // C_n^e(p + h e_j) ≈ C_n^e(p) exp([(R e_j h)×]): C_n^eᵀ ∂C_n^e/∂p_j = [R_j ×].
+        for geo in [
+            Geodetic::from_degrees(58.0, 14.0, 100.0),
+            Geodetic::from_degrees(-33.9, 151.2, 450.0),
+        ] {
+            let p = geodetic_to_ecef(&geo);
+            let r = ned_rotation_from_position(&geo);
+            let c = |p: &Vector3<f64>| {
+                let g = ecef_to_geodetic(p);
+                ecef_from_ned(g.lat, g.lon)
+            };
+            // 1 m steps: C varies on the 6e6 m scale, truncation ≈ 1e-14, round-off ≈ 1e-16/1 m.
+            let h = 1.0;
+            for j in 0..3 {
+                let mut dp = Vector3::zeros();
+                dp[j] = h;
+                let d = c(&p).transpose() * (c(&(p + dp)) - c(&(p - dp))) / (2.0 * h);
+                let expected = crate::rotation::skew(&r.column(j).into_owned());
+                assert!(
+                    (d - expected).norm() < 1e-13,
+                    "{j}: {}",
+                    (d - expected).norm()
+                );
+            }
+            // Non-trivial: ≈ 1/R ≈ 1.6e-7 rad per metre horizontally.
+            assert!(r.norm() > 1e-7);
+        }
     }
 
     #[test]

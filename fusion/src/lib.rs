@@ -4,7 +4,8 @@
 //! (`shared/seed/inertial-slam-chapter.txt`).
 //!
 //! # Layout
-//! - [`rotation`]: attitude conventions (Euler z-y-x, C_b^n, E_b^n of eq. 21.8).
+//! - [`rotation`]: attitude conventions (Euler z-y-x, C_b^n, E_b^n of eq. 21.8), rotation
+//!   vectors (exp, the SO(3) left Jacobian of an IMU interval, log).
 //! - [`geodesy`]: WGS-84, C_n^e (21.12), Earth and transport rates (21.6, 21.7), gravity (21.9).
 //! - [`state`]: state layout and named index constants.
 //! - [`sensor`]: the estimator's inputs (IMU samples, terrain observations, sensor models).

@@ -40,6 +40,7 @@ fn filter() -> SlamFilter {
     };
     let cfg = SlamConfig {
         frame: NavFrame::Local,
+        local_gravity_mps2: 9.81,
         origin: Vector3::new(5.0, 5.0, 0.0),
         association: AssociationConfig::default(),
         fresh_id_namespace: 1,

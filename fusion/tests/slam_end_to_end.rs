@@ -93,6 +93,9 @@ fn observe(
     out
 }
 
+/// Gravity of the flat test world [m/s²].
+const FLAT_GRAVITY: f64 = 9.81;
+
 fn config(frame: NavFrame, origin: Vector3<f64>) -> SlamConfig {
     config_with_gate(frame, origin, 0.95)
 }
@@ -100,6 +103,7 @@ fn config(frame: NavFrame, origin: Vector3<f64>) -> SlamConfig {
 fn config_with_gate(frame: NavFrame, origin: Vector3<f64>, gate_probability: f64) -> SlamConfig {
     SlamConfig {
         frame,
+        local_gravity_mps2: FLAT_GRAVITY,
         origin,
         association: AssociationConfig {
             mode: AssociationMode::Descriptor,
@@ -152,7 +156,7 @@ fn local_straight_flight_noise_free_stays_at_truth() {
         let imu = ImuSample {
             time: t,
             dt,
-            specific_force: Vector3::new(0.0, 0.0, -geodesy::LOCAL_GRAVITY),
+            specific_force: Vector3::new(0.0, 0.0, -FLAT_GRAVITY),
             angular_rate: Vector3::zeros(),
         };
         slam.predict(0, &imu).unwrap();
@@ -398,7 +402,7 @@ fn two_vehicle_centralized_monte_carlo_is_consistent() {
                 let wg = Vector3::from_fn(|_, _| {
                     noise.gyro_noise_density / dt.sqrt() * std.sample(&mut rng)
                 });
-                let f_true = Vector3::new(0.0, 0.0, -geodesy::LOCAL_GRAVITY);
+                let f_true = Vector3::new(0.0, 0.0, -FLAT_GRAVITY);
                 let imu = ImuSample {
                     time: t,
                     dt,

@@ -54,6 +54,7 @@ fn main() {
     let mut filter = SlamFilter::new(
         SlamConfig {
             frame: world.frame(),
+            local_gravity_mps2: world.local_gravity(),
             origin: world.map_origin(),
             association: AssociationConfig {
                 mode: AssociationMode::Descriptor,

@@ -52,6 +52,7 @@ pub fn estimator_setup(cfg: &VehicleConfig, estimate: &InitialEstimate) -> Vehic
 pub fn reference_config(s: &Scenario, world: &World) -> SlamConfig {
     SlamConfig {
         frame: world.frame(),
+        local_gravity_mps2: world.local_gravity(),
         origin: world.map_origin(),
         association: AssociationConfig {
             mode: AssociationMode::Descriptor,

@@ -34,6 +34,8 @@ use canopy_fusion::state::NavFrame;
 use nalgebra::{Matrix3, Vector3};
 use serde::{Deserialize, Serialize};
 
+use crate::world::SensorErrors;
+
 pub use crate::network::{
     EventKind, EventSpec, FaultSpec, FusionConfig, FusionMode, LinkSpec, PartitionSpec, RunConfig,
     SecretsConfig, TransportKind,
@@ -279,8 +281,9 @@ pub enum EarthModel {
     /// Rotating WGS-84 Earth, normal gravity; vehicles run global (ECEF) SLAM.
     #[default]
     Wgs84,
-    /// Flat, non-rotating world with constant gravity `geodesy::LOCAL_GRAVITY` (the chapter's
-    /// local-SLAM assumptions, §21.2.2.1); vehicles run local (launch-site NED) SLAM.
+    /// Flat, non-rotating world with constant gravity (`gravity_mps2`, default normal gravity at
+    /// the launch site; the chapter's local-SLAM assumptions, §21.2.2.1); vehicles run local
+    /// (launch-site NED) SLAM.
     Flat,
 }
 
@@ -306,6 +309,11 @@ pub struct WorldConfig {
     pub earth_model: EarthModel,
     /// Launch site: origin of the shared local NED frame. Default −33.87°, 151.21°, 60 m.
     pub origin: OriginConfig,
+    /// Gravity of the flat world [m/s²] (`earth_model = "flat"` only), in [9.7, 9.9]: the
+    /// simulated world's and the local-frame estimator's. Default: WGS-84 normal gravity
+    /// (Somigliana, with the height correction) at `origin`'s latitude and height.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub gravity_mps2: Option<f64>,
     /// The rectangle (in launch NED) where terrain features are scattered.
     pub area: AreaConfig,
     /// How many features and how high above the ground.
@@ -320,6 +328,7 @@ impl Default for WorldConfig {
             seed: 1,
             earth_model: EarthModel::default(),
             origin: OriginConfig::default(),
+            gravity_mps2: None,
             area: AreaConfig::default(),
             features: FeatureConfig::default(),
             terrain: TerrainConfig::default(),
@@ -346,6 +355,22 @@ impl WorldConfig {
             10_000.0,
             "height above the ellipsoid",
         )?;
+        if let Some(g) = self.gravity_mps2 {
+            if self.earth_model != EarthModel::Flat {
+                return Err(ScenarioError::invalid(
+                    "gravity_mps2",
+                    "applies to earth_model = \"flat\" only (the WGS-84 world has normal gravity \
+                     at every position)",
+                ));
+            }
+            in_range(
+                "gravity_mps2",
+                g,
+                9.7,
+                9.9,
+                "gravity near the Earth's surface [m/s²] (normal gravity is 9.78–9.84)",
+            )?;
+        }
         let a = &self.area;
         finite("area.centre_north_m", a.centre_north_m)?;
         finite("area.centre_east_m", a.centre_east_m)?;
@@ -403,6 +428,17 @@ impl WorldConfig {
             ));
         }
         Ok(())
+    }
+
+    /// The launch site's gravity magnitude [m/s²]: `gravity_mps2`, or WGS-84 normal gravity at
+    /// `origin` (the flat world's g).
+    pub fn local_gravity(&self) -> f64 {
+        self.gravity_mps2.unwrap_or_else(|| {
+            canopy_fusion::geodesy::normal_gravity(
+                self.origin.lat_deg.to_radians(),
+                self.origin.height_m,
+            )
+        })
     }
 
     /// Number of features: `features.count`, or the density times the area, rounded.
@@ -1010,32 +1046,178 @@ impl SensorModelConfig {
     }
 }
 
-/// How the noise-free IMU sample of an interval (t_{k−1}, t_k] is synthesised from the truth.
+/// How the noise-free IMU sample of an interval (t_{k−1}, t_k] is synthesised from the truth
+/// (`world::imu` module doc).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, Default)]
 #[serde(rename_all = "snake_case")]
 pub enum ImuSynthesis {
-    /// Invert the estimator's discrete mechanization on the truth at t_{k−1} and t_k: a perfect
-    /// IMU then reproduces the true velocity and attitude exactly through that mechanization.
+    /// The exact coning- and sculling-compensated increments of the analytic motion (what a
+    /// navigation IMU delivers), computed without any discrete mechanization.
     #[default]
+    Exact,
+    /// Ablation (an oracle): invert the estimator's own discrete mechanization on the truth at
+    /// t_{k−1} and t_k, so a perfect IMU reproduces the true velocity and attitude exactly through
+    /// that mechanization and its truncation errors are hidden.
     Discrete,
-    /// Evaluate the continuous-time specific force and body rate of the analytic trajectory at
-    /// the interval midpoint: independent of the discrete formulas, so it exposes sign errors
-    /// that two implementations of the same discrete formula would share.
+    /// Ablation: the continuous-time specific force and body rate at the interval midpoint, an
+    /// IMU without coning/sculling compensation.
     Continuous,
 }
 
-/// `[vehicle.imu]`: grade, rate, synthesis.
+/// Which error model the simulated IMU draws its errors from (`[vehicle.imu.truth] model`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "snake_case")]
+pub enum ImuTruthModel {
+    /// A sensor error model that differs from the estimator's (fields of
+    /// [`ImuTruthConfig`], defaults from the grade).
+    #[default]
+    Sensor,
+    /// Ablation (an oracle): exactly the estimator's own model (white noise, turn-on bias, random
+    /// walk of `[vehicle.imu]`'s grade or `noise`), nothing else.
+    Filter,
+}
+
+/// `[vehicle.imu.truth]`: the simulated sensor's errors — the world's truth, which the estimator
+/// does not know (it assumes the model of `grade` or `[vehicle.imu.noise]`). With `model =
+/// "sensor"` (the default) the IMU has white noise, a turn-on bias, a first-order Gauss–Markov
+/// bias instability, a bias random walk, and per-axis scale-factor and misalignment errors drawn
+/// at turn-on; every field is optional and defaults from the estimator's model and the grade
+/// ([`ImuConfig::truth_errors`]) to errors the estimator's process noise covers. `model =
+/// "filter"` draws exactly the estimator's model (an oracle for ablation) and takes no other
+/// field. Densities and σ in the units of `[vehicle.imu.noise]`.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize, Default)]
+#[serde(deny_unknown_fields, default)]
+pub struct ImuTruthConfig {
+    /// `"sensor"` (default) or `"filter"`.
+    pub model: ImuTruthModel,
+    /// Accelerometer white-noise density [m/s²/√Hz]. Default: the estimator's.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub accel_noise_density: Option<f64>,
+    /// Gyro white-noise density [rad/s/√Hz]. Default: the estimator's.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub gyro_noise_density: Option<f64>,
+    /// 1-σ turn-on accelerometer bias [m/s²]. Default: the estimator's.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub accel_bias_sigma: Option<f64>,
+    /// 1-σ turn-on gyro bias [rad/s]. Default: the estimator's.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub gyro_bias_sigma: Option<f64>,
+    /// Stationary 1-σ of the accelerometer's Gauss–Markov bias instability [m/s²]. Default:
+    /// the estimator's bias random-walk density × √(τ/2), so that over times ≪ τ it drifts like
+    /// the random walk the estimator assumes, and stays bounded beyond.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub accel_bias_instability: Option<f64>,
+    /// Stationary 1-σ of the gyro's Gauss–Markov bias instability [rad/s]. Default as for the
+    /// accelerometer.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub gyro_bias_instability: Option<f64>,
+    /// Correlation time τ of the Gauss–Markov biases [s], in (0, 1e7]. Default 600.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub bias_correlation_time_s: Option<f64>,
+    /// Accelerometer bias random-walk density [m/s³/√Hz]. Default 0 (the instability drifts).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub accel_bias_rw_density: Option<f64>,
+    /// Gyro bias random-walk density [rad/s²/√Hz]. Default 0.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub gyro_bias_rw_density: Option<f64>,
+    /// 1-σ per-axis accelerometer scale-factor error [ppm], ≤ 1e5. Default by grade:
+    /// navigation 10, tactical 100, consumer 1000.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub accel_scale_factor_ppm: Option<f64>,
+    /// 1-σ per-axis gyro scale-factor error [ppm], ≤ 1e5. Default by grade: navigation 1,
+    /// tactical 10, consumer 100.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub gyro_scale_factor_ppm: Option<f64>,
+    /// 1-σ of each of the six accelerometer axis-misalignment terms [mrad], ≤ 100. Default by
+    /// grade: navigation 0.01, tactical 0.05, consumer 0.5.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub accel_misalignment_mrad: Option<f64>,
+    /// 1-σ of each of the six gyro axis-misalignment terms [mrad], ≤ 100. Default by grade:
+    /// navigation 0.001, tactical 0.01, consumer 0.1.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub gyro_misalignment_mrad: Option<f64>,
+}
+
+impl ImuTruthConfig {
+    /// The optional fields by name (for validation messages).
+    fn fields(&self) -> [(&'static str, Option<f64>); 13] {
+        [
+            ("accel_noise_density", self.accel_noise_density),
+            ("gyro_noise_density", self.gyro_noise_density),
+            ("accel_bias_sigma", self.accel_bias_sigma),
+            ("gyro_bias_sigma", self.gyro_bias_sigma),
+            ("accel_bias_instability", self.accel_bias_instability),
+            ("gyro_bias_instability", self.gyro_bias_instability),
+            ("bias_correlation_time_s", self.bias_correlation_time_s),
+            ("accel_bias_rw_density", self.accel_bias_rw_density),
+            ("gyro_bias_rw_density", self.gyro_bias_rw_density),
+            ("accel_scale_factor_ppm", self.accel_scale_factor_ppm),
+            ("gyro_scale_factor_ppm", self.gyro_scale_factor_ppm),
+            ("accel_misalignment_mrad", self.accel_misalignment_mrad),
+            ("gyro_misalignment_mrad", self.gyro_misalignment_mrad),
+        ]
+    }
+
+    /// Field checks (paths relative to `truth`).
+    pub fn validate(&self) -> Result<(), ScenarioError> {
+        for (name, value) in self.fields() {
+            let Some(v) = value else { continue };
+            if self.model == ImuTruthModel::Filter {
+                return Err(ScenarioError::invalid(
+                    name,
+                    "applies to model = \"sensor\" only (\"filter\" draws exactly the estimator's model)",
+                ));
+            }
+            match name {
+                "bias_correlation_time_s" => positive_at_most(name, v, 1e7)?,
+                "accel_scale_factor_ppm" | "gyro_scale_factor_ppm" => {
+                    non_negative_at_most(name, v, 1e5)?
+                }
+                "accel_misalignment_mrad" | "gyro_misalignment_mrad" => {
+                    non_negative_at_most(name, v, 100.0)?
+                }
+                _ => non_negative_at_most(name, v, 100.0)?,
+            }
+        }
+        Ok(())
+    }
+}
+
+/// Default correlation time of the truth model's Gauss–Markov biases [s].
+pub const DEFAULT_BIAS_CORRELATION_TIME_S: f64 = 600.0;
+
+/// Default (gyro scale factor [ppm], accelerometer scale factor [ppm], gyro misalignment
+/// [mrad], accelerometer misalignment [mrad]) of the `sensor` truth model by grade. Chosen within
+/// what the estimator's process noise covers on the shipped scenarios: a 180° turn picks up
+/// π × (gyro scale factor) of heading error, 3e-5 rad for tactical, below the 6e-5 rad that the
+/// tactical gyro's white noise adds over a 20 s turn; the accelerometer terms act on the ≈ 1 g
+/// specific force as a bias well inside the turn-on σ (1 mg tactical: 100 ppm and 0.05 mrad
+/// give 0.1 and 0.05 mg).
+fn calibration_defaults(grade: ImuGrade) -> [f64; 4] {
+    match grade {
+        ImuGrade::Navigation => [1.0, 10.0, 0.001, 0.01],
+        ImuGrade::Tactical => [10.0, 100.0, 0.01, 0.05],
+        ImuGrade::Consumer => [100.0, 1000.0, 0.1, 0.5],
+        ImuGrade::Perfect => [0.0; 4],
+    }
+}
+
+/// `[vehicle.imu]`: grade, rate, synthesis, the estimator's error model and the sensor's.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct ImuConfig {
-    /// Named grade (`navigation`, `tactical`, `consumer`, `perfect`). Default `tactical`.
+    /// Named grade (`navigation`, `tactical`, `consumer`, `perfect`): the estimator's error
+    /// model and the defaults of the simulated sensor's (`truth`). Default `tactical`.
     pub grade: ImuGrade,
     /// Sample rate [Hz], in (0, 10000]. Default 100.
     pub rate_hz: f64,
-    /// Noise-free sample synthesis. Default `discrete`.
+    /// Noise-free sample synthesis. Default `exact`.
     pub synthesis: ImuSynthesis,
-    /// Replaces the grade's noise figures when given.
+    /// Replaces the grade's noise figures in the estimator's model when given.
     pub noise: Option<ImuNoiseConfig>,
+    /// The simulated sensor's errors (`[vehicle.imu.truth]`). Default: the `sensor` model with
+    /// its defaults.
+    pub truth: ImuTruthConfig,
 }
 
 impl Default for ImuConfig {
@@ -1043,14 +1225,48 @@ impl Default for ImuConfig {
         Self {
             grade: ImuGrade::Tactical,
             rate_hz: 100.0,
-            synthesis: ImuSynthesis::Discrete,
+            synthesis: ImuSynthesis::Exact,
             noise: None,
+            truth: ImuTruthConfig::default(),
         }
     }
 }
 
 impl ImuConfig {
-    /// The effective noise model: the override, or the grade's.
+    /// The simulated sensor's error model: `truth` resolved against the estimator's model
+    /// ([`ImuConfig::noise_model`]) and the grade's defaults ([`ImuTruthConfig`]).
+    pub fn truth_errors(&self) -> SensorErrors {
+        let filter = self.noise_model();
+        let t = &self.truth;
+        if t.model == ImuTruthModel::Filter {
+            return SensorErrors::filter_model(&filter);
+        }
+        let tau = t
+            .bias_correlation_time_s
+            .unwrap_or(DEFAULT_BIAS_CORRELATION_TIME_S);
+        let [gyro_sf, accel_sf, gyro_mis, accel_mis] = calibration_defaults(self.grade);
+        SensorErrors {
+            accel_noise_density: t.accel_noise_density.unwrap_or(filter.accel_noise_density),
+            gyro_noise_density: t.gyro_noise_density.unwrap_or(filter.gyro_noise_density),
+            accel_bias_sigma: t.accel_bias_sigma.unwrap_or(filter.accel_bias_sigma),
+            gyro_bias_sigma: t.gyro_bias_sigma.unwrap_or(filter.gyro_bias_sigma),
+            accel_bias_instability: t
+                .accel_bias_instability
+                .unwrap_or(filter.accel_bias_rw_density * (0.5 * tau).sqrt()),
+            gyro_bias_instability: t
+                .gyro_bias_instability
+                .unwrap_or(filter.gyro_bias_rw_density * (0.5 * tau).sqrt()),
+            bias_correlation_time: tau,
+            accel_bias_rw_density: t.accel_bias_rw_density.unwrap_or(0.0),
+            gyro_bias_rw_density: t.gyro_bias_rw_density.unwrap_or(0.0),
+            accel_scale_factor: t.accel_scale_factor_ppm.unwrap_or(accel_sf) * 1e-6,
+            gyro_scale_factor: t.gyro_scale_factor_ppm.unwrap_or(gyro_sf) * 1e-6,
+            accel_misalignment: t.accel_misalignment_mrad.unwrap_or(accel_mis) * 1e-3,
+            gyro_misalignment: t.gyro_misalignment_mrad.unwrap_or(gyro_mis) * 1e-3,
+        }
+    }
+
+    /// The estimator's noise model: the override, or the grade's.
     pub fn noise_model(&self) -> ImuNoise {
         match &self.noise {
             Some(n) => ImuNoise {
@@ -1080,7 +1296,7 @@ impl ImuConfig {
                 non_negative_at_most(name, v, 100.0)?;
             }
         }
-        Ok(())
+        self.truth.validate().map_err(|e| e.within("truth"))
     }
 }
 
@@ -1337,6 +1553,82 @@ synthesis = "continuous"
             b.vehicles[0].sensor.model(),
             SensorModel::Pixel { .. }
         ));
+    }
+
+    /// `[world] gravity_mps2` and `[vehicle.imu.truth]`: defaults, and bad values or misplaced
+    /// fields rejected with the dotted path of the field (unknown names by the parser).
+    #[test]
+    fn gravity_and_imu_truth_fields() {
+        let b = Scenario::from_toml_str(BASE).unwrap();
+        // Absent: WGS-84 normal gravity at the default origin (−33.87°, 60 m), 9.796198 m/s²
+        // by the independent `ahrs` implementation (geodesy tests).
+        assert!((b.world.local_gravity() - 9.796_198_401_129_177).abs() < 1e-10);
+        let g =
+            Scenario::from_toml_str(&BASE.replacen("seed = 3", "seed = 3\ngravity_mps2 = 9.8", 1))
+                .unwrap();
+        assert_eq!(g.world.local_gravity(), 9.8);
+        assert_eq!(Scenario::from_toml_str(&g.to_toml_string()).unwrap(), g);
+        assert_eq!(b.vehicles[1].imu.synthesis, ImuSynthesis::Continuous);
+        assert_eq!(b.vehicles[0].imu.synthesis, ImuSynthesis::Exact, "default");
+        assert_eq!(
+            b.vehicles[0].imu.truth.model,
+            ImuTruthModel::Sensor,
+            "default"
+        );
+        let with_truth = |table: &str| {
+            BASE.replacen(
+                "synthesis = \"continuous\"",
+                &format!("synthesis = \"continuous\"\n[vehicle.imu.truth]\n{table}"),
+                1,
+            )
+        };
+        let t = Scenario::from_toml_str(&with_truth(
+            "gyro_scale_factor_ppm = 50\nbias_correlation_time_s = 100",
+        ))
+        .unwrap();
+        let e = t.vehicles[1].imu.truth_errors();
+        assert!((e.gyro_scale_factor - 50e-6).abs() < 1e-20);
+        assert_eq!(e.bias_correlation_time, 100.0);
+        assert_eq!(Scenario::from_toml_str(&t.to_toml_string()).unwrap(), t);
+        for (text, field) in [
+            (
+                BASE.replacen(
+                    "earth_model = \"flat\"",
+                    "earth_model = \"wgs84\"\ngravity_mps2 = 9.8",
+                    1,
+                )
+                .replace("frame = \"local\"\n", ""),
+                "world.gravity_mps2",
+            ),
+            (
+                BASE.replacen("seed = 3", "seed = 3\ngravity_mps2 = 1.0", 1),
+                "world.gravity_mps2",
+            ),
+            (
+                with_truth("model = \"filter\"\ngyro_scale_factor_ppm = 5"),
+                "vehicle[1].imu.truth.gyro_scale_factor_ppm",
+            ),
+            (
+                with_truth("accel_misalignment_mrad = -1"),
+                "vehicle[1].imu.truth.accel_misalignment_mrad",
+            ),
+            (
+                with_truth("bias_correlation_time_s = 0"),
+                "vehicle[1].imu.truth.bias_correlation_time_s",
+            ),
+            (
+                with_truth("gyro_noise_density = nan"),
+                "vehicle[1].imu.truth.gyro_noise_density",
+            ),
+        ] {
+            assert_eq!(invalid_field(&text), field, "{text}");
+        }
+        match Scenario::from_toml_str(&with_truth("gyro_scale_ppm = 5")) {
+            Err(ScenarioError::Parse(e)) => {
+                assert!(e.to_string().contains("gyro_scale_ppm"), "{e}")
+            }
+            other => panic!("expected an unknown-field error, got {other:?}"),
+        }
     }
 
     #[test]

@@ -188,6 +188,7 @@ pub fn vehicle_agent(
         .collect();
     let slam = SlamConfig {
         frame: world.frame(),
+        local_gravity_mps2: world.local_gravity(),
         origin: world.map_origin(),
         association: s.fusion.association_config(),
         fresh_id_namespace: cfg.id,

@@ -194,6 +194,7 @@ fn run(scn: &Scenario, opt: Options) -> RunResult {
     let mut filter = SlamFilter::new(
         SlamConfig {
             frame,
+            local_gravity_mps2: world.local_gravity(),
             origin: world.map_origin(),
             association: AssociationConfig {
                 mode,
@@ -555,6 +556,7 @@ fn run_team(scn: &Scenario, duration: f64) -> (f64, f64, usize, [usize; 2]) {
     let mut filter = SlamFilter::new(
         SlamConfig {
             frame,
+            local_gravity_mps2: world.local_gravity(),
             origin: world.map_origin(),
             association: AssociationConfig::default(),
             fresh_id_namespace: 0,

@@ -75,6 +75,7 @@ fn filter(frame: NavFrame, sensor: SensorModel, mode: AssociationMode) -> SlamFi
     SlamFilter::new(
         SlamConfig {
             frame,
+            local_gravity_mps2: 9.81,
             origin: match frame {
                 NavFrame::Global => site(),
                 NavFrame::Local => Vector3::zeros(),

@@ -55,6 +55,7 @@ impl SlamFilter {
         }
         SlamFilter {
             config: self.config,
+            mechanization: self.mechanization,
             vehicles: self
                 .vehicles
                 .iter()

@@ -119,6 +119,10 @@ pub const DEFAULT_NEW_FEATURE_PROBABILITY: f64 = 0.9999;
 pub struct SlamConfig {
     /// Navigation frame of positions and the map.
     pub frame: NavFrame,
+    /// Gravity magnitude of the flat local frame [m/s²] (local SLAM; finite and positive, e.g.
+    /// WGS-84 normal gravity at the launch site). Global SLAM ignores it: it uses WGS-84 normal
+    /// gravity at each position.
+    pub local_gravity_mps2: f64,
     /// Team-wide origin o of map information (ECEF launch site in global SLAM, zero in local
     /// SLAM; `info` module docs).
     pub origin: Vector3<f64>,
@@ -351,6 +355,8 @@ struct VehicleSlot {
 #[derive(Clone, Debug)]
 pub struct SlamFilter {
     config: SlamConfig,
+    /// The INS mechanization of `config.frame` and `config.local_gravity_mps2`.
+    mechanization: ins::Mechanization,
     vehicles: Vec<VehicleSlot>,
     layout: Layout,
     x: Col<f64>,
@@ -393,6 +399,8 @@ impl SlamFilter {
         if !config.origin.iter().all(|v| v.is_finite()) {
             return Err(SlamError::InvalidConfig("origin is not finite".into()));
         }
+        let mechanization = ins::Mechanization::new(config.frame, config.local_gravity_mps2)
+            .map_err(|e| SlamError::InvalidConfig(e.to_string()))?;
         let layout = Layout::new(vehicles.len());
         let n = layout.dim();
         let mut x = Col::zeros(n);
@@ -454,6 +462,7 @@ impl SlamFilter {
             map_generation: 0,
             info_cache: info_cache::InfoCache::default(),
             config,
+            mechanization,
             vehicles: slots,
             layout,
             x,
@@ -471,6 +480,11 @@ impl SlamFilter {
     /// Navigation frame.
     pub fn frame(&self) -> NavFrame {
         self.config.frame
+    }
+
+    /// The INS mechanization of the filter's frame and gravity.
+    pub fn mechanization(&self) -> &ins::Mechanization {
+        &self.mechanization
     }
 
     /// Map-information origin o.
@@ -701,7 +715,7 @@ impl SlamFilter {
     pub fn predict(&mut self, vehicle: usize, imu: &ImuSample) -> Result<(), SlamError> {
         let off = self.check_vehicle(vehicle)?;
         let xv = self.vehicle_state(vehicle)?;
-        let prop = ins::propagate_with_jacobians(self.config.frame, &xv, imu)?;
+        let prop = ins::propagate_with_jacobians(&self.mechanization, &xv, imu)?;
         let q = ins::process_noise(&self.vehicles[vehicle].imu_noise, imu.dt);
         let pvv = self.vehicle_covariance(vehicle)?;
         let (f, g) = (prop.transition, prop.noise);

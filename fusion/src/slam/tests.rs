@@ -20,9 +20,13 @@ fn range_bearing() -> SensorModel {
     }
 }
 
+/// Gravity of the flat test world [m/s²].
+const FLAT_GRAVITY: f64 = 9.81;
+
 fn config(frame: NavFrame, mode: AssociationMode) -> SlamConfig {
     SlamConfig {
         frame,
+        local_gravity_mps2: FLAT_GRAVITY,
         origin: Vector3::zeros(),
         association: AssociationConfig {
             mode,
@@ -162,7 +166,12 @@ fn lazy_prediction_matches_dense_propagation() {
             let v = if k % 3 == 0 { 1 } else { 0 };
             let sample = imu(k as f64 * 0.01);
             let xv = f.vehicle_state(v).unwrap();
-            let prop = ins::propagate_with_jacobians(frame, &xv, &sample).unwrap();
+            let prop = ins::propagate_with_jacobians(
+                &ins::Mechanization::new(frame, FLAT_GRAVITY).unwrap(),
+                &xv,
+                &sample,
+            )
+            .unwrap();
             let q = ins::process_noise(&ImuGrade::Tactical.noise(), sample.dt);
             // Dense reference: ∇F is identity except the vehicle block; ∇G has only vehicle rows.
             let off = f.layout.vehicle_block(v);
@@ -980,7 +989,7 @@ fn yaw_stays_wrapped_through_full_turns() {
     let spin = ImuSample {
         time: 0.0,
         dt: 0.01,
-        specific_force: Vector3::new(0.0, 0.0, -crate::geodesy::LOCAL_GRAVITY),
+        specific_force: Vector3::new(0.0, 0.0, -FLAT_GRAVITY),
         angular_rate: Vector3::new(0.0, 0.0, 1.0),
     };
     let before = f.vehicle_covariance(0).unwrap();

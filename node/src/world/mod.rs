@@ -13,7 +13,8 @@
 //!   Ψ is relative to the local-level frame at the vehicle's *current* position:
 //!   C_b^n = C_e^n(p) C_{n0}^e C_b^{n0}. Features are ECEF. The Earth rotates; gravity is WGS-84.
 //! - Local (earth model `flat`): everything is in n0, the world is flat and non-rotating with
-//!   gravity [0, 0, LOCAL_GRAVITY] (§21.2.2.1).
+//!   gravity [0, 0, g] (§21.2.2.1), g = `[world] gravity_mps2` or WGS-84 normal gravity at the
+//!   launch site ([`World::local_gravity`]).
 //!
 //! # Seeds
 //! The world draws terrain and features from streams of its seed; each vehicle's seed
@@ -27,7 +28,10 @@ pub mod terrain;
 pub mod trajectory;
 mod vehicle;
 
-pub use imu::{ImuErrors, ImuIdeal, NavTruth, continuous_ideal, discrete_ideal};
+pub use imu::{
+    BodyMotion, ImuErrors, ImuIdeal, ImuStreams, NavTruth, SensorErrors, continuous_ideal,
+    discrete_ideal, exact_increments,
+};
 pub use sensor::{RANDOM_ID_BASE, SensedFrame, TerrainSensor, feature_in_sensor, measure};
 pub use terrain::Terrain;
 pub use trajectory::{FlightState, Kinematics, Trajectory, coordinated_attitude};
@@ -35,7 +39,10 @@ pub use vehicle::{InitialEstimate, StepOutput, TruthSample, VehicleSim};
 
 use std::sync::Arc;
 
-use canopy_fusion::geodesy::{Geodetic, LocalFrame, ecef_from_ned, ecef_to_geodetic};
+use canopy_fusion::geodesy::{
+    Geodetic, LocalFrame, ecef_from_ned, ecef_to_geodetic, normal_gravity,
+};
+use canopy_fusion::ins::Mechanization;
 use canopy_fusion::rotation::{euler_from_nav_from_body, nav_from_body};
 use canopy_fusion::sensor::FeatureId;
 use canopy_fusion::state::NavFrame;
@@ -95,6 +102,7 @@ impl Feature {
 #[derive(Clone, Debug)]
 pub struct World {
     frame: NavFrame,
+    mechanization: Mechanization,
     seed: u64,
     launch: LocalFrame,
     terrain: Terrain,
@@ -127,8 +135,12 @@ impl World {
                 }
             })
             .collect();
+        let frame = cfg.earth_model.frame();
+        let mechanization = Mechanization::new(frame, cfg.local_gravity())
+            .map_err(|e| ScenarioError::invalid("gravity_mps2", e.to_string()))?;
         Ok(Self {
-            frame: cfg.earth_model.frame(),
+            frame,
+            mechanization,
             seed,
             launch,
             terrain,
@@ -139,6 +151,20 @@ impl World {
     /// The vehicles' navigation frame.
     pub fn frame(&self) -> NavFrame {
         self.frame
+    }
+
+    /// The world's physics as the mechanization describes it: rotating WGS-84 Earth, or the flat
+    /// world with its gravity.
+    pub fn mechanization(&self) -> &Mechanization {
+        &self.mechanization
+    }
+
+    /// Gravity magnitude of the launch site [m/s²]: `[world] gravity_mps2`, or WGS-84 normal
+    /// gravity at `[world.origin]` (the flat world's g; what a local-frame estimator is given).
+    pub fn local_gravity(&self) -> f64 {
+        self.mechanization
+            .local_gravity()
+            .unwrap_or_else(|| normal_gravity(self.launch.origin.lat, self.launch.origin.height))
     }
 
     /// The world seed.
@@ -200,6 +226,33 @@ impl World {
                     attitude: euler_from_nav_from_body(&nav_from_body),
                 }
             }
+        }
+    }
+
+    /// The body's motion ([`BodyMotion`]) in the world's frame at simulation time `time` from a
+    /// launch-frame flight state: C_b^e = C_{n0}^e C_b^{n0} (global) or C_b^{n0} (local).
+    pub fn body_motion(&self, time: f64, s: &FlightState) -> BodyMotion {
+        let (position, velocity) = self.translation(&s.kinematics);
+        let launch_from_body = nav_from_body(&s.attitude);
+        BodyMotion {
+            time,
+            position,
+            velocity,
+            world_from_body: match self.frame {
+                NavFrame::Local => launch_from_body,
+                NavFrame::Global => self.launch.ecef_from_ned * launch_from_body,
+            },
+        }
+    }
+
+    /// Position and velocity in the world's frame of launch-frame kinematics.
+    pub fn translation(&self, k: &Kinematics) -> (Vector3<f64>, Vector3<f64>) {
+        match self.frame {
+            NavFrame::Local => (k.position, k.velocity),
+            NavFrame::Global => (
+                self.launch.ecef_from_local(&k.position),
+                self.launch.ecef_from_ned * k.velocity,
+            ),
         }
     }
 

@@ -5,20 +5,18 @@
 
 use std::sync::Arc;
 
-use canopy_fusion::geodesy::{
-    Geodetic, earth_rate_ecef, earth_rate_ned, ecef_from_ned, ecef_to_geodetic, geodetic_to_ecef,
-    gravity_ecef, transport_rate_ned,
-};
+use canopy_fusion::geodesy::{Geodetic, ecef_to_geodetic, geodetic_to_ecef};
 use canopy_fusion::imu::ImuGrade;
-use canopy_fusion::rotation::{euler_rate_from_body_rate, nav_from_body, wrap_angle};
+use canopy_fusion::ins::{VehicleState, propagate};
+use canopy_fusion::rotation::{nav_from_body, wrap_angle};
 use canopy_fusion::sensor::{Measurement, SensorModel};
 use canopy_fusion::state::{ATT, NavFrame, POS, VEHICLE_DIM, VEL};
 use nalgebra::{Matrix3, Rotation3, Vector3};
 
 use super::*;
 use crate::scenario::{
-    EarthModel, ImuConfig, ImuSynthesis, SensorConfig, SensorModelConfig, ShapeConfig,
-    TrajectoryConfig, VehicleConfig,
+    EarthModel, ImuConfig, ImuSynthesis, ImuTruthModel, SensorConfig, SensorModelConfig,
+    ShapeConfig, TrajectoryConfig, VehicleConfig,
 };
 
 fn world(model: EarthModel, seed: u64) -> Arc<World> {
@@ -80,73 +78,39 @@ fn simulation_is_deterministic_for_a_seed() {
     assert_eq!(a.2[599].truth.position, c.2[599].truth.position);
 }
 
-/// One step of the estimator's discrete mechanization, written here from the contract in
-/// `world.md` (forward direction; the simulator implements its inverse).
-fn mechanize(
-    frame: NavFrame,
-    nav: &NavTruth,
-    f: &Vector3<f64>,
-    w: &Vector3<f64>,
-    dt: f64,
-) -> NavTruth {
-    let c_bn = nav_from_body(&nav.attitude);
-    let (v, p, att) = match frame {
-        NavFrame::Global => {
-            let g = ecef_to_geodetic(&nav.position);
-            let c_ne = ecef_from_ned(g.lat, g.lon);
-            let c_be = c_ne * c_bn;
-            let v = nav.velocity
-                + (c_be * f - 2.0 * earth_rate_ecef().cross(&nav.velocity)
-                    + gravity_ecef(&nav.position))
-                    * dt;
-            let p = nav.position + 0.5 * (nav.velocity + v) * dt;
-            let w_in =
-                earth_rate_ned(g.lat) + transport_rate_ned(&g, &(c_ne.transpose() * nav.velocity));
-            let att = nav.attitude
-                + euler_rate_from_body_rate(&nav.attitude) * (w - c_bn.transpose() * w_in) * dt;
-            (v, p, att)
-        }
-        NavFrame::Local => {
-            let v = nav.velocity
-                + (c_bn * f + Vector3::new(0.0, 0.0, canopy_fusion::geodesy::LOCAL_GRAVITY)) * dt;
-            let p = nav.position + 0.5 * (nav.velocity + v) * dt;
-            let att = nav.attitude + euler_rate_from_body_rate(&nav.attitude) * w * dt;
-            (v, p, att)
-        }
-    };
-    NavTruth {
-        time: nav.time + dt,
-        position: p,
-        velocity: v,
-        attitude: att.map(wrap_angle),
-    }
-}
-
-/// Noise-free discrete samples fed through the (test-local) mechanization reproduce the truth:
-/// per step to rounding in v and Ψ, and over a 120 s free run (including turns) the position
-/// drifts only by the trapezoidal rule's truncation.
+/// Noise-free `discrete` samples (the ablation) fed through the estimator's mechanization
+/// (`fusion::ins::propagate`, the contract they invert) reproduce the truth: per step to
+/// rounding in v and Ψ, and over a 120 s free run (including turns) the position drifts only by
+/// the trapezoidal rule's truncation.
 #[test]
 fn discrete_synthesis_inverts_the_mechanization() {
     for model in [EarthModel::Wgs84, EarthModel::Flat] {
         let mut cfg = vehicle_cfg(lawnmower());
         cfg.imu.grade = ImuGrade::Perfect;
+        cfg.imu.synthesis = ImuSynthesis::Discrete;
         cfg.trajectory.as_mut().unwrap().phase = 0.2; // starts shortly before the first turn
         cfg.trajectory.as_mut().unwrap().climb_amplitude_m = 8.0;
         let w = world(model, 3);
-        let frame = w.frame();
+        let m = *w.mechanization();
         let mut v = VehicleSim::new(&cfg, w, 5).unwrap();
-        let mut free = v.truth().nav();
+        let state = |n: &NavTruth| VehicleState {
+            position: n.position,
+            velocity: n.velocity,
+            attitude: n.attitude,
+            accel_bias: Vector3::zeros(),
+            gyro_bias: Vector3::zeros(),
+        };
+        let mut free = state(&v.truth().nav());
         let (mut step_v, mut step_att) = (0.0f64, 0.0f64);
         let (mut free_p, mut free_v, mut free_att) = (0.0f64, 0.0f64, 0.0f64);
         for _ in 0..12_000 {
             let prev = v.truth().nav();
             let out = v.step();
             assert_eq!(out.imu, out.imu_ideal, "perfect grade adds nothing");
-            let (f, om) = (out.imu.specific_force, out.imu.angular_rate);
-            let one = mechanize(frame, &prev, &f, &om, out.imu.dt);
+            let one = propagate(&m, &state(&prev), &out.imu).unwrap();
             step_v = step_v.max((one.velocity - out.truth.velocity).norm());
             step_att = step_att.max((one.attitude - out.truth.attitude).map(wrap_angle).norm());
-            free = mechanize(frame, &free, &f, &om, out.imu.dt);
+            free = propagate(&m, &free, &out.imu).unwrap();
             free_p = free_p.max((free.position - out.truth.position).norm());
             free_v = free_v.max((free.velocity - out.truth.velocity).norm());
             free_att = free_att.max((free.attitude - out.truth.attitude).map(wrap_angle).norm());
@@ -155,13 +119,12 @@ fn discrete_synthesis_inverts_the_mechanization() {
             "{model:?}: one-step |Δv| {step_v:.1e} |ΔΨ| {step_att:.1e}; 120 s free run |Δp| {free_p:.2e} \
              |Δv| {free_v:.1e} |ΔΨ| {free_att:.1e}"
         );
-        // Rounding: v ~ 25 m/s and ECEF p ~ 6e6 m enter (v_k − v_{k−1})/Δt·Δt; 1e-9 m/s and
-        // 1e-11 rad leave ~100× margin over the double-precision residue.
+        // Rounding: v ~ 25 m/s and ECEF p ~ 6e6 m enter the inverse; 1e-9 m/s and 1e-11 rad
+        // leave ~100× margin over the double-precision residue.
         assert!(step_v < 1e-9, "{model:?}: {step_v}");
         assert!(step_att < 1e-11, "{model:?}: {step_att}");
-        // Trapezoid truncation Δt²/12·|jerk| per unit time, |jerk| ≲ 0.6 m/s³ here, bounds the
-        // drift by ≈ 6e-4 m over 120 s (observed 4.5e-5: the turn's jerk changes sign); velocity
-        // and attitude then only feel the position error through gravity and the transport rate.
+        // Trapezoid truncation Δt²/12·|Δa| telescopes (≈ 1e-4 m for |Δa| ≲ 10 m/s²); velocity
+        // and attitude then only feel the position error through gravity and C_n^e(p).
         assert!(free_p < 1e-3, "{model:?}: {free_p}");
         assert!(
             free_v < 1e-6 && free_att < 1e-8,
@@ -170,80 +133,149 @@ fn discrete_synthesis_inverts_the_mechanization() {
     }
 }
 
-/// On straight level flight the continuous (launch-frame, midpoint) and discrete (current
-/// local-level, transport rate) syntheses agree to ~1e-7: a sign error in the Coriolis term
-/// (3.6e-3 m/s² at 25 m/s), the Earth rate (1.5e-4 rad/s) or the transport rate (8e-6 rad/s)
-/// in either would stand out. In turns they differ at first order in Δt (the discrete form holds
-/// C_b^n at the interval start), so the difference shrinks in proportion to Δt.
+/// Largest differences (|Δf̂|, |Δω̂|) between two syntheses over the intervals of length `dt`
+/// tiling [`start`, `start + span`).
+fn synthesis_difference(
+    v: &VehicleSim,
+    a: ImuSynthesis,
+    b: ImuSynthesis,
+    start: f64,
+    span: f64,
+    dt: f64,
+) -> (f64, f64) {
+    let (mut df, mut dw) = (0.0f64, 0.0f64);
+    for i in 0..(span / dt) as usize {
+        let t0 = start + i as f64 * dt;
+        let x = v.ideal_imu(t0, t0 + dt, a);
+        let y = v.ideal_imu(t0, t0 + dt, b);
+        df = df.max((x.specific_force - y.specific_force).norm());
+        dw = dw.max((x.angular_rate - y.angular_rate).norm());
+    }
+    (df, dw)
+}
+
+/// The default `exact` synthesis and the `discrete` inverse of the mechanization: identical in
+/// the flat world (the local step is exact for exact increments), and in the rotating world
+/// apart by the step's O(Δt³) truncation per step (gravity and Coriolis at the midpoint, the
+/// Earth's turn to first order in ΩΔt), i.e. O(Δt²) in f̂: a 4× shorter step gives a ≈ 16×
+/// smaller difference. A sign error in the Earth rate or Coriolis term of either would differ
+/// by ≈ 1e-4 rad/s or 4e-3 m/s² and not shrink with Δt.
 #[test]
-fn continuous_and_discrete_synthesis_agree() {
+fn exact_and_discrete_synthesis_agree_to_the_mechanizations_truncation() {
+    for model in [EarthModel::Wgs84, EarthModel::Flat] {
+        let mut cfg = vehicle_cfg(lawnmower());
+        cfg.trajectory.as_mut().unwrap().climb_amplitude_m = 8.0;
+        let v = VehicleSim::new(&cfg, world(model, 3), 5).unwrap();
+        // The first turn spans t ≈ 72–94 s; the leg before it is straight.
+        let diff = |dt| {
+            synthesis_difference(
+                &v,
+                ImuSynthesis::Exact,
+                ImuSynthesis::Discrete,
+                66.0,
+                30.0,
+                dt,
+            )
+        };
+        let (f1, w1) = diff(0.01);
+        let (f4, w4) = diff(0.0025);
+        eprintln!(
+            "{model:?}: exact vs discrete, Δt 10 ms |Δf| {f1:.2e} |Δω| {w1:.2e}; Δt 2.5 ms |Δf| {f4:.2e} |Δω| {w4:.2e}"
+        );
+        // The attitude update is exact in both frames: only rounding of Δθ/Δt (≈ 1e-16/Δt).
+        assert!(w1 < 1e-12 && w4 < 1e-11, "{model:?}: {w1} {w4}");
+        match model {
+            // Same closed form up to rounding of (v_k − v_{k−1})/Δt.
+            EarthModel::Flat => assert!(f1 < 1e-11 && f4 < 1e-10, "{f1} {f4}"),
+            EarthModel::Wgs84 => {
+                // Gravity gradient × ⅛aΔt², Coriolis × Δt·a: ≲ 1e-8 m/s² at 10 ms.
+                assert!(f1 < 1e-7, "{f1}");
+                // Second order (16×), with room for the rounding floor at 2.5 ms.
+                assert!(f1 / f4 > 8.0, "{}", f1 / f4);
+            }
+        }
+    }
+}
+
+/// On straight level flight the `continuous` ablation (rates at the interval midpoint in the
+/// launch frame) agrees with the exact increments to ~1e-7: a sign error in the Coriolis term
+/// (3.6e-3 m/s² at 25 m/s), the Earth rate (1.5e-4 rad/s) or gravity in either would stand out.
+/// In turns midpoint rates miss the coning and sculling terms, O(Δt²) in the rates: the
+/// difference shrinks ≈ 16× for a 4× shorter step.
+#[test]
+fn continuous_and_exact_synthesis_agree() {
     for model in [EarthModel::Wgs84, EarthModel::Flat] {
         let cfg = vehicle_cfg(lawnmower());
         let v = VehicleSim::new(&cfg, world(model, 3), 5).unwrap();
-        let dt = 0.01;
-        let (mut df, mut dw) = (0.0f64, 0.0f64);
         // First leg: 1800 m at 25 m/s from t = 0.
-        for i in 0..5000 {
-            let t0 = 2.0 + i as f64 * dt;
-            let a = v.ideal_imu(t0, t0 + dt, ImuSynthesis::Discrete);
-            let b = v.ideal_imu(t0, t0 + dt, ImuSynthesis::Continuous);
-            df = df.max((a.specific_force - b.specific_force).norm());
-            dw = dw.max((a.angular_rate - b.angular_rate).norm());
-        }
+        let (df, dw) = synthesis_difference(
+            &v,
+            ImuSynthesis::Exact,
+            ImuSynthesis::Continuous,
+            2.0,
+            50.0,
+            0.01,
+        );
         eprintln!("{model:?} straight leg: |Δf| {df:.1e} m/s², |Δω| {dw:.1e} rad/s");
-        // Gravity gradient (3e-6 s⁻²) over the half-step offset of the discrete form's
-        // evaluation point (0.125 m): 4e-7 m/s²; body rates differ by O(Δt·d/dt ω_en) ≪ 1e-9.
+        // Earth-rate coupling of the rotating body over half a step (ΩΔt·|f| ≈ 7e-6·... ) and
+        // the gravity gradient: ≪ 1e-6 m/s²; body rates differ by O(Δt²·Ω²).
         assert!(df < 1e-6, "{model:?}: {df}");
         assert!(dw < 1e-9, "{model:?}: {dw}");
 
-        // The first turn spans t ≈ 72–94 s.
-        let turn_diff = |dt: f64| {
-            let (mut df, mut dw) = (0.0f64, 0.0f64);
-            let n = (24.0 / dt) as usize;
-            for i in 0..n {
-                let t0 = 71.0 + i as f64 * dt;
-                let a = v.ideal_imu(t0, t0 + dt, ImuSynthesis::Discrete);
-                let b = v.ideal_imu(t0, t0 + dt, ImuSynthesis::Continuous);
-                df = df.max((a.specific_force - b.specific_force).norm());
-                dw = dw.max((a.angular_rate - b.angular_rate).norm());
-            }
-            (df, dw)
+        let turn_diff = |dt| {
+            synthesis_difference(
+                &v,
+                ImuSynthesis::Exact,
+                ImuSynthesis::Continuous,
+                71.0,
+                24.0,
+                dt,
+            )
         };
         let (f1, w1) = turn_diff(0.01);
         let (f4, w4) = turn_diff(0.0025);
         eprintln!(
             "{model:?} turn: Δt 10 ms |Δf| {f1:.2e} |Δω| {w1:.2e}; Δt 2.5 ms |Δf| {f4:.2e} |Δω| {w4:.2e}"
         );
-        // First order: a 4× smaller step gives a 4× smaller difference (3.5–4.5 allows the
-        // second-order remainder and the sampling of the maximum).
-        assert!((3.5..4.5).contains(&(f1 / f4)), "{model:?}: {}", f1 / f4);
-        assert!((3.5..4.5).contains(&(w1 / w4)), "{model:?}: {}", w1 / w4);
+        // Second order: 16× (12–20 allows the next order and the sampling of the maximum).
+        assert!((12.0..20.0).contains(&(f1 / f4)), "{model:?}: {}", f1 / f4);
+        assert!((12.0..20.0).contains(&(w1 / w4)), "{model:?}: {}", w1 / w4);
     }
 }
 
-/// The continuous synthesis on a level orbit matches the closed-form coordinated turn in a flat
-/// world: f^b = (0, 0, −√(a² + g²)), ω^b = Ω (0, sin φ, cos φ) with tan φ = V²/(R g).
+/// On a level orbit the body turns at a constant rate with a constant specific force, so the
+/// exact increments, the continuous sample and the closed-form coordinated turn coincide:
+/// f^b = (0, 0, −√(a² + g²)), ω^b = Ω (0, sin φ, cos φ) with tan φ = V²/(R g), in a flat world
+/// whose gravity is the design gravity.
 #[test]
-fn continuous_synthesis_matches_a_closed_form_turn() {
-    let mut cfg = vehicle_cfg(ShapeConfig::Orbit {
+fn exact_and_continuous_synthesis_match_a_closed_form_turn() {
+    let cfg = vehicle_cfg(ShapeConfig::Orbit {
         radius_m: 400.0,
         clockwise: true,
     });
-    cfg.imu.synthesis = ImuSynthesis::Continuous;
-    let v = VehicleSim::new(&cfg, world(EarthModel::Flat, 1), 1).unwrap();
-    let g = canopy_fusion::geodesy::LOCAL_GRAVITY;
+    let g = super::trajectory::DESIGN_GRAVITY;
+    let wcfg = WorldConfig {
+        seed: 1,
+        earth_model: EarthModel::Flat,
+        gravity_mps2: Some(g),
+        ..WorldConfig::default()
+    };
+    let v = VehicleSim::new(&cfg, Arc::new(World::new(&wcfg, 1).unwrap()), 1).unwrap();
     let (speed, r) = (25.0f64, 400.0f64);
     let (acc, rate) = (speed * speed / r, speed / r);
     let bank = (acc / g).atan();
-    let s = v.ideal_imu(10.0, 10.01, ImuSynthesis::Continuous);
-    // Closed form vs trig evaluation: 1e-12 relative.
-    assert!(
-        (s.specific_force - Vector3::new(0.0, 0.0, -(acc * acc + g * g).sqrt())).norm() < 1e-12
-    );
-    assert!((s.angular_rate - rate * Vector3::new(0.0, bank.sin(), bank.cos())).norm() < 1e-14);
+    for synthesis in [ImuSynthesis::Exact, ImuSynthesis::Continuous] {
+        let s = v.ideal_imu(10.0, 10.01, synthesis);
+        // Closed form vs trig evaluation (continuous: 1e-12 relative); the exact increments
+        // divide (v_k − v_{k−1}) ≈ 0.016 m/s by Δt: rounding 25·1e-16/0.01 ≈ 3e-13 m/s².
+        let f = (s.specific_force - Vector3::new(0.0, 0.0, -(acc * acc + g * g).sqrt())).norm();
+        let w = (s.angular_rate - rate * Vector3::new(0.0, bank.sin(), bank.cos())).norm();
+        assert!(f < 1e-11, "{synthesis:?}: {f}");
+        assert!(w < 1e-13, "{synthesis:?}: {w}");
+    }
 }
 
-/// IMU errors follow the densities: white noise σ = density/√Δt (sample std within 3 %, six
+/// With `[vehicle.imu.truth] model = "filter"` the IMU errors follow the estimator's densities: white noise σ = density/√Δt (sample std within 3 %, six
 /// standard errors at n = 60 000), mean ≈ 0, uncorrelated in time, bias increments of
 /// σ = rw·√Δt, and turn-on biases of the grade's σ across vehicles (within 10 %: 5 standard
 /// errors at n = 1200).
@@ -252,6 +284,7 @@ fn imu_noise_statistics_match_the_densities() {
     let mut cfg = vehicle_cfg(lawnmower());
     cfg.imu.grade = ImuGrade::Consumer;
     cfg.imu.rate_hz = 200.0;
+    cfg.imu.truth.model = ImuTruthModel::Filter;
     cfg.sensor.rate_hz = 1.0;
     let noise = ImuGrade::Consumer.noise();
     let w = world(EarthModel::Flat, 1);
@@ -336,6 +369,122 @@ fn imu_noise_statistics_match_the_densities() {
     );
     assert!((sa / noise.accel_bias_sigma - 1.0).abs() < 0.1);
     assert!((sg / noise.gyro_bias_sigma - 1.0).abs() < 0.1);
+}
+
+/// The `sensor` truth model: measured = (I + S)·ideal + bias + white noise, with the white
+/// noise of the configured density, the Gauss–Markov bias following its exact discretisation
+/// (residual σ = σ_b·√(1 − e^{−2Δt/τ}) within 3 %: six standard errors at n = 60 000), its
+/// stationary σ across vehicles, and the scale-factor and misalignment draws of their σ across
+/// vehicles (within 10 %: 5 standard errors at n = 1200 and 2400).
+#[test]
+fn sensor_truth_model_statistics() {
+    let mut cfg = vehicle_cfg(lawnmower());
+    cfg.imu.grade = ImuGrade::Consumer;
+    cfg.imu.rate_hz = 200.0;
+    cfg.sensor.rate_hz = 1.0;
+    let t = &mut cfg.imu.truth;
+    t.accel_bias_sigma = Some(0.0);
+    t.gyro_bias_sigma = Some(0.0);
+    t.accel_bias_instability = Some(0.02);
+    t.gyro_bias_instability = Some(1e-4);
+    t.bias_correlation_time_s = Some(2.0);
+    t.accel_scale_factor_ppm = Some(5000.0);
+    t.gyro_scale_factor_ppm = Some(2000.0);
+    t.accel_misalignment_mrad = Some(1.0);
+    t.gyro_misalignment_mrad = Some(0.5);
+    cfg.validate(NavFrame::Local).unwrap();
+    let model = cfg.imu.truth_errors();
+    assert_eq!(
+        model.accel_noise_density,
+        ImuGrade::Consumer.noise().accel_noise_density
+    );
+    let w = world(EarthModel::Flat, 1);
+    let mut v = VehicleSim::new(&cfg, w.clone(), 99).unwrap();
+    let dt = v.imu_dt();
+    let decay = (-dt / 2.0f64).exp();
+    let (ca, cg) = (
+        *v.imu_errors().accel_calibration(),
+        *v.imu_errors().gyro_calibration(),
+    );
+    let (mut white_a, mut white_g, mut resid_a, mut resid_g) =
+        (Vec::new(), Vec::new(), Vec::new(), Vec::new());
+    let mut prev = *v.truth();
+    for _ in 0..20_000 {
+        let o = v.step();
+        let e_f = o.imu.specific_force - ca * o.imu_ideal.specific_force - o.truth.accel_bias;
+        let e_w = o.imu.angular_rate - cg * o.imu_ideal.angular_rate - o.truth.gyro_bias;
+        white_a.extend(e_f.iter());
+        white_g.extend(e_w.iter());
+        resid_a.extend((o.truth.accel_bias - prev.accel_bias * decay).iter());
+        resid_g.extend((o.truth.gyro_bias - prev.gyro_bias * decay).iter());
+        prev = o.truth;
+    }
+    let sd = |x: &[f64]| (x.iter().map(|a| a * a).sum::<f64>() / x.len() as f64).sqrt();
+    let drive = (1.0 - decay * decay).sqrt();
+    for (name, x, sigma) in [
+        (
+            "accel white",
+            &white_a,
+            model.accel_noise_density / dt.sqrt(),
+        ),
+        ("gyro white", &white_g, model.gyro_noise_density / dt.sqrt()),
+        ("accel Gauss–Markov residual", &resid_a, 0.02 * drive),
+        ("gyro Gauss–Markov residual", &resid_g, 1e-4 * drive),
+    ] {
+        let ratio = sd(x) / sigma;
+        eprintln!("{name}: σ ratio {ratio:.4}");
+        assert!((ratio - 1.0).abs() < 0.03, "{name}: {ratio}");
+    }
+    // Across 400 vehicles: stationary initial bias, scale factors, misalignments.
+    let (mut b, mut sf, mut mis) = (Vec::new(), Vec::new(), Vec::new());
+    for seed in 0..400 {
+        let v = VehicleSim::new(&cfg, w.clone(), seed).unwrap();
+        b.extend(v.initial_truth().accel_bias.iter().map(|x| x / 0.02));
+        let c = v.imu_errors().gyro_calibration() - Matrix3::identity();
+        for i in 0..3 {
+            sf.push(c[(i, i)] / 2e-3);
+            for j in (0..3).filter(|&j| j != i) {
+                mis.push(c[(i, j)] / 0.5e-3);
+            }
+        }
+    }
+    for (name, x) in [
+        ("stationary bias", &b),
+        ("scale factor", &sf),
+        ("misalignment", &mis),
+    ] {
+        let ratio = sd(x);
+        eprintln!("{name}: σ ratio {ratio:.3}");
+        assert!((ratio - 1.0).abs() < 0.1, "{name}: {ratio}");
+    }
+}
+
+/// `model = "filter"` reproduces the estimator's model bit for bit (no instability, scale factor
+/// or misalignment; the turn-on and walk streams as before), and the `sensor` defaults derive
+/// from it (same densities and turn-on σ, instability matched to the random walk).
+#[test]
+fn truth_model_defaults_and_filter_oracle() {
+    let mut cfg = vehicle_cfg(lawnmower());
+    let noise = cfg.imu.noise_model();
+    let sensor = cfg.imu.truth_errors();
+    assert_eq!(sensor.gyro_noise_density, noise.gyro_noise_density);
+    assert_eq!(sensor.accel_bias_sigma, noise.accel_bias_sigma);
+    let tau = crate::scenario::DEFAULT_BIAS_CORRELATION_TIME_S;
+    assert!(
+        (sensor.gyro_bias_instability - noise.gyro_bias_rw_density * (tau / 2.0).sqrt()).abs()
+            < 1e-20
+    );
+    // 10 ppm → 1e-5 (one rounding of the unit conversion).
+    assert!(
+        (sensor.gyro_scale_factor - 1e-5).abs() < 1e-20,
+        "tactical default"
+    );
+    cfg.imu.truth.model = ImuTruthModel::Filter;
+    let oracle = cfg.imu.truth_errors();
+    assert_eq!(oracle, SensorErrors::filter_model(&noise));
+    let v = VehicleSim::new(&cfg, world(EarthModel::Flat, 1), 3).unwrap();
+    assert_eq!(*v.imu_errors().gyro_calibration(), Matrix3::identity());
+    assert_eq!(*v.imu_errors().accel_calibration(), Matrix3::identity());
 }
 
 /// Independent sensor-frame position: body-to-world rotation built by nalgebra's Euler

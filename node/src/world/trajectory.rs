@@ -14,15 +14,19 @@
 //! - roll φ such that the specific force f = a − g has no body-y component (no sideslip):
 //!   with f' = (R_z(ψ)R_y(θ))ᵀ f, φ = atan2(f'_y, −f'_z), so a right turn banks right (φ > 0).
 //!
-//! The design gravity is `geodesy::LOCAL_GRAVITY` straight down the launch frame's z; the IMU
+//! The design gravity is [`DESIGN_GRAVITY`] straight down the launch frame's z; the IMU
 //! synthesis later uses the exact gravity of the world, so this only shapes the flight.
 
-use canopy_fusion::geodesy::LOCAL_GRAVITY;
 use canopy_fusion::rotation::skew;
 use nalgebra::{Matrix2, Matrix3, Rotation3, Vector2, Vector3};
 use std::f64::consts::{PI, TAU};
 
 use crate::scenario::{ScenarioError, ShapeConfig, TrajectoryConfig, in_range, positive_at_most};
+
+/// Gravity [m/s²] that shapes coordinated flight (the bank angle of a turn). The IMU synthesis
+/// uses the world's own gravity; at a site where it differs (9.78–9.83 m/s²) a turn has a
+/// sideslip specific force of at most |a|·0.3 %, which is a valid flight all the same.
+pub const DESIGN_GRAVITY: f64 = 9.81;
 
 /// Largest bank angle a trajectory may require [rad] (60°: 2 g turns).
 pub const MAX_BANK: f64 = 60.0 * PI / 180.0;
@@ -319,7 +323,7 @@ impl Trajectory {
     pub fn state(&self, t: f64) -> FlightState {
         let k = self.kinematics(t);
         let (attitude, attitude_rate) =
-            coordinated_attitude(&k.velocity, &k.acceleration, &k.jerk, LOCAL_GRAVITY);
+            coordinated_attitude(&k.velocity, &k.acceleration, &k.jerk, DESIGN_GRAVITY);
         FlightState {
             time: t + self.time_offset,
             kinematics: k,
@@ -860,11 +864,11 @@ mod tests {
         };
         let traj = Trajectory::new(&cfg).unwrap();
         let s = traj.state(17.0);
-        let bank = (25.0f64 * 25.0 / (300.0 * LOCAL_GRAVITY)).atan();
+        let bank = (25.0f64 * 25.0 / (300.0 * DESIGN_GRAVITY)).atan();
         assert!((s.attitude.x + bank).abs() < 1e-12, "left turn banks left");
         assert!((s.attitude_rate.z + 25.0 / 300.0).abs() < 1e-12);
         assert!(s.attitude.y.abs() < 1e-15 && s.attitude_rate.x.abs() < 1e-12);
-        let f = s.kinematics.acceleration - Vector3::new(0.0, 0.0, LOCAL_GRAVITY);
+        let f = s.kinematics.acceleration - Vector3::new(0.0, 0.0, DESIGN_GRAVITY);
         let fb = nav_from_body(&s.attitude).transpose() * f;
         assert!(
             fb.x.abs() < 1e-12 && fb.y.abs() < 1e-12 && fb.z < 0.0,

@@ -10,7 +10,10 @@ use nalgebra::{Matrix3, SMatrix, Vector3};
 use rand::Rng;
 use rand_distr::StandardNormal;
 
-use super::imu::{ImuErrors, ImuIdeal, NavTruth, continuous_ideal, discrete_ideal};
+use super::imu::{
+    BodyMotion, ImuErrors, ImuIdeal, ImuStreams, NavTruth, continuous_ideal, discrete_ideal,
+    exact_increments,
+};
 use super::sensor::{SensedFrame, TerrainSensor};
 use super::trajectory::{FlightState, Trajectory};
 use super::{World, rng_stream};
@@ -22,6 +25,8 @@ const STREAM_IMU_WALK: u64 = 2;
 const STREAM_SENSOR_NOISE: u64 = 3;
 const STREAM_MISMATCH: u64 = 4;
 const STREAM_INITIAL: u64 = 5;
+const STREAM_IMU_CALIBRATION: u64 = 6;
+const STREAM_IMU_INSTABILITY: u64 = 7;
 
 /// Truth of one vehicle at one IMU step.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -109,6 +114,8 @@ pub struct VehicleSim {
     sensor: TerrainSensor,
     step: u64,
     truth: TruthSample,
+    /// The body's motion at the current step (start of the next IMU interval).
+    motion: BodyMotion,
     initial_truth: TruthSample,
     initial_estimate: InitialEstimate,
     cfg: VehicleConfig,
@@ -125,10 +132,14 @@ impl VehicleSim {
         let dt = 1.0 / cfg.imu.rate_hz;
         let frame_every = (cfg.imu.rate_hz / cfg.sensor.rate_hz).round() as u64;
         let imu = ImuErrors::new(
-            cfg.imu.noise_model(),
+            cfg.imu.truth_errors(),
             dt,
-            rng_stream(seed, STREAM_IMU_WHITE),
-            rng_stream(seed, STREAM_IMU_WALK),
+            ImuStreams {
+                white: rng_stream(seed, STREAM_IMU_WHITE),
+                walk: rng_stream(seed, STREAM_IMU_WALK),
+                instability: rng_stream(seed, STREAM_IMU_INSTABILITY),
+                calibration: rng_stream(seed, STREAM_IMU_CALIBRATION),
+            },
         );
         let sensor = TerrainSensor::new(
             &cfg.sensor,
@@ -136,6 +147,7 @@ impl VehicleSim {
             rng_stream(seed, STREAM_MISMATCH),
         );
         let truth = truth_at(&world, &trajectory, &imu, 0.0);
+        let motion = world.body_motion(0.0, &trajectory.state(0.0));
         let initial_estimate = draw_initial_estimate(cfg, &world, &truth, seed);
         Ok(Self {
             id: cfg.id,
@@ -149,6 +161,7 @@ impl VehicleSim {
             sensor,
             step: 0,
             truth,
+            motion,
             initial_truth: truth,
             initial_estimate,
             cfg: cfg.clone(),
@@ -229,6 +242,11 @@ impl VehicleSim {
         &self.initial_truth
     }
 
+    /// The simulated IMU's errors (truth the estimator does not see).
+    pub fn imu_errors(&self) -> &ImuErrors {
+        &self.imu
+    }
+
     /// The estimator's initial state and covariance (truth plus the drawn offset).
     pub fn initial_estimate(&self) -> &InitialEstimate {
         &self.initial_estimate
@@ -239,18 +257,37 @@ impl VehicleSim {
         self.world.nav_truth(time, &self.trajectory.state(time))
     }
 
-    /// The noise-free, bias-free IMU sample of the interval (t0, t1] by either synthesis.
+    /// The noise-free, bias-free IMU sample of the interval (t0, t1] by any synthesis.
     pub fn ideal_imu(&self, t0: f64, t1: f64, synthesis: ImuSynthesis) -> ImuIdeal {
+        let (s0, s1) = (self.trajectory.state(t0), self.trajectory.state(t1));
+        self.synthesise(
+            synthesis,
+            &self.world.body_motion(t0, &s0),
+            &self.world.nav_truth(t0, &s0),
+            &self.world.body_motion(t1, &s1),
+            &self.world.nav_truth(t1, &s1),
+        )
+    }
+
+    /// The noise-free sample between two truth instants (motion and navigation truth of each).
+    fn synthesise(
+        &self,
+        synthesis: ImuSynthesis,
+        motion0: &BodyMotion,
+        nav0: &NavTruth,
+        motion1: &BodyMotion,
+        nav1: &NavTruth,
+    ) -> ImuIdeal {
+        let m = self.world.mechanization();
         match synthesis {
-            ImuSynthesis::Discrete => discrete_ideal(
-                self.world.frame(),
-                &self.nav_truth_at(t0),
-                &self.nav_truth_at(t1),
-            ),
+            ImuSynthesis::Exact => exact_increments(m, motion0, motion1, |t| {
+                self.world.translation(&self.trajectory.kinematics(t))
+            }),
+            ImuSynthesis::Discrete => discrete_ideal(m, nav0, nav1),
             ImuSynthesis::Continuous => continuous_ideal(
-                self.world.frame(),
+                m,
                 self.world.launch_frame(),
-                &self.trajectory.state(0.5 * (t0 + t1)),
+                &self.trajectory.state(0.5 * (nav0.time + nav1.time)),
             ),
         }
     }
@@ -264,14 +301,9 @@ impl VehicleSim {
         let time = self.step as f64 * self.dt;
         let state = self.trajectory.state(time);
         let nav = self.world.nav_truth(time, &state);
-        let ideal = match self.synthesis {
-            ImuSynthesis::Discrete => discrete_ideal(self.world.frame(), &prev, &nav),
-            ImuSynthesis::Continuous => continuous_ideal(
-                self.world.frame(),
-                self.world.launch_frame(),
-                &self.trajectory.state(0.5 * (prev.time + time)),
-            ),
-        };
+        let motion = self.world.body_motion(time, &state);
+        let ideal = self.synthesise(self.synthesis, &self.motion, &prev, &motion, &nav);
+        self.motion = motion;
         let measured = self.imu.corrupt(&ideal);
         self.truth = truth_sample(&self.world, &state, &nav, &self.imu);
         let frame = self.step.is_multiple_of(self.frame_every).then(|| {
