@@ -398,6 +398,19 @@ pub struct VehicleEstimator {
     rejections: Rejections,
     /// The vehicle part taken when a copy was lent out.
     lent: Option<SlamFilter>,
+    /// Zero-velocity updates over a known rest period.
+    rest: Option<RestUpdates>,
+}
+
+/// Zero-velocity updates while the vehicle is known to rest
+/// ([`crate::replay::ZeroVelocityConfig`]).
+#[derive(Clone, Copy, Debug)]
+struct RestUpdates {
+    config: crate::replay::ZeroVelocityConfig,
+    /// Time of the next update.
+    next: f64,
+    /// Updates applied so far.
+    applied: u64,
 }
 
 impl VehicleEstimator {
@@ -408,7 +421,49 @@ impl VehicleEstimator {
             counters: AgentCounters::default(),
             rejections: Rejections::default(),
             lent: None,
+            rest: None,
         })
+    }
+
+    /// Applies zero-velocity updates from the first IMU sample on until `z.until_s`.
+    pub fn set_zero_velocity(&mut self, z: crate::replay::ZeroVelocityConfig) {
+        self.rest = Some(RestUpdates {
+            config: z,
+            next: f64::NEG_INFINITY,
+            applied: 0,
+        });
+    }
+
+    /// A zero-velocity update at the frame at `t`, when one is due within the rest period.
+    /// Updates go with frames, which only come while no copy is lent out (an update to a lent
+    /// filter would be lost at the give back), so that `canopy sim` and `canopy run` apply the
+    /// same ones.
+    fn rest_update(&mut self, t: f64) {
+        let lent = self.lent.is_some();
+        let Some(r) = &mut self.rest else {
+            return;
+        };
+        if t > r.config.until_s {
+            tracing::info!(
+                applied = r.applied,
+                until_s = r.config.until_s,
+                "rest period over: zero-velocity updates applied"
+            );
+            self.rest = None;
+            return;
+        }
+        if lent || t < r.next {
+            return;
+        }
+        match self.filter.zero_velocity_update(0, r.config.sigma_mps) {
+            Ok(_nis) => r.applied += 1,
+            Err(e) => self.rejections.add(
+                format!("zero_velocity.{}", variant_key(&format!("{e:?}"))),
+                1,
+                &e,
+            ),
+        }
+        r.next = t + 1.0 / r.config.rate_hz;
     }
 
     /// The filter.
@@ -475,6 +530,7 @@ impl VehicleEstimator {
 
     /// One terrain-sensor frame (association, update, initialization).
     pub fn on_frame(&mut self, frame: &ObservationFrame) -> Result<FrameReport, SlamError> {
+        self.rest_update(frame.time);
         match self.filter.process_frame(0, frame) {
             Ok(report) => {
                 self.counters.frames += 1;
@@ -522,6 +578,20 @@ impl VehicleAgent {
             estimator,
             fusion,
         })
+    }
+
+    /// Bearing-only initialization options and zero-velocity updates of the vehicle's
+    /// configuration (`[vehicle.bearing]`, `[vehicle.replay] zero_velocity`).
+    pub fn configure(
+        &mut self,
+        bearing: canopy_fusion::slam::BearingConfig,
+        zero_velocity: Option<crate::replay::ZeroVelocityConfig>,
+    ) -> Result<(), AgentError> {
+        self.estimator.filter.set_bearing_config(bearing)?;
+        if let Some(z) = zero_velocity {
+            self.estimator.set_zero_velocity(z);
+        }
+        Ok(())
     }
 
     /// Splits the agent into its estimator and fusion halves (the vehicle process runs them on

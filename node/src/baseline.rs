@@ -69,7 +69,19 @@ pub fn reference_filter(
     world: &World,
     setups: &[VehicleSetup],
 ) -> Result<SlamFilter, SlamError> {
-    SlamFilter::new(reference_config(s, world), setups)
+    let mut filter = SlamFilter::new(reference_config(s, world), setups)?;
+    // One filter, one set of bearing options: the vehicles' (they must agree).
+    if let Some(first) = s.vehicles.first() {
+        if s.vehicles.iter().any(|v| v.bearing != first.bearing) {
+            return Err(SlamError::InvalidConfig(
+                "the centralized reference is one filter: every vehicle needs the same \
+                 [vehicle.bearing] options (or run without the baseline)"
+                    .into(),
+            ));
+        }
+        filter.set_bearing_config(first.bearing.config())?;
+    }
+    Ok(filter)
 }
 
 /// The restarts of a scenario in time order: (time, vehicle index, incarnation). A vehicle

@@ -45,7 +45,7 @@ use canopy_fusion::alignment::{self, AlignmentOptions, RestDetection};
 use canopy_fusion::sensor::{FeatureId, ImuSample, Measurement, Observation, ObservationFrame};
 use canopy_fusion::slam::FRESH_ID_BASE;
 use canopy_fusion::state::VEHICLE_DIM;
-use nalgebra::{SMatrix, Vector2, Vector3};
+use nalgebra::{SMatrix, UnitQuaternion, Vector2, Vector3};
 use serde::{Deserialize, Serialize};
 
 use crate::scenario::{EarthModel, Scenario, ScenarioError, VehicleConfig, WorldConfig};
@@ -87,6 +87,65 @@ pub struct ReplayConfig {
     /// log [s]; absent = detected ([`canopy_fusion::alignment::detect_rest`]).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub rest_s: Option<f64>,
+    /// Zero-velocity updates while the vehicle is known to rest at the start of the log
+    /// (`zero_velocity = { until_s = 3.9 }`). Default: none.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub zero_velocity: Option<ZeroVelocityConfig>,
+    /// Ground truth of the vehicle (TUM: `t x y z qx qy qz qw`, the body's pose in the
+    /// vehicle's navigation frame, as `canopy import` writes it; stamps in the recording's time
+    /// base when `[run] time_origin_ns` is set, else run time). The run's outputs then carry
+    /// position errors, pose NEES and the ATE against it, as for a simulated vehicle. Local
+    /// (flat-world) runs only. Default: none.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub groundtruth: Option<PathBuf>,
+}
+
+/// `zero_velocity`: the vehicle rests from the start of its log until `until_s`; the estimator
+/// applies a zero-velocity pseudo-measurement ([`canopy_fusion::slam::SlamFilter::zero_velocity_update`])
+/// before the frames of that period, at most `rate_hz` times per second (with frames, so that
+/// a replay is deterministic across `canopy sim` and `canopy run`). Without it the accelerometer bias is barely
+/// observable at rest and an INS drifts by ½·b·t² before the first features initialize.
+/// `canopy check` refuses a period the IMU log does not show at rest.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ZeroVelocityConfig {
+    /// End of the rest period, in run time [s] (*required*).
+    pub until_s: f64,
+    /// σ of each update [m/s]. Default 0.01: a vehicle standing on the ground with its motors
+    /// running moves by millimetres (the vibration is in the IMU noise, not in a net velocity).
+    #[serde(default = "default_zero_velocity_sigma")]
+    pub sigma_mps: f64,
+    /// Most updates per second. Default 20 (a camera's rate: more repeats the same
+    /// information, whose errors are correlated over short times).
+    #[serde(default = "default_zero_velocity_rate")]
+    pub rate_hz: f64,
+}
+
+fn default_zero_velocity_sigma() -> f64 {
+    0.01
+}
+
+fn default_zero_velocity_rate() -> f64 {
+    20.0
+}
+
+impl ZeroVelocityConfig {
+    /// Field checks (paths relative to `zero_velocity`).
+    pub fn validate(&self) -> Result<(), ScenarioError> {
+        for (field, v) in [
+            ("until_s", self.until_s),
+            ("sigma_mps", self.sigma_mps),
+            ("rate_hz", self.rate_hz),
+        ] {
+            if !(v.is_finite() && v > 0.0) {
+                return Err(ScenarioError::invalid(
+                    field,
+                    format!("must be a finite number > 0, got {v}"),
+                ));
+            }
+        }
+        Ok(())
+    }
 }
 
 /// Where a replayed vehicle's initial estimate comes from.
@@ -126,6 +185,8 @@ impl ReplayConfig {
             observations: dir.join(format!("{name}.obs.csv")),
             initial: InitialSource::File(dir.join(format!("{name}.init.csv"))),
             rest_s: None,
+            zero_velocity: None,
+            groundtruth: None,
         }
     }
 
@@ -133,6 +194,9 @@ impl ReplayConfig {
     pub fn paths_mut(&mut self) -> Vec<&mut PathBuf> {
         let mut v = vec![&mut self.imu, &mut self.observations];
         if let InitialSource::File(p) = &mut self.initial {
+            v.push(p);
+        }
+        if let Some(p) = &mut self.groundtruth {
             v.push(p);
         }
         v
@@ -149,6 +213,9 @@ impl ReplayConfig {
 
     /// Field checks (paths relative to `replay`).
     pub fn validate(&self) -> Result<(), ScenarioError> {
+        if let Some(z) = &self.zero_velocity {
+            z.validate().map_err(|e| e.within("zero_velocity"))?;
+        }
         if let Some(r) = self.rest_s {
             if self.initial != InitialSource::Static {
                 return Err(ScenarioError::invalid(
@@ -588,6 +655,9 @@ impl ReplayLog {
                 reason: "no IMU samples after the header".into(),
             });
         };
+        if let Some(z) = &cfg.zero_velocity {
+            check_rest(cfg, &imu, z)?;
+        }
         let frames = parse_observation_lines(&cfg.observations, &read(&cfg.observations)?)?;
         let (initial, alignment) = match &cfg.initial {
             InitialSource::File(p) => (parse_initial(p, &read(p)?)?, None),
@@ -631,6 +701,33 @@ impl ReplayLog {
             steps,
             alignment,
         })
+    }
+}
+
+/// Refuses zero-velocity updates over a period the IMU log does not show at rest: the rest
+/// detected at the start of the log ([`alignment::detect_rest`], which drops its last window)
+/// must reach `until_s` to within one detection window.
+fn check_rest(
+    cfg: &ReplayConfig,
+    imu: &[ImuSample],
+    z: &ZeroVelocityConfig,
+) -> Result<(), ReplayError> {
+    let detection = RestDetection::default();
+    let rest_end = alignment::detect_rest(imu, &detection).map(|n| imu[n - 1].time);
+    match rest_end {
+        Some(end) if z.until_s <= end + detection.window_s => Ok(()),
+        _ => Err(ReplayError::Format {
+            path: cfg.imu.clone(),
+            line: 1,
+            reason: format!(
+                "zero_velocity.until_s = {} but the IMU log rests only {} (canopy_fusion::alignment::detect_rest): zero-velocity updates while moving would corrupt the estimate",
+                z.until_s,
+                rest_end.map_or_else(
+                    || format!("less than {} s at its start", detection.min_rest_s),
+                    |e| format!("until t = {e:.3} s")
+                )
+            ),
+        }),
     }
 }
 
@@ -822,11 +919,120 @@ pub struct SourceStep {
     pub truth: Option<TruthSample>,
 }
 
+/// Longest interval between two ground-truth poses that [`GroundTruth::sample`] interpolates
+/// over [s]: motion capture and GNSS/INS references give ≥ 10 Hz; a longer gap is a dropout,
+/// where interpolation would invent a truth.
+pub const GROUNDTRUTH_MAX_GAP_S: f64 = 0.25;
+
+/// A replayed vehicle's ground truth (`[vehicle.replay] groundtruth`), in run time.
+#[derive(Clone, Debug)]
+pub struct GroundTruth {
+    /// (run time [s], position p^n [m], C_b^n).
+    poses: Vec<(f64, Vector3<f64>, UnitQuaternion<f64>)>,
+}
+
+impl GroundTruth {
+    /// Reads `cfg.groundtruth` (none: `Ok(None)`); stamps shifted to run time by the run's
+    /// `time_origin_ns`. The truth must overlap the IMU log's span `[start, end]`.
+    pub fn load(
+        cfg: &ReplayConfig,
+        s: &Scenario,
+        span: [f64; 2],
+    ) -> Result<Option<Self>, ReplayError> {
+        let Some(path) = &cfg.groundtruth else {
+            return Ok(None);
+        };
+        let bad = |reason: String| ReplayError::Format {
+            path: path.clone(),
+            line: 1,
+            reason,
+        };
+        if s.world.earth_model != EarthModel::Flat {
+            return Err(ReplayError::Scenario(ScenarioError::invalid(
+                "replay.groundtruth",
+                "a ground-truth file is read in a local navigation frame: it needs `[world] earth_model = \"flat\"`",
+            )));
+        }
+        let traj = crate::eval::Trajectory::load(path).map_err(|e| bad(e.to_string()))?;
+        // Whole seconds and nanoseconds apart, so that UNIX-time stamps keep their precision.
+        let origin = s.run.time_origin_ns.map_or(0.0, |o| o as f64 * 1e-9);
+        let poses: Vec<_> = traj
+            .poses()
+            .iter()
+            .map(|p| {
+                (
+                    p.t - origin,
+                    p.world_from_body.translation.vector,
+                    p.world_from_body.rotation,
+                )
+            })
+            .collect();
+        let (first, last) = (poses[0].0, poses[poses.len() - 1].0);
+        if last < span[0] || first > span[1] {
+            return Err(bad(format!(
+                "the ground truth spans run time [{first:.3}, {last:.3}] s, outside the IMU log's [{:.3}, {:.3}] s: are both in the same time base (`[run] time_origin_ns`)?",
+                span[0], span[1]
+            )));
+        }
+        Ok(Some(Self { poses }))
+    }
+
+    /// The truth at run time `t`: position linearly and attitude spherically interpolated
+    /// between the two poses around `t`, velocity their difference quotient; biases unknown
+    /// (zero: [`crate::metrics`] uses position and attitude only). `None` outside the truth's
+    /// span or across a gap longer than [`GROUNDTRUTH_MAX_GAP_S`].
+    pub fn sample(&self, t: f64) -> Option<TruthSample> {
+        let k = self.poses.partition_point(|p| p.0 < t);
+        let (a, b) = if k < self.poses.len() && self.poses[k].0 == t {
+            (
+                &self.poses[k],
+                self.poses.get(k + 1).unwrap_or(&self.poses[k]),
+            )
+        } else if k == 0 || k == self.poses.len() {
+            return None;
+        } else {
+            (&self.poses[k - 1], &self.poses[k])
+        };
+        let dt = b.0 - a.0;
+        if dt > GROUNDTRUTH_MAX_GAP_S {
+            return None;
+        }
+        let f = if dt > 0.0 { (t - a.0) / dt } else { 0.0 };
+        let position = a.1 + (b.1 - a.1) * f;
+        let velocity = if dt > 0.0 {
+            (b.1 - a.1) / dt
+        } else {
+            Vector3::zeros()
+        };
+        let rotation = a.2.try_slerp(&b.2, f, 1e-12).unwrap_or(a.2);
+        let attitude = canopy_fusion::rotation::euler_from_nav_from_body(
+            rotation.to_rotation_matrix().matrix(),
+        );
+        Some(TruthSample {
+            time: t,
+            frame: canopy_fusion::state::NavFrame::Local,
+            position,
+            velocity,
+            attitude,
+            accel_bias: Vector3::zeros(),
+            gyro_bias: Vector3::zeros(),
+            launch_position: position,
+            launch_velocity: velocity,
+            launch_attitude: attitude,
+        })
+    }
+}
+
 /// A replayed vehicle being streamed.
 #[derive(Clone, Debug)]
 pub struct ReplayStream {
     log: Arc<ReplayLog>,
     next: usize,
+    /// Its ground truth, if any.
+    groundtruth: Option<Arc<GroundTruth>>,
+    /// The ground truth at the last step (boxed: the stream is one variant of
+    /// [`SensorSource`]).
+    truth: Option<Box<TruthSample>>,
 }
 
 impl ReplayStream {
@@ -855,10 +1061,24 @@ impl SensorSource {
         for (i, (v, sim)) in s.vehicles.iter().zip(sims).enumerate() {
             out.push(match (sim, &v.replay) {
                 (Some(sim), _) => SensorSource::Sim(Box::new(sim)),
-                (None, Some(r)) => SensorSource::Replay(ReplayStream {
-                    log: Arc::new(ReplayLog::load(r, v, &s.world)?),
-                    next: 0,
-                }),
+                (None, Some(r)) => {
+                    let log = ReplayLog::load(r, v, &s.world)?;
+                    let span = [
+                        log.initial.time,
+                        log.imu.last().map_or(log.initial.time, |x| x.time),
+                    ];
+                    let groundtruth = GroundTruth::load(r, s, span)?.map(Arc::new);
+                    let truth = groundtruth
+                        .as_ref()
+                        .and_then(|g| g.sample(log.initial.time))
+                        .map(Box::new);
+                    SensorSource::Replay(ReplayStream {
+                        log: Arc::new(log),
+                        next: 0,
+                        groundtruth,
+                        truth,
+                    })
+                }
                 (None, None) => {
                     return Err(ReplayError::Scenario(ScenarioError::invalid(
                         format!("vehicle[{i}]"),
@@ -903,10 +1123,15 @@ impl SensorSource {
             SensorSource::Replay(r) => {
                 let &(imu, frame) = r.log.steps.get(r.next)?;
                 r.next += 1;
+                r.truth = r
+                    .groundtruth
+                    .as_ref()
+                    .and_then(|g| g.sample(imu.time))
+                    .map(Box::new);
                 Some(SourceStep {
                     imu,
                     frame: frame.map(|f| (r.log.frames[f].clone(), None)),
-                    truth: None,
+                    truth: r.truth.as_deref().copied(),
                 })
             }
         }
@@ -928,11 +1153,11 @@ impl SensorSource {
         }
     }
 
-    /// Current truth (simulated vehicles only).
+    /// Current truth: the simulator's, or a replayed vehicle's ground truth where it has one.
     pub fn truth(&self) -> Option<&TruthSample> {
         match self {
             SensorSource::Sim(s) => Some(s.truth()),
-            SensorSource::Replay(_) => None,
+            SensorSource::Replay(r) => r.truth.as_deref(),
         }
     }
 
@@ -1153,5 +1378,81 @@ mod tests {
             PathBuf::from(InitialSource::Static),
             PathBuf::from("static")
         );
+    }
+
+    /// Ground truth in run time: between two poses the position is interpolated linearly and
+    /// the attitude along the rotation joining them (closed forms below), the velocity is the
+    /// difference quotient; outside the span and across a gap there is no truth.
+    #[test]
+    fn ground_truth_interpolates_within_its_span_and_gaps() {
+        use canopy_fusion::rotation::nav_from_body;
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("gt.tum");
+        // Yaw 0 → 0.2 rad over [10, 10.1] s, moving 1 m/s north; a 1 s gap after 10.1 s.
+        let q = |yaw: f64| UnitQuaternion::from_euler_angles(0.0, 0.0, yaw);
+        let row = |t: f64, x: f64, yaw: f64| {
+            let q = q(yaw);
+            format!("{t} {x} 0 0 {} {} {} {}\n", q.i, q.j, q.k, q.w)
+        };
+        let text = format!(
+            "{}{}{}",
+            row(1000.0, 0.0, 0.0),
+            row(1000.1, 0.1, 0.2),
+            row(1001.1, 1.1, 0.2)
+        );
+        std::fs::write(&path, text).unwrap();
+        let mut s = Scenario::builtin_default();
+        s.world.earth_model = EarthModel::Flat;
+        s.run.time_origin_ns = Some(990_000_000_000);
+        let cfg = ReplayConfig {
+            groundtruth: Some(path.clone()),
+            ..ReplayConfig::in_dir(dir.path(), "v")
+        };
+        let gt = GroundTruth::load(&cfg, &s, [0.0, 20.0]).unwrap().unwrap();
+        let x = gt.sample(10.025).unwrap();
+        assert!((x.position - Vector3::new(0.025, 0.0, 0.0)).norm() < 1e-6);
+        assert!((x.velocity - Vector3::new(1.0, 0.0, 0.0)).norm() < 1e-6);
+        let want = nav_from_body(&Vector3::new(0.0, 0.0, 0.05));
+        let got = nav_from_body(&x.attitude);
+        assert!((got - want).norm() < 1e-6, "{got} vs {want}");
+        assert!(gt.sample(9.99).is_none(), "before the span");
+        assert!(gt.sample(10.6).is_none(), "inside the 1 s gap");
+        assert!(gt.sample(11.2).is_none(), "after the span");
+        // A truth that does not overlap the log names the time base.
+        let err = GroundTruth::load(&cfg, &s, [100.0, 120.0]).unwrap_err();
+        assert!(err.to_string().contains("time_origin_ns"), "{err}");
+        // A global world has no local frame to read it in.
+        let mut g = s.clone();
+        g.world.earth_model = EarthModel::Wgs84;
+        assert!(GroundTruth::load(&cfg, &g, [0.0, 20.0]).is_err());
+    }
+
+    /// Zero-velocity updates over a period the IMU log shows moving are refused.
+    #[test]
+    fn zero_velocity_beyond_the_rest_is_refused() {
+        let dt = 0.005;
+        let g = Vector3::new(0.0, 0.0, -9.81);
+        // At rest 2 s, then accelerating 1 m/s² north.
+        let imu: Vec<ImuSample> = (1..=800)
+            .map(|k| ImuSample {
+                time: k as f64 * dt,
+                dt,
+                specific_force: if k as f64 * dt <= 2.0 {
+                    g
+                } else {
+                    g + Vector3::new(1.0, 0.0, 0.0)
+                },
+                angular_rate: Vector3::zeros(),
+            })
+            .collect();
+        let cfg = ReplayConfig::in_dir(Path::new("/nonexistent"), "v");
+        let z = |until_s| ZeroVelocityConfig {
+            until_s,
+            sigma_mps: 0.01,
+            rate_hz: 20.0,
+        };
+        assert!(check_rest(&cfg, &imu, &z(1.9)).is_ok());
+        let err = check_rest(&cfg, &imu, &z(3.0)).unwrap_err().to_string();
+        assert!(err.contains("rests only until"), "{err}");
     }
 }

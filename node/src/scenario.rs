@@ -30,6 +30,7 @@ use std::path::{Path, PathBuf};
 
 use canopy_fusion::imu::{ImuGrade, ImuNoise};
 use canopy_fusion::sensor::{CameraIntrinsics, SensorModel, SensorMount};
+use canopy_fusion::slam::{BearingConfig, BearingInit};
 use canopy_fusion::state::NavFrame;
 use nalgebra::{Matrix3, Vector3};
 use serde::{Deserialize, Serialize};
@@ -192,6 +193,7 @@ impl Scenario {
                 imu: ImuConfig::default(),
                 initial: InitialConfig::default(),
                 replay: None,
+                bearing: BearingOptions::default(),
             };
         let mut orbit = survey(3, 0.0, 180.0, 0.25, 0.0);
         if let Some(t) = orbit.trajectory.as_mut() {
@@ -591,6 +593,98 @@ pub struct VehicleConfig {
     /// models, and the vehicle has no truth. Default: simulated.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub replay: Option<crate::replay::ReplayConfig>,
+    /// How a bearing-only or pixel sensor's tracks become map features (`[vehicle.bearing]`).
+    /// Default: the chapter's two-ray initialization with the filter's defaults.
+    #[serde(default, skip_serializing_if = "BearingOptions::is_default")]
+    pub bearing: BearingOptions,
+}
+
+/// `[vehicle.bearing]`: bearing-only feature initialization (§21.4.2–21.4.3; the options of
+/// [`BearingConfig`], angles in degrees). Every field is optional; an absent one keeps the
+/// filter's default. For a bearing or pixel sensor only.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct BearingOptions {
+    /// `"pair"` (the chapter's two-ray triangulation behind a range-hypothesis gate; default)
+    /// or `"multi_view"` (every stored ray at once, outlier tests, constraint updates from lost
+    /// tracks; needs tracker ids as descriptors, as real feature trackers give).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub initialization: Option<BearingInit>,
+    /// Rays of a track must span this angle before it initializes [deg]. Default 10.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub min_parallax_deg: Option<f64>,
+    /// `multi_view`: stored rays a track needs before it initializes. Default 5.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub min_observations: Option<usize>,
+    /// `multi_view`: least ray separation of a lost track for its constraint update [deg].
+    /// Default 1.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub constraint_parallax_deg: Option<f64>,
+    /// Rays missing each other by more than max(this, 3σ) are rejected [m]. Default 5.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub max_miss_distance_m: Option<f64>,
+    /// Nearest range a feature may have [m] (and the nearest range hypothesis). Default 10.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub min_range_m: Option<f64>,
+    /// Farthest range a feature may have [m]. Default 500.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub max_range_m: Option<f64>,
+    /// `pair`: range hypotheses of a new track. Default 24.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub hypotheses: Option<usize>,
+    /// Cap on stored poses in the state. Default 40.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub max_stored_poses: Option<usize>,
+    /// A track not initialized this long after its first ray is dropped [s]. Default 30.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub max_track_age_s: Option<f64>,
+    /// A track with this many stored rays that still cannot initialize is dropped. Default 40.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub max_track_observations: Option<usize>,
+}
+
+impl BearingOptions {
+    fn is_default(&self) -> bool {
+        *self == Self::default()
+    }
+
+    /// The filter's options: the given fields over [`BearingConfig::default`].
+    pub fn config(&self) -> BearingConfig {
+        let d = BearingConfig::default();
+        BearingConfig {
+            min_parallax: self
+                .min_parallax_deg
+                .map_or(d.min_parallax, f64::to_radians),
+            max_miss_distance: self.max_miss_distance_m.unwrap_or(d.max_miss_distance),
+            hypotheses: self.hypotheses.unwrap_or(d.hypotheses),
+            min_range: self.min_range_m.unwrap_or(d.min_range),
+            max_range: self.max_range_m.unwrap_or(d.max_range),
+            max_stored_poses: self.max_stored_poses.unwrap_or(d.max_stored_poses),
+            max_track_age: self.max_track_age_s.unwrap_or(d.max_track_age),
+            max_track_observations: self
+                .max_track_observations
+                .unwrap_or(d.max_track_observations),
+            track_gate: d.track_gate,
+            initialization: self.initialization.unwrap_or(d.initialization),
+            min_observations: self.min_observations.unwrap_or(d.min_observations),
+            constraint_parallax: self
+                .constraint_parallax_deg
+                .map_or(d.constraint_parallax, f64::to_radians),
+        }
+    }
+
+    /// Range checks (the filter's), for a vehicle whose sensor is `model`.
+    pub fn validate(&self, model: &SensorModel) -> Result<(), ScenarioError> {
+        if !self.is_default() && matches!(model, SensorModel::RangeBearing { .. }) {
+            return Err(ScenarioError::invalid(
+                "bearing",
+                "applies to bearing and pixel sensors; this vehicle's sensor measures range",
+            ));
+        }
+        self.config()
+            .validate()
+            .map_err(|e| ScenarioError::invalid("bearing", e.to_string()))
+    }
 }
 
 impl VehicleConfig {
@@ -664,6 +758,7 @@ impl VehicleConfig {
             .validate(tied_rate)
             .map_err(|e| e.within("sensor"))?;
         self.initial.validate().map_err(|e| e.within("initial"))?;
+        self.bearing.validate(&self.sensor.model())?;
         if let Some(r) = &self.replay {
             r.validate().map_err(|e| e.within("replay"))?;
         }
@@ -1854,5 +1949,71 @@ synthesis = "continuous"
         assert!(s.vehicles[0].trajectory.is_none());
         let bad_rest = replayed.replacen("rest_s = 2.5", "rest_s = -1", 1);
         assert_eq!(invalid_field(&bad_rest), "vehicle[0].replay.rest_s");
+        let zv = |z: &str| replayed.replacen("rest_s = 2.5", &format!("rest_s = 2.5\n{z}"), 1);
+        let s = Scenario::from_toml_str(&zv("zero_velocity = { until_s = 2.4 }")).unwrap();
+        let z = s.vehicles[0]
+            .replay
+            .as_ref()
+            .unwrap()
+            .zero_velocity
+            .unwrap();
+        assert_eq!(
+            (z.until_s, z.sigma_mps, z.rate_hz),
+            (2.4, 0.01, 20.0),
+            "defaults"
+        );
+        assert_eq!(
+            invalid_field(&zv("zero_velocity = { until_s = 0 }")),
+            "vehicle[0].replay.zero_velocity.until_s"
+        );
+        assert_eq!(
+            invalid_field(&zv("zero_velocity = { until_s = 2, sigma_mps = nan }")),
+            "vehicle[0].replay.zero_velocity.sigma_mps"
+        );
+    }
+
+    /// `[vehicle.bearing]` maps onto the filter's options (degrees to radians, absent fields at
+    /// the filter's defaults), is range-checked as the filter checks it, and is refused for a
+    /// sensor that measures range.
+    #[test]
+    fn bearing_options_map_onto_the_filter_and_are_checked() {
+        let with = |extra: &str| {
+            BASE.replacen(
+                "[vehicle.sensor]\nrate_hz = 4",
+                &format!("[vehicle.bearing]\n{extra}\n[vehicle.sensor]\nrate_hz = 4"),
+                1,
+            )
+        };
+        let s = Scenario::from_toml_str(&with(
+            "initialization = \"multi_view\"\nmin_parallax_deg = 5\nmin_range_m = 0.1",
+        ))
+        .unwrap();
+        let c = s.vehicles[0].bearing.config();
+        let d = BearingConfig::default();
+        assert_eq!(c.initialization, BearingInit::MultiView);
+        assert!((c.min_parallax - 5f64.to_radians()).abs() < 1e-15);
+        assert_eq!((c.min_range, c.max_range), (0.1, d.max_range));
+        assert_eq!(c.min_observations, d.min_observations);
+        assert_eq!(
+            Scenario::from_toml_str(BASE).unwrap().vehicles[0]
+                .bearing
+                .config(),
+            d,
+            "absent table: the filter's defaults"
+        );
+        for bad in [
+            "min_parallax_deg = 0",
+            "min_range_m = 5\nmax_range_m = 4",
+            "min_observations = 1",
+        ] {
+            assert_eq!(invalid_field(&with(bad)), "vehicle[0].bearing", "{bad}");
+        }
+        let ranging = with("initialization = \"multi_view\"").replacen(
+            "kind = \"pixel\"\nfu_px = 400\nfv_px = 400\nu0_px = 320\nv0_px = 240\nwidth_px = 640\nheight_px = 480\nsigma_px = 1",
+            "kind = \"range_bearing\"\nsigma_range_m = 1\nsigma_bearing_deg = 0.2",
+            1,
+        );
+        assert!(ranging.contains("range_bearing"));
+        assert_eq!(invalid_field(&ranging), "vehicle[0].bearing");
     }
 }

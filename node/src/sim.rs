@@ -193,7 +193,11 @@ pub fn vehicle_agent(
         association: s.fusion.association_config(),
         fresh_id_namespace: cfg.id,
     };
-    VehicleAgent::new(
+    let agent_error = |source| SimError::Agent {
+        node: cfg.display_name(),
+        source,
+    };
+    let mut agent = VehicleAgent::new(
         NodeId(cfg.id),
         epoch,
         slam,
@@ -203,10 +207,14 @@ pub fn vehicle_agent(
         s.fusion.ddf_config(),
         &budgets,
     )
-    .map_err(|source| SimError::Agent {
-        node: cfg.display_name(),
-        source,
-    })
+    .map_err(agent_error)?;
+    agent
+        .configure(
+            cfg.bearing.config(),
+            cfg.replay.as_ref().and_then(|r| r.zero_velocity),
+        )
+        .map_err(agent_error)?;
+    Ok(agent)
 }
 
 /// A fresh epoch for a (re)started node: deterministic in the simulation.

@@ -92,6 +92,7 @@ fn scenario(earth: EarthModel, sensor: SensorModelConfig, seed: u64) -> Scenario
             imu: Default::default(),
             initial: InitialConfig::default(),
             replay: None,
+            bearing: Default::default(),
         }],
         run: Default::default(),
         fusion: canopy_node::scenario::FusionConfig {

@@ -150,7 +150,8 @@ impl Default for BearingConfig {
 }
 
 impl BearingConfig {
-    fn validate(&self) -> Result<(), SlamError> {
+    /// Checks ranges (what [`SlamFilter::set_bearing_config`](super::SlamFilter::set_bearing_config) refuses).
+    pub fn validate(&self) -> Result<(), SlamError> {
         let bad = |what: &str| Err(SlamError::InvalidConfig(format!("bearing: {what}")));
         if !(self.min_parallax > 0.0 && self.min_parallax < std::f64::consts::PI) {
             return bad("min_parallax must be in (0, π)");

@@ -1090,11 +1090,12 @@ fn assemble(
             }
             let state = VehicleState::from_vector(&VehicleVector::from_column_slice(x));
             let cov = VehicleCovariance::from_row_slice(p);
-            if v.replay {
-                rec.samples.push(estimate_sample(world, *t, &state, &cov));
-            } else if let Some(tr) = m.truth.get(&(cfg.id, ms(*t))) {
+            // A replayed vehicle has truth where its ground truth covers the time.
+            if let Some(tr) = m.truth.get(&(cfg.id, ms(*t))) {
                 rec.samples
                     .push(pose_sample(world, &state, &cov, &truth_sample(world, tr)));
+            } else if v.replay {
+                rec.samples.push(estimate_sample(world, *t, &state, &cov));
             }
         }
         if let Some((t_last, feats)) = &v.last_map {

@@ -43,6 +43,7 @@ fn vehicle_cfg(shape: ShapeConfig) -> VehicleConfig {
         imu: ImuConfig::default(),
         initial: Default::default(),
         replay: None,
+        bearing: Default::default(),
     }
 }
 
