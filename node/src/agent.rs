@@ -244,6 +244,9 @@ pub struct FusionCounters {
     /// Features removed because fused information left them with none (a neighbour's restart
     /// took back what only its lost process had observed).
     pub features_forgotten: u64,
+    /// Rounds that failed (the DDF could not read the map or form its messages); nothing was
+    /// sent and the channels are unchanged.
+    pub rounds_failed: u64,
 }
 
 /// The fusion half of a vehicle: its DDF node and the information received but not yet fused
@@ -257,6 +260,8 @@ pub struct VehicleFusion {
     /// Received information not yet fused into the EKF (see [`EkfTarget`]).
     pending: Pending,
     counters: FusionCounters,
+    /// Every failure on the fusion path, by reason (`fusion.<step>.<error>`), logged once.
+    rejections: Rejections,
 }
 
 impl VehicleFusion {
@@ -287,7 +292,27 @@ impl VehicleFusion {
             ddf,
             pending: Pending::default(),
             counters: FusionCounters::default(),
+            rejections: Rejections::default(),
         })
+    }
+
+    /// The failures on the fusion path, by reason: `fusion.fuse.<error>` (a batch of deltas
+    /// the estimator refused, counted per delta), `fusion.merge.<error>`, `fusion.ci.<error>`,
+    /// `fusion.round.<error>`, `fusion.message.<error>` (a received message rejected) and
+    /// `fusion.link_up.<error>`.
+    pub fn rejections(&self) -> &Rejections {
+        &self.rejections
+    }
+
+    fn reject(
+        &mut self,
+        step: &str,
+        e: &dyn std::fmt::Debug,
+        n: u64,
+        cause: &dyn std::fmt::Display,
+    ) {
+        let key = format!("fusion.{step}.{}", variant_key(&format!("{e:?}")));
+        self.rejections.add(key, n, cause);
     }
 
     /// The DDF node (None in isolated mode).
@@ -312,18 +337,25 @@ impl VehicleFusion {
                     self.counters.fused += n;
                     self.counters.features_forgotten += r.forgotten.len() as u64;
                 }
-                Err(_) => self.counters.fuse_refused += n,
+                Err(e) => {
+                    self.counters.fuse_refused += n;
+                    self.reject("fuse", &e, n, &e);
+                }
             }
         }
         for m in std::mem::take(&mut self.pending.merges) {
-            if filter.merge_features(&m).is_err() {
+            if let Err(e) = filter.merge_features(&m) {
                 self.counters.merges_refused += 1;
+                self.reject("merge", &e, 1, &e);
             }
         }
         for (submap, criterion) in std::mem::take(&mut self.pending.submaps) {
             match filter.fuse_submap_ci(&submap, criterion) {
                 Ok(_) => self.counters.ci_fused += 1,
-                Err(_) => self.counters.ci_refused += 1,
+                Err(e) => {
+                    self.counters.ci_refused += 1;
+                    self.reject("ci", &e, 1, &e);
+                }
             }
         }
     }
@@ -346,8 +378,15 @@ impl VehicleFusion {
             .ddf
             .as_mut()
             .expect("checked above")
-            .on_round(now, filter)?;
-        Ok(out.messages)
+            .on_round(now, filter);
+        match out {
+            Ok(out) => Ok(out.messages),
+            Err(e) => {
+                self.counters.rounds_failed += 1;
+                self.reject("round", &e, 1, &e);
+                Err(e.into())
+            }
+        }
     }
 
     /// A DDF message from `from`: what it carries joins the batch; returns replies. An error
@@ -359,24 +398,32 @@ impl VehicleFusion {
         msg: DdfMessage,
     ) -> Result<Vec<Outgoing>, AgentError> {
         let Some(ddf) = self.ddf.as_mut() else {
+            let e = DdfError::UnknownSender(from);
             self.counters.messages_rejected += 1;
-            return Err(AgentError::Ddf(DdfError::UnknownSender(from)));
+            self.reject("message", &e, 1, &e);
+            return Err(AgentError::Ddf(e));
         };
         let mut target = EkfTarget {
             pending: &mut self.pending,
         };
-        ddf.on_message(now, from, msg, &mut target).map_err(|e| {
+        let r = ddf.on_message(now, from, msg, &mut target);
+        r.map_err(|e| {
             if !matches!(e, DdfError::FuseRejected { .. }) {
                 self.counters.messages_rejected += 1;
             }
+            self.reject("message", &e, 1, &format!("from {from:?}: {e}"));
             AgentError::Ddf(e)
         })
     }
 
     /// The link to `peer` came up.
     pub fn on_link_up(&mut self, now: f64, peer: NodeId) -> Result<Vec<Outgoing>, AgentError> {
-        match self.ddf.as_mut() {
-            Some(d) => Ok(d.on_link_up(now, peer)?),
+        match self.ddf.as_mut().map(|d| d.on_link_up(now, peer)) {
+            Some(Ok(out)) => Ok(out),
+            Some(Err(e)) => {
+                self.reject("link_up", &e, 1, &format!("peer {peer:?}: {e}"));
+                Err(e.into())
+            }
             None => Ok(Vec::new()),
         }
     }
@@ -519,13 +566,25 @@ impl VehicleEstimator {
     /// On an error the filter stays as it is (the fusion's result is lost, never applied
     /// twice).
     pub fn give_back(&mut self, mut fused: SlamFilter) -> Result<(), SlamError> {
-        let before = self
+        let r = self
             .lent
             .take()
-            .ok_or_else(|| SlamError::InvalidConfig("give_back without a lent filter".into()))?;
-        fused.carry_predictions(&before, &self.filter)?;
-        self.filter = fused;
-        Ok(())
+            .ok_or_else(|| SlamError::InvalidConfig("give_back without a lent filter".into()))
+            .and_then(|before| fused.carry_predictions(&before, &self.filter));
+        match r {
+            Ok(()) => {
+                self.filter = fused;
+                Ok(())
+            }
+            Err(e) => {
+                self.rejections.add(
+                    format!("fusion.give_back.{}", variant_key(&format!("{e:?}"))),
+                    1,
+                    &e,
+                );
+                Err(e)
+            }
+        }
     }
 
     /// One terrain-sensor frame (association, update, initialization).
@@ -621,9 +680,11 @@ impl VehicleAgent {
         self.fusion.ddf()
     }
 
-    /// The inputs its estimator rejected, by reason.
-    pub fn rejections(&self) -> &Rejections {
-        self.estimator.rejections()
+    /// The inputs its estimator rejected and the failures of its fusion half, by reason.
+    pub fn rejections(&self) -> Rejections {
+        let mut r = self.estimator.rejections().clone();
+        r.merge(&self.fusion.rejections().counts);
+        r
     }
 
     /// Counters of both halves.
@@ -825,9 +886,53 @@ impl HubAgent {
 #[cfg(test)]
 mod rejection_tests {
     use super::*;
+    use canopy_fusion::ddf::{Body, Header, Hello};
     use canopy_fusion::ins::InsError;
     use canopy_fusion::observation::ObservationError;
     use canopy_fusion::slam::RejectReason;
+
+    /// A message from a node that is not a neighbour is rejected, counted under its reason
+    /// (`fusion.message.<error>`) in the fusion half's rejections, and reaches the agent's
+    /// combined table; a second one adds to the same key.
+    #[test]
+    fn fusion_failures_are_counted_by_reason() {
+        let topo = Topology::tree([NodeId(1), NodeId(2)], [(NodeId(1), NodeId(2))]).unwrap();
+        let mut f = VehicleFusion::new(
+            NodeId(1),
+            7,
+            Vector3::zeros(),
+            Mode::Decentralized,
+            &topo,
+            DdfConfig::default(),
+            &[],
+        )
+        .unwrap();
+        let hello = || DdfMessage {
+            header: Header {
+                from_epoch: 3,
+                to_epoch: None,
+                challenge: 1,
+                echo_epoch: 0,
+                echo: 0,
+            },
+            body: Body::Hello(Hello {
+                seq_sent: 0,
+                applied: 0,
+                history: false,
+                synced: false,
+                ci: false,
+            }),
+        };
+        for _ in 0..2 {
+            assert!(f.on_message(0.0, NodeId(9), hello()).is_err());
+        }
+        let counts = &f.rejections().counts;
+        assert_eq!(counts.len(), 1, "{counts:?}");
+        let (key, n) = counts.iter().next().unwrap();
+        assert!(key.starts_with("fusion.message."), "{key}");
+        assert_eq!(*n, 2);
+        assert_eq!(f.counters().messages_rejected, 2);
+    }
 
     #[test]
     fn reason_keys_name_the_variant_path_not_the_instance() {

@@ -62,6 +62,8 @@ pub struct FusionView {
     pub counters: FusionCounters,
     /// Every channel of the DDF node.
     pub channels: Vec<ChannelView>,
+    /// Failures of the fusion half by reason ([`VehicleFusion::rejections`]).
+    pub rejections: std::collections::BTreeMap<String, u64>,
 }
 
 impl FusionView {
@@ -69,6 +71,7 @@ impl FusionView {
         Self {
             counters: f.counters(),
             channels: f.ddf().map(|d| d.channels().collect()).unwrap_or_default(),
+            rejections: f.rejections().counts.clone(),
         }
     }
 
@@ -123,7 +126,7 @@ impl FusionThread {
                     let msg = match job {
                         Job::Message { now, from, msg } => Done::Replies {
                             now,
-                            // A rejected message is counted by the fusion half.
+                            // A rejected message is counted by reason by the fusion half.
                             out: fusion.on_message(now, from, *msg).unwrap_or_default(),
                             view: FusionView::of(&fusion),
                         },
@@ -141,6 +144,7 @@ impl FusionThread {
                             }
                         }
                         Job::Round { now, mut filter } => {
+                            // A failed round is counted by reason by the fusion half.
                             let out = fusion.round(&mut filter, now).unwrap_or_default();
                             Done::Round {
                                 now,

@@ -331,7 +331,11 @@ impl Vehicle<'_> {
             messages_rejected: c.fusion.messages_rejected,
             ci_fused: c.fusion.ci_fused,
             stream_gaps: self.counters.stream_gaps,
-            rejections: self.estimator.rejections().counts.clone(),
+            rejections: {
+                let mut r = self.estimator.rejections().clone();
+                r.merge(&self.view.rejections);
+                r.counts
+            },
         }
     }
 
