@@ -338,6 +338,7 @@ impl FaultSpec {
                 bytes_per_s: b,
                 queue_bytes: self.bandwidth_queue_bytes,
             }),
+            radio: None,
             signal_outages: true,
         }
     }
