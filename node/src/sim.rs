@@ -502,12 +502,11 @@ pub fn simulate(s: &Scenario, mut opts: SimOptions<'_>) -> Result<SimOutcome, Si
         let seed =
             |end: u64| world::vehicle_seed(s.world.seed ^ 0xfa017, (li as u32) << 1 | end as u32);
         let wrap = |inner: InMemoryLink, end: u64| {
-            FaultyLink::new(
-                inner,
-                l.faults.to_transport(seed(end), &s.partitions),
-                dyn_clock.clone(),
-            )
-            .map_err(|e| SimError::Link {
+            let cfg = l.fault_config(s, seed(end)).map_err(|e| SimError::Link {
+                link: label.clone(),
+                reason: e.to_string(),
+            })?;
+            FaultyLink::new(inner, cfg, dyn_clock.clone()).map_err(|e| SimError::Link {
                 link: label.clone(),
                 reason: e.to_string(),
             })
