@@ -729,6 +729,13 @@ pub fn validate(s: &Scenario) -> Result<(), ScenarioError> {
             .validate(&format!("{field}.faults"), run.duration_s)?;
         if let Some(r) = &l.radio {
             r.validate(&format!("{field}.radio"), s, [l.a, l.b])?;
+            if f.mode != FusionMode::Decentralized {
+                return Err(ScenarioError::invalid(
+                    format!("{field}.radio"),
+                    "radio links need fusion.mode = \"decentralized\" (the hub keeps only \
+                     information, so it cannot fuse the CI submaps a radio link carries)",
+                ));
+            }
             if l.faults.bandwidth_bytes_per_s.is_some() {
                 return Err(ScenarioError::invalid(
                     format!("{field}.faults.bandwidth_bytes_per_s"),

@@ -17,7 +17,9 @@
 
 use std::sync::Arc;
 
-use canopy_transport::fault::{Radio, RangeLimit, Separation};
+use canopy_fusion::topology::NodeId;
+use canopy_transport::fault::{FaultyLink, Radio, RangeLimit, Separation};
+use canopy_transport::link::Link;
 use serde::{Deserialize, Serialize};
 
 use crate::network::FusionMode;
@@ -219,6 +221,21 @@ pub fn round_budget(bytes_per_s: f64, rate_hz: f64, queued_bytes: f64) -> usize 
     } else {
         0
     }
+}
+
+/// The submap budgets of the next round on a node's capacity-limited (radio) links, from each
+/// link's outbound mirror now ([`round_budget`]); links without a radio are left out.
+pub fn capacity_budgets<'a, L: Link + 'a>(
+    links: impl IntoIterator<Item = (NodeId, &'a FaultyLink<L>)>,
+    rate_hz: f64,
+) -> Vec<(NodeId, usize)> {
+    links
+        .into_iter()
+        .filter_map(|(peer, link)| {
+            let o = link.outbound()?;
+            Some((peer, round_budget(o.bytes_per_s, rate_hz, o.queued_bytes)))
+        })
+        .collect()
 }
 
 /// The smallest useful submap budget: one feature's submap.

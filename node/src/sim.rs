@@ -183,7 +183,26 @@ pub fn vehicle_agent(
             } else {
                 return None;
             };
-            Some((NodeId(peer), l.byte_budget))
+            // A radio link starts with a full round's budget; each round then sets it from
+            // the link's capacity and queue (`crate::radio::capacity_budgets`).
+            let budget = match &l.radio {
+                Some(r) => Some(crate::radio::round_budget(
+                    r.bytes_per_s,
+                    s.fusion.rate_hz,
+                    0.0,
+                )),
+                None => l.byte_budget,
+            };
+            Some((NodeId(peer), budget))
+        })
+        .collect();
+    let radio_peers: Vec<NodeId> = effective_links(s)
+        .iter()
+        .filter(|l| l.radio.is_some())
+        .filter_map(|l| match (l.a == cfg.id, l.b == cfg.id) {
+            (true, _) => Some(NodeId(l.b)),
+            (_, true) => Some(NodeId(l.a)),
+            _ => None,
         })
         .collect();
     let slam = SlamConfig {
@@ -203,6 +222,13 @@ pub fn vehicle_agent(
         s.fusion.ddf_config(),
         &budgets,
     )
+    .and_then(|mut agent| {
+        // Capacity-limited links never carry exact deltas: CI submaps from the first round.
+        for &peer in &radio_peers {
+            agent.use_ci(peer)?;
+        }
+        Ok(agent)
+    })
     .map_err(|source| SimError::Agent {
         node: cfg.display_name(),
         source,
@@ -310,7 +336,15 @@ impl<'s> Sim<'s> {
         for id in ids {
             let node = self.nodes.get_mut(&id).expect("node exists");
             let out = match node.agent.as_mut() {
-                Some(Agent::Vehicle(a)) => a.on_round(now).unwrap_or_default(),
+                Some(Agent::Vehicle(a)) => {
+                    let budgets = crate::radio::capacity_budgets(
+                        node.links.iter().map(|(&p, l)| (p, l)),
+                        self.s.fusion.rate_hz,
+                    );
+                    // The peers are this node's neighbours: setting their budgets cannot fail.
+                    let _ = a.set_link_budgets(&budgets);
+                    a.on_round(now).unwrap_or_default()
+                }
                 Some(Agent::Hub(h)) => h.on_round(now).unwrap_or_default(),
                 None => Vec::new(),
             };

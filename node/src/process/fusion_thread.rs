@@ -52,6 +52,9 @@ pub enum Job {
         now: f64,
         /// The copy.
         filter: Box<SlamFilter>,
+        /// Submap budgets of the capacity-limited links for this round
+        /// ([`crate::radio::capacity_budgets`]).
+        budgets: Vec<(NodeId, usize)>,
     },
 }
 
@@ -140,7 +143,13 @@ impl FusionThread {
                                 view: FusionView::of(&fusion),
                             }
                         }
-                        Job::Round { now, mut filter } => {
+                        Job::Round {
+                            now,
+                            mut filter,
+                            budgets,
+                        } => {
+                            // The budgets name this node's neighbours: setting them cannot fail.
+                            let _ = fusion.set_link_budgets(&budgets);
                             let out = fusion.round(&mut filter, now).unwrap_or_default();
                             Done::Round {
                                 now,
