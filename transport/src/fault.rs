@@ -22,10 +22,14 @@
 //! step 5, and a [`RangeLimit`] makes the link available only while the two ends are within
 //! range (out of range: every message is dropped and the peer reported down, like an outage;
 //! near the edge: an extra loss probability rising linearly to `edge_loss` at the range).
+//! The radio's channel takes each message at its send time stamp (the envelope's `sim_time`,
+//! the sender's clock), not when the receiving end polls: the queue it models is the sender's,
+//! and in a multi-process run the two ends' clocks differ by up to the flow-control lead.
 //! Faults still act on the inbound direction only; so that a sender can keep its offered load
 //! within the capacity, the layer also keeps a *mirror* of its outbound direction — the same
-//! serialiser fed with what this end sends, on this end's clock ([`FaultyLink::outbound`]):
-//! the bytes still waiting for the channel, as the peer's inbound layer will see them.
+//! serialiser fed with what this end sends, on the same time stamps
+//! ([`FaultyLink::outbound`]): the bytes still waiting for the channel, as the peer's inbound
+//! layer will see them.
 //!
 //! Zero-copy: the layer takes messages from the inner link one at a time, when the application
 //! asks and nothing it already holds is due. A message that comes out of the pipeline due at
@@ -654,7 +658,8 @@ impl<L: Link> FaultyLink<L> {
         match (self.outage_end(now), self.cfg.outage_policy) {
             (None, _) => {
                 let mut now_out = None;
-                for (due, m) in self.route(now, msg).into_iter().flatten() {
+                let entry = self.entry_time(now, &msg);
+                for (due, m) in self.route(entry, msg).into_iter().flatten() {
                     let first = self.scheduled.peek().is_none_or(|Reverse(s)| s.due > due);
                     if now_out.is_none() && due <= now && first {
                         now_out = Some(m);
@@ -683,6 +688,21 @@ impl<L: Link> FaultyLink<L> {
                 }
                 None
             }
+        }
+    }
+
+    /// When a message taken from the inner link at `now` enters steps 2–5: `now`, except on a
+    /// radio, whose channel takes it at its send time stamp (the envelope's `sim_time`, on the
+    /// sender's clock) — the radio's queue is the sender's, so the drop-tail decisions do not
+    /// depend on when this end happens to poll, and they agree with the sender's
+    /// [`outbound`](Self::outbound) mirror whatever the skew between the two ends' clocks. A
+    /// message stamped ahead of `now` is held until its arrival time on this end's clock.
+    fn entry_time(&self, now: f64, msg: &Received) -> f64 {
+        let stamp = msg.header().sim_time;
+        if self.cfg.radio.is_some() && stamp.is_finite() {
+            stamp
+        } else {
+            now
         }
     }
 
@@ -761,7 +781,12 @@ impl<L: Link> Link for FaultyLink<L> {
         let result = self.inner.send(meta, body);
         let len = self.inner.stats().sent_bytes.saturating_sub(before);
         if len > 0 {
-            let now = self.clock.now();
+            // On the send time stamp, as the peer's inbound radio takes it (`entry_time`).
+            let now = if meta.sim_time.is_finite() {
+                meta.sim_time
+            } else {
+                self.clock.now()
+            };
             let start = now.max(self.out_free_at);
             let queue = self.cfg.radio.as_ref().map_or(0, |r| r.queue_bytes) as f64;
             if (start - now) * rate > queue {

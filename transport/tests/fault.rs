@@ -423,6 +423,61 @@ fn radio_outbound_mirror_tracks_the_queue() {
     assert_eq!(a.outbound().unwrap().queued_bytes, 0.0);
 }
 
+/// A radio's channel takes messages at their send stamps, so a receiver that polls late (its
+/// clock 5 s behind the sender's last send, as a busy process of a multi-process run) drops
+/// exactly the messages the sender's outbound mirror saw overflow, and delivers the others:
+/// ten ~1 kB messages stamped 0.0, 0.1, …, 0.9 s into 2000 B/s with a 3000-byte queue. A
+/// receiver that took them all at its own poll time would see them arrive together and keep
+/// only the first few (the queue bound over one message's size).
+#[test]
+fn radio_channel_follows_send_stamps_not_poll_time() {
+    let hub = InMemoryHub::with_capacity(1 << 20);
+    let clock = ManualClock::new(0.0);
+    let mut a = FaultyLink::new(
+        hub.connect(LinkConfig::new(1, 2)),
+        radio(2000.0, 3000, 0.0),
+        Arc::new(clock.clone()),
+    )
+    .unwrap();
+    let mut b = FaultyLink::new(
+        hub.connect(LinkConfig::new(2, 1)),
+        radio(2000.0, 3000, 0.0),
+        Arc::new(clock.clone()),
+    )
+    .unwrap();
+    let body = WireBytes(vec![0x33; 1000]);
+    for k in 0..10 {
+        let t = k as f64 * 0.1;
+        clock.set(t);
+        a.send(&meta(k, t), &body).unwrap();
+    }
+    let over = a.outbound().unwrap().over_queue;
+    let len = a.stats().sent_bytes as f64 / 10.0;
+    // The reference, by hand: message k (stamp 0.1 k) is accepted while the backlog ahead of
+    // it, (free − 0.1 k) · 2000, is ≤ 3000; an accepted one frees the channel len/2000 later.
+    let mut free: f64 = 0.0;
+    let mut expect_drops = 0;
+    for k in 0..10 {
+        let t = k as f64 * 0.1;
+        let start = free.max(t);
+        if (start - t) * 2000.0 > 3000.0 {
+            expect_drops += 1;
+        } else {
+            free = start + len / 2000.0;
+        }
+    }
+    assert!(expect_drops > 0 && expect_drops < 7, "{expect_drops}");
+    assert_eq!(over, expect_drops);
+    clock.set(5.0);
+    let mut got = 0;
+    while b.try_recv().unwrap().is_some() {
+        got += 1;
+    }
+    let fs = b.fault_stats();
+    assert_eq!(fs.dropped_bandwidth, expect_drops, "{fs:?}");
+    assert_eq!(got, 10 - expect_drops);
+}
+
 /// Out-of-range configurations are refused with a typed error.
 #[test]
 fn bad_fault_config_is_rejected() {
