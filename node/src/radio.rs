@@ -318,4 +318,28 @@ mod tests {
             assert!(!g.in_range(t));
         }
     }
+
+    /// Radio links are refused outside decentralized mode (the hub cannot fuse CI submaps),
+    /// naming the link's radio field.
+    #[test]
+    fn radio_outside_decentralized_mode_is_refused() {
+        let mut s = Scenario::builtin_default();
+        s.links[0].radio = Some(RadioSpec {
+            bytes_per_s: 32_000.0,
+            queue_bytes: None,
+            latency_s: 0.0,
+            range_m: None,
+            edge_fraction: None,
+            edge_loss: None,
+        });
+        assert!(crate::network::validate(&s).is_ok());
+        s.fusion.mode = FusionMode::Central;
+        match crate::network::validate(&s) {
+            Err(ScenarioError::Invalid { field, reason }) => {
+                assert_eq!(field, "link[0].radio");
+                assert!(reason.contains("decentralized"), "{reason}");
+            }
+            other => panic!("{other:?}"),
+        }
+    }
 }
