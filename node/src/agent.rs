@@ -360,6 +360,29 @@ impl VehicleFusion {
         }
     }
 
+    /// Makes the link to `peer` covariance intersection from the start (a capacity-limited
+    /// link: see [`crate::radio`]).
+    pub fn use_ci(&mut self, peer: NodeId) -> Result<(), AgentError> {
+        if let Some(d) = self.ddf.as_mut() {
+            d.use_ci(peer)?;
+        }
+        Ok(())
+    }
+
+    /// Sets the submap byte budgets of the next round, per link (capacity-limited links: the
+    /// driver derives them from each link's capacity and outbound queue, [`crate::radio`]).
+    pub fn set_link_budgets(&mut self, budgets: &[(NodeId, usize)]) -> Result<(), AgentError> {
+        if let Some(d) = self.ddf.as_mut() {
+            for &(peer, b) in budgets {
+                if let Err(e) = d.set_link_budget(peer, Some(b)) {
+                    self.reject("budget", &e, 1, &format!("peer {peer:?}: {e}"));
+                    return Err(e.into());
+                }
+            }
+        }
+        Ok(())
+    }
+
     /// A fusion round at time `now` on `filter`: the batch fused in, the map information read
     /// (eqs. 21.86, 21.87), the DDF's deltas formed, a CI change fused. The messages to send.
     pub fn round(
@@ -702,6 +725,16 @@ impl VehicleAgent {
     /// One terrain-sensor frame (association, update, initialization).
     pub fn on_frame(&mut self, frame: &ObservationFrame) -> Result<FrameReport, SlamError> {
         self.estimator.on_frame(frame)
+    }
+
+    /// Makes the link to `peer` covariance intersection from the start.
+    pub fn use_ci(&mut self, peer: NodeId) -> Result<(), AgentError> {
+        self.fusion.use_ci(peer)
+    }
+
+    /// Sets the submap byte budgets of the next round, per link.
+    pub fn set_link_budgets(&mut self, budgets: &[(NodeId, usize)]) -> Result<(), AgentError> {
+        self.fusion.set_link_budgets(budgets)
     }
 
     /// A fusion round at time `now`: the messages to send.

@@ -393,7 +393,25 @@ fn cmd_check(path: &Path) -> Result<()> {
         } else {
             format!("faults {:?}", l.faults)
         };
-        println!("  link {}: {:?}, {}", l.label(&names), l.transport, faults);
+        let radio = match &l.radio {
+            Some(r) => format!(
+                ", radio {} B/s (CI submaps of ≤ {} bytes per round), queue {} B, latency {} s{}",
+                r.bytes_per_s,
+                crate::radio::round_budget(r.bytes_per_s, s.fusion.rate_hz, 0.0),
+                r.queue_bytes(),
+                r.latency_s,
+                r.range_m
+                    .map(|m| format!(", range {m} m"))
+                    .unwrap_or_default()
+            ),
+            None => String::new(),
+        };
+        println!(
+            "  link {}: {:?}, {}{radio}",
+            l.label(&names),
+            l.transport,
+            faults
+        );
     }
     for e in &s.events {
         println!(

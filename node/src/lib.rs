@@ -9,6 +9,9 @@
 //!   `world` process and by `canopy sim`.
 //! - [`network`]: the scenario's `[run]`, `[fusion]`, `[[link]]`, `[[partition]]`, `[[event]]`,
 //!   `[secrets]` tables, their validation and the fusion topology.
+//! - [`radio`]: `[[link]] radio = { … }` — capacity, queue, latency and range of a radio
+//!   link, its vehicles' true separation, and the per-round submap budget derived from the
+//!   capacity and the outbound queue.
 //! - [`record`]: what a run gathers (estimates vs truth, maps, link statistics, events).
 //! - [`output`]: summary.json, TUM trajectories, CSVs and report.html.
 //! - [`agent`]: the vehicle and hub agents (estimator + DDF node, sans-IO).
@@ -36,6 +39,7 @@ pub mod network;
 pub mod output;
 pub mod preflight;
 pub mod process;
+pub mod radio;
 pub mod record;
 pub mod replay;
 pub mod scenario;

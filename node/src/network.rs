@@ -338,6 +338,7 @@ impl FaultSpec {
                 bytes_per_s: b,
                 queue_bytes: self.bandwidth_queue_bytes,
             }),
+            radio: None,
             signal_outages: true,
         }
     }
@@ -423,9 +424,28 @@ pub struct LinkSpec {
     /// Injected faults.
     #[serde(default)]
     pub faults: FaultSpec,
+    /// A radio link: capacity, queue, latency and optional range (both directions).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub radio: Option<crate::radio::RadioSpec>,
 }
 
 impl LinkSpec {
+    /// The transport fault layer's configuration for one end's inbound direction: the
+    /// injected faults, the scenario's partitions that cut this link, and the radio model
+    /// (its range evaluated from both vehicles' true trajectories).
+    pub fn fault_config(
+        &self,
+        s: &Scenario,
+        seed: u64,
+    ) -> Result<canopy_transport::fault::FaultConfig, ScenarioError> {
+        let mut cfg = self.faults.to_transport(seed, &s.partitions);
+        cfg.radio = match &self.radio {
+            Some(r) => Some(r.to_transport(s, [self.a, self.b])?),
+            None => None,
+        };
+        Ok(cfg)
+    }
+
     /// `a-b` with node names.
     pub fn label(&self, names: &BTreeMap<u32, String>) -> String {
         let n = |id: u32| names.get(&id).cloned().unwrap_or_else(|| id.to_string());
@@ -514,6 +534,7 @@ pub fn effective_links(s: &Scenario) -> Vec<LinkSpec> {
                 listen: None,
                 byte_budget: None,
                 faults: FaultSpec::default(),
+                radio: None,
             })
             .collect(),
         _ => s.links.clone(),
@@ -706,6 +727,28 @@ pub fn validate(s: &Scenario) -> Result<(), ScenarioError> {
         budget_ok(format!("{field}.byte_budget"), l.byte_budget)?;
         l.faults
             .validate(&format!("{field}.faults"), run.duration_s)?;
+        if let Some(r) = &l.radio {
+            r.validate(&format!("{field}.radio"), s, [l.a, l.b])?;
+            if f.mode != FusionMode::Decentralized {
+                return Err(ScenarioError::invalid(
+                    format!("{field}.radio"),
+                    "radio links need fusion.mode = \"decentralized\" (the hub keeps only \
+                     information, so it cannot fuse the CI submaps a radio link carries)",
+                ));
+            }
+            if l.faults.bandwidth_bytes_per_s.is_some() {
+                return Err(ScenarioError::invalid(
+                    format!("{field}.faults.bandwidth_bytes_per_s"),
+                    "a radio link has its capacity (radio.bytes_per_s); give one or the other",
+                ));
+            }
+            if l.byte_budget.is_some() {
+                return Err(ScenarioError::invalid(
+                    format!("{field}.byte_budget"),
+                    "a radio link derives its per-round budget from its capacity; remove byte_budget",
+                ));
+            }
+        }
         match (&l.transport, &l.listen) {
             (TransportKind::Shm, Some(_)) => {
                 return Err(ScenarioError::invalid(

@@ -232,6 +232,7 @@ impl Scenario {
                     listen: None,
                     byte_budget: None,
                     faults: FaultSpec::default(),
+                    radio: None,
                 })
                 .collect(),
             partitions: Vec::new(),

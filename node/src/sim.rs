@@ -183,7 +183,26 @@ pub fn vehicle_agent(
             } else {
                 return None;
             };
-            Some((NodeId(peer), l.byte_budget))
+            // A radio link starts with a full round's budget; each round then sets it from
+            // the link's capacity and queue (`crate::radio::capacity_budgets`).
+            let budget = match &l.radio {
+                Some(r) => Some(crate::radio::round_budget(
+                    r.bytes_per_s,
+                    s.fusion.rate_hz,
+                    0.0,
+                )),
+                None => l.byte_budget,
+            };
+            Some((NodeId(peer), budget))
+        })
+        .collect();
+    let radio_peers: Vec<NodeId> = effective_links(s)
+        .iter()
+        .filter(|l| l.radio.is_some())
+        .filter_map(|l| match (l.a == cfg.id, l.b == cfg.id) {
+            (true, _) => Some(NodeId(l.b)),
+            (_, true) => Some(NodeId(l.a)),
+            _ => None,
         })
         .collect();
     let slam = SlamConfig {
@@ -214,6 +233,10 @@ pub fn vehicle_agent(
             cfg.replay.as_ref().and_then(|r| r.zero_velocity),
         )
         .map_err(agent_error)?;
+    // Capacity-limited links never carry exact deltas: CI submaps from the first round.
+    for &peer in &radio_peers {
+        agent.use_ci(peer).map_err(agent_error)?;
+    }
     Ok(agent)
 }
 
@@ -318,7 +341,15 @@ impl<'s> Sim<'s> {
         for id in ids {
             let node = self.nodes.get_mut(&id).expect("node exists");
             let out = match node.agent.as_mut() {
-                Some(Agent::Vehicle(a)) => a.on_round(now).unwrap_or_default(),
+                Some(Agent::Vehicle(a)) => {
+                    let budgets = crate::radio::capacity_budgets(
+                        node.links.iter().map(|(&p, l)| (p, l)),
+                        self.s.fusion.rate_hz,
+                    );
+                    // A refused budget is counted by reason by the fusion half.
+                    let _ = a.set_link_budgets(&budgets);
+                    a.on_round(now).unwrap_or_default()
+                }
                 Some(Agent::Hub(h)) => h.on_round(now).unwrap_or_default(),
                 None => Vec::new(),
             };
@@ -510,12 +541,11 @@ pub fn simulate(s: &Scenario, mut opts: SimOptions<'_>) -> Result<SimOutcome, Si
         let seed =
             |end: u64| world::vehicle_seed(s.world.seed ^ 0xfa017, (li as u32) << 1 | end as u32);
         let wrap = |inner: InMemoryLink, end: u64| {
-            FaultyLink::new(
-                inner,
-                l.faults.to_transport(seed(end), &s.partitions),
-                dyn_clock.clone(),
-            )
-            .map_err(|e| SimError::Link {
+            let cfg = l.fault_config(s, seed(end)).map_err(|e| SimError::Link {
+                link: label.clone(),
+                reason: e.to_string(),
+            })?;
+            FaultyLink::new(inner, cfg, dyn_clock.clone()).map_err(|e| SimError::Link {
                 link: label.clone(),
                 reason: e.to_string(),
             })

@@ -55,6 +55,7 @@ pub fn team_scenario(n: u32, duration_s: f64) -> Scenario {
             listen: None,
             byte_budget: None,
             faults: FaultSpec::default(),
+            radio: None,
         })
         .collect();
     s.run.name = Some(format!("tree-{n}"));

@@ -213,6 +213,87 @@ fn cases() -> Vec<Case> {
             expect: Invalid("link[0].listen", "only `net` links"),
         },
         Case {
+            kind: "radio capacity zero",
+            edit: (
+                LINK_1_3,
+                "[[link]]\na = 1\nb = 3\nradio = { bytes_per_s = 0.0 }\n",
+            ),
+            expect: Invalid("link[0].radio.bytes_per_s", "must be a finite number > 0"),
+        },
+        Case {
+            kind: "radio capacity below one feature's submap per round",
+            edit: (
+                LINK_1_3,
+                "[[link]]\na = 1\nb = 3\nradio = { bytes_per_s = 500.0 }\n",
+            ),
+            expect: Invalid(
+                "link[0].radio.bytes_per_s",
+                "less than one feature's submap",
+            ),
+        },
+        Case {
+            kind: "radio negative latency",
+            edit: (
+                LINK_1_3,
+                "[[link]]\na = 1\nb = 3\nradio = { bytes_per_s = 32000.0, latency_s = -0.1 }\n",
+            ),
+            expect: Invalid("link[0].radio.latency_s", "must be a finite number ≥ 0"),
+        },
+        Case {
+            kind: "radio zero range",
+            edit: (
+                LINK_1_3,
+                "[[link]]\na = 1\nb = 3\nradio = { bytes_per_s = 32000.0, range_m = 0.0 }\n",
+            ),
+            expect: Invalid("link[0].radio.range_m", "must be a finite number > 0"),
+        },
+        Case {
+            kind: "radio edge loss above 1",
+            edit: (
+                LINK_1_3,
+                "[[link]]\na = 1\nb = 3\nradio = { bytes_per_s = 32000.0, range_m = 900.0, edge_loss = 1.5 }\n",
+            ),
+            expect: Invalid("link[0].radio.edge_loss", "must be in [0, 1]"),
+        },
+        Case {
+            kind: "radio edge fraction without a range",
+            edit: (
+                LINK_1_3,
+                "[[link]]\na = 1\nb = 3\nradio = { bytes_per_s = 32000.0, edge_fraction = 0.3 }\n",
+            ),
+            expect: Invalid(
+                "link[0].radio.edge_fraction",
+                "only applies to a radio with range_m",
+            ),
+        },
+        Case {
+            kind: "radio and a bandwidth cap",
+            edit: (
+                LINK_1_3,
+                "[[link]]\na = 1\nb = 3\nradio = { bytes_per_s = 32000.0 }\nfaults = { bandwidth_bytes_per_s = 16000.0 }\n",
+            ),
+            expect: Invalid(
+                "link[0].faults.bandwidth_bytes_per_s",
+                "a radio link has its capacity",
+            ),
+        },
+        Case {
+            kind: "radio and a fixed byte budget",
+            edit: (
+                LINK_1_3,
+                "[[link]]\na = 1\nb = 3\nradio = { bytes_per_s = 32000.0 }\nbyte_budget = 4096\n",
+            ),
+            expect: Invalid("link[0].byte_budget", "derives its per-round budget"),
+        },
+        Case {
+            kind: "radio field typo",
+            edit: (
+                LINK_1_3,
+                "[[link]]\na = 1\nb = 3\nradio = { bytes_per_s = 32000.0, rnage_m = 900.0 }\n",
+            ),
+            expect: Parse("rnage_m", "unknown field"),
+        },
+        Case {
             kind: "wrong type",
             edit: ("seed = 1\n", "seed = \"one\"\n"),
             expect: Parse("seed", "invalid type"),

@@ -17,6 +17,20 @@
 //! 5. delivery at `done + delay + U[0, jitter)` plus `reorder_delay` with probability
 //!    `reorder` (jitter and reorder both permute the order).
 //!
+//! A [`Radio`] models a radio link's direction with the same pipeline: its capacity is the
+//! serialiser of step 4 (drop-tail behind `queue_bytes`), its latency adds to the delay of
+//! step 5, and a [`RangeLimit`] makes the link available only while the two ends are within
+//! range (out of range: every message is dropped and the peer reported down, like an outage;
+//! near the edge: an extra loss probability rising linearly to `edge_loss` at the range).
+//! The radio's channel takes each message at its send time stamp (the envelope's `sim_time`,
+//! the sender's clock), not when the receiving end polls: the queue it models is the sender's,
+//! and in a multi-process run the two ends' clocks differ by up to the flow-control lead.
+//! Faults still act on the inbound direction only; so that a sender can keep its offered load
+//! within the capacity, the layer also keeps a *mirror* of its outbound direction — the same
+//! serialiser fed with what this end sends, on the same time stamps
+//! ([`FaultyLink::outbound`]): the bytes still waiting for the channel, as the peer's inbound
+//! layer will see them.
+//!
 //! Zero-copy: the layer takes messages from the inner link one at a time, when the application
 //! asks and nothing it already holds is due. A message that comes out of the pipeline due at
 //! once (no delay, jitter, reordering or bandwidth cap configured, outside outage windows) is
@@ -158,6 +172,86 @@ pub struct Bandwidth {
     pub queue_bytes: u64,
 }
 
+/// Distance between the two ends of a link over time, for [`RangeLimit`] (the node crate
+/// evaluates the vehicles' true trajectories; the transport knows no geometry).
+pub trait Separation: Send + Sync + std::fmt::Debug {
+    /// Distance [m] between the two ends at clock time `t` [s].
+    fn distance_m(&self, t: f64) -> f64;
+}
+
+/// Range-limited availability of a radio link: up while the two ends are within `range_m`,
+/// with an extra loss probability rising linearly from 0 at `(1 − edge_fraction)·range_m` to
+/// `edge_loss` at `range_m`.
+#[derive(Clone, Debug)]
+pub struct RangeLimit {
+    /// Range [m], > 0.
+    pub range_m: f64,
+    /// Outer fraction of the range in which loss rises, in [0, 1].
+    pub edge_fraction: f64,
+    /// Loss probability at the range, in [0, 1].
+    pub edge_loss: f64,
+    /// Distance of the two ends over time.
+    pub separation: Arc<dyn Separation>,
+}
+
+impl PartialEq for RangeLimit {
+    fn eq(&self, o: &Self) -> bool {
+        self.range_m == o.range_m
+            && self.edge_fraction == o.edge_fraction
+            && self.edge_loss == o.edge_loss
+            && std::ptr::addr_eq(Arc::as_ptr(&self.separation), Arc::as_ptr(&o.separation))
+    }
+}
+
+impl RangeLimit {
+    /// Whether the two ends are within range at `t`.
+    pub fn in_range(&self, t: f64) -> bool {
+        self.separation.distance_m(t) <= self.range_m
+    }
+
+    /// The edge loss probability at distance `d` [m] (0 well inside, `edge_loss` at the range;
+    /// beyond the range the link is down, which is not a loss probability).
+    pub fn edge_loss_at(&self, d: f64) -> f64 {
+        let inner = (1.0 - self.edge_fraction) * self.range_m;
+        if d <= inner || self.edge_fraction <= 0.0 {
+            0.0
+        } else {
+            let x = ((d - inner) / (self.edge_fraction * self.range_m)).min(1.0);
+            self.edge_loss * x
+        }
+    }
+}
+
+/// One direction of a radio link: a channel of `bytes_per_s` behind a drop-tail queue of
+/// `queue_bytes`, a fixed latency, and optionally range-limited availability.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Radio {
+    /// Capacity of this direction [bytes/s], > 0 (the envelope's 64 bytes count).
+    pub bytes_per_s: f64,
+    /// Bytes allowed to wait for the channel; a message that finds more ahead of it is dropped
+    /// (drop-tail, counted in [`FaultStats::dropped_bandwidth`]).
+    pub queue_bytes: u64,
+    /// Latency after the last byte left [s], ≥ 0.
+    pub latency: f64,
+    /// Range-limited availability (`None`: always in range).
+    pub range: Option<RangeLimit>,
+}
+
+/// The outbound direction of a radio link as this end sees it ([`FaultyLink::outbound`]).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct OutboundRadio {
+    /// Capacity of the direction [bytes/s].
+    pub bytes_per_s: f64,
+    /// Bytes sent that are still waiting for the channel now.
+    pub queued_bytes: f64,
+    /// The queue bound of the direction.
+    pub queue_bytes: u64,
+    /// Largest `queued_bytes` right after a send so far.
+    pub peak_queued_bytes: f64,
+    /// Sends that found the mirrored queue full (the peer's layer drops them).
+    pub over_queue: u64,
+}
+
 /// Fault model of one endpoint's inbound direction.
 #[derive(Debug, Clone, PartialEq)]
 pub struct FaultConfig {
@@ -183,7 +277,9 @@ pub struct FaultConfig {
     pub outage_policy: OutagePolicy,
     /// Optional bandwidth cap.
     pub bandwidth: Option<Bandwidth>,
-    /// Report `PeerDown` / `PeerUp` at the edges of outage windows.
+    /// Optional radio model (capacity, latency, range); exclusive with `bandwidth`.
+    pub radio: Option<Radio>,
+    /// Report `PeerDown` / `PeerUp` at the edges of outage windows (and of range).
     pub signal_outages: bool,
 }
 
@@ -202,8 +298,17 @@ impl FaultConfig {
             partitions: Vec::new(),
             outage_policy: OutagePolicy::Drop,
             bandwidth: None,
+            radio: None,
             signal_outages: true,
         }
+    }
+
+    /// The serialiser of step 4: the bandwidth cap or the radio's capacity.
+    fn channel(&self) -> Option<Bandwidth> {
+        self.bandwidth.or(self.radio.as_ref().map(|r| Bandwidth {
+            bytes_per_s: r.bytes_per_s,
+            queue_bytes: r.queue_bytes,
+        }))
     }
 
     /// Checks ranges (probabilities in [0, 1], finite non-negative times, ordered windows).
@@ -241,6 +346,30 @@ impl FaultConfig {
         {
             return bad("bandwidth must be finite and > 0");
         }
+        if let Some(r) = &self.radio {
+            if self.bandwidth.is_some() {
+                return bad("a radio link has its capacity; give a bandwidth cap or a radio");
+            }
+            if !(r.bytes_per_s.is_finite() && r.bytes_per_s > 0.0) {
+                return bad("radio capacity must be finite and > 0");
+            }
+            if !(r.latency.is_finite() && r.latency >= 0.0) {
+                return bad("radio latency must be finite and >= 0");
+            }
+            if let Some(g) = &r.range {
+                if !(g.range_m.is_finite() && g.range_m > 0.0) {
+                    return bad("radio range must be finite and > 0");
+                }
+                for (name, p) in [
+                    ("edge_fraction", g.edge_fraction),
+                    ("edge_loss", g.edge_loss),
+                ] {
+                    if !(0.0..=1.0).contains(&p) {
+                        return bad(&format!("radio {name} = {p} is not in [0, 1]"));
+                    }
+                }
+            }
+        }
         Ok(())
     }
 }
@@ -260,8 +389,17 @@ pub struct FaultStats {
     pub dropped_outage: u64,
     /// Dropped because the outage queue was full (policy `Queue`).
     pub dropped_outage_overflow: u64,
-    /// Dropped by the bandwidth cap's queue bound.
+    /// Dropped by the queue bound of the bandwidth cap or the radio's capacity (drop-tail).
     pub dropped_bandwidth: u64,
+    /// Dropped because the radio's ends were out of range.
+    pub dropped_range: u64,
+    /// Dropped by the radio's edge loss (near the end of its range).
+    pub dropped_edge: u64,
+    /// Bytes of the messages handed to the application.
+    pub delivered_bytes: u64,
+    /// Largest backlog the bandwidth cap or radio queue held ahead of an arriving message
+    /// [bytes].
+    pub peak_queue_bytes: u64,
     /// Held now (outage queue + scheduled).
     pub in_flight: u64,
     /// Messages the layer copied out of a backend's lent buffer because it had to hold them
@@ -277,6 +415,8 @@ impl FaultStats {
             + self.dropped_outage
             + self.dropped_outage_overflow
             + self.dropped_bandwidth
+            + self.dropped_range
+            + self.dropped_edge
     }
     /// `offered + duplicated == delivered + dropped() + in_flight`.
     pub fn balanced(&self) -> bool {
@@ -318,6 +458,10 @@ pub struct FaultyLink<L: Link> {
     /// Held during an outage: (release time, message).
     held: VecDeque<(f64, Received)>,
     link_free_at: f64,
+    /// The radio's outbound mirror: when the channel is free of what this end sent.
+    out_free_at: f64,
+    out_peak: f64,
+    out_over_queue: u64,
     stats: FaultStats,
     in_outage: bool,
     events: VecDeque<LinkEvent>,
@@ -345,6 +489,9 @@ impl<L: Link> FaultyLink<L> {
             scheduled: BinaryHeap::new(),
             held: VecDeque::new(),
             link_free_at: f64::NEG_INFINITY,
+            out_free_at: f64::NEG_INFINITY,
+            out_peak: 0.0,
+            out_over_queue: 0,
             stats: FaultStats::default(),
             in_outage: false,
             events: VecDeque::new(),
@@ -362,6 +509,39 @@ impl<L: Link> FaultyLink<L> {
     /// The wrapped link.
     pub fn inner(&self) -> &L {
         &self.inner
+    }
+
+    /// The outbound direction of a radio link now (`None` without a radio): what this end has
+    /// sent that is still waiting for the channel, mirrored on this end's clock. An upper
+    /// bound of the peer's inbound queue: messages the peer's layer drops before the channel
+    /// (loss, outage, out of range) do not occupy it there but are counted here, so a sender
+    /// that keeps this mirror within bounds never over-offers.
+    pub fn outbound(&self) -> Option<OutboundRadio> {
+        let r = self.cfg.radio.as_ref()?;
+        let now = self.clock.now();
+        Some(OutboundRadio {
+            bytes_per_s: r.bytes_per_s,
+            queued_bytes: ((self.out_free_at - now) * r.bytes_per_s).max(0.0),
+            queue_bytes: r.queue_bytes,
+            peak_queued_bytes: self.out_peak,
+            over_queue: self.out_over_queue,
+        })
+    }
+
+    /// Distance of the two ends now, for a range-limited radio.
+    pub fn distance_m(&self) -> Option<f64> {
+        let g = self.cfg.radio.as_ref()?.range.as_ref()?;
+        Some(g.separation.distance_m(self.clock.now()))
+    }
+
+    /// The radio's range limit, if any.
+    fn range(&self) -> Option<&RangeLimit> {
+        self.cfg.radio.as_ref().and_then(|r| r.range.as_ref())
+    }
+
+    /// Whether a range-limited radio is out of range at `t`.
+    fn out_of_range(&self, t: f64) -> bool {
+        self.range().is_some_and(|g| !g.in_range(t))
     }
 
     /// End of the outage window containing `t` on this link, if any.
@@ -385,7 +565,7 @@ impl<L: Link> FaultyLink<L> {
 
     /// Outage state edges → synthetic peer events.
     fn update_outage_events(&mut self, now: f64) {
-        let cut = self.outage_end(now).is_some();
+        let cut = self.outage_end(now).is_some() || self.out_of_range(now);
         if cut != self.in_outage {
             self.in_outage = cut;
             if self.cfg.signal_outages {
@@ -406,9 +586,22 @@ impl<L: Link> FaultyLink<L> {
         let u_dup: f64 = self.rng.random();
         let u_jit: [f64; 2] = [self.rng.random(), self.rng.random()];
         let u_reo: [f64; 2] = [self.rng.random(), self.rng.random()];
+        // One more draw only with a range limit, so other configurations keep their streams.
+        let u_edge: Option<f64> = self.range().is_some().then(|| self.rng.random());
         if u_loss < self.cfg.loss {
             self.stats.dropped_loss += 1;
             return [None, None];
+        }
+        if let (Some(g), Some(u)) = (self.range(), u_edge) {
+            let d = g.separation.distance_m(t);
+            if d > g.range_m {
+                self.stats.dropped_range += 1;
+                return [None, None];
+            }
+            if u < g.edge_loss_at(d) {
+                self.stats.dropped_edge += 1;
+                return [None, None];
+            }
         }
         let copies = if u_dup < self.cfg.duplicate {
             self.stats.duplicated += 1;
@@ -421,7 +614,7 @@ impl<L: Link> FaultyLink<L> {
         for (k, m) in copies.into_iter().enumerate() {
             let Some(m) = m else { continue };
             let mut done = t;
-            if let Some(bw) = self.cfg.bandwidth {
+            if let Some(bw) = self.cfg.channel() {
                 let start = t.max(self.link_free_at);
                 let backlog = (start - t) * bw.bytes_per_s;
                 let len = m.message_bytes().len() as f64;
@@ -429,10 +622,12 @@ impl<L: Link> FaultyLink<L> {
                     self.stats.dropped_bandwidth += 1;
                     continue;
                 }
+                self.stats.peak_queue_bytes = self.stats.peak_queue_bytes.max(backlog as u64);
                 self.link_free_at = start + len / bw.bytes_per_s;
                 done = self.link_free_at;
             }
-            let mut due = done + self.cfg.delay + u_jit[k] * self.cfg.jitter;
+            let latency = self.cfg.radio.as_ref().map_or(0.0, |r| r.latency);
+            let mut due = done + self.cfg.delay + latency + u_jit[k] * self.cfg.jitter;
             if u_reo[k] < self.cfg.reorder {
                 due += self.cfg.reorder_delay;
             }
@@ -463,7 +658,8 @@ impl<L: Link> FaultyLink<L> {
         match (self.outage_end(now), self.cfg.outage_policy) {
             (None, _) => {
                 let mut now_out = None;
-                for (due, m) in self.route(now, msg).into_iter().flatten() {
+                let entry = self.entry_time(now, &msg);
+                for (due, m) in self.route(entry, msg).into_iter().flatten() {
                     let first = self.scheduled.peek().is_none_or(|Reverse(s)| s.due > due);
                     if now_out.is_none() && due <= now && first {
                         now_out = Some(m);
@@ -471,8 +667,9 @@ impl<L: Link> FaultyLink<L> {
                         self.schedule(due, m);
                     }
                 }
-                if now_out.is_some() {
+                if let Some(m) = &now_out {
                     self.stats.delivered += 1;
+                    self.stats.delivered_bytes += m.message_bytes().len() as u64;
                 }
                 now_out
             }
@@ -491,6 +688,21 @@ impl<L: Link> FaultyLink<L> {
                 }
                 None
             }
+        }
+    }
+
+    /// When a message taken from the inner link at `now` enters steps 2–5: `now`, except on a
+    /// radio, whose channel takes it at its send time stamp (the envelope's `sim_time`, on the
+    /// sender's clock) — the radio's queue is the sender's, so the drop-tail decisions do not
+    /// depend on when this end happens to poll, and they agree with the sender's
+    /// [`outbound`](Self::outbound) mirror whatever the skew between the two ends' clocks. A
+    /// message stamped ahead of `now` is held until its arrival time on this end's clock.
+    fn entry_time(&self, now: f64, msg: &Received) -> f64 {
+        let stamp = msg.header().sim_time;
+        if self.cfg.radio.is_some() && stamp.is_finite() {
+            stamp
+        } else {
+            now
         }
     }
 
@@ -519,6 +731,7 @@ impl<L: Link> FaultyLink<L> {
         if self.scheduled.peek().is_some_and(|Reverse(s)| s.due <= now) {
             let Reverse(s) = self.scheduled.pop()?;
             self.stats.delivered += 1;
+            self.stats.delivered_bytes += s.msg.message_bytes().len() as u64;
             return Some(s.msg);
         }
         None
@@ -560,7 +773,31 @@ impl<L: Link> Link for FaultyLink<L> {
         self.inner.peer_id()
     }
     fn send(&mut self, meta: &SendMeta, body: &dyn WireBody) -> Result<(), LinkError> {
-        self.inner.send(meta, body)
+        let Some(rate) = self.cfg.radio.as_ref().map(|r| r.bytes_per_s) else {
+            return self.inner.send(meta, body);
+        };
+        // The outbound mirror: the bytes the backend took, through the same serialiser.
+        let before = self.inner.stats().sent_bytes;
+        let result = self.inner.send(meta, body);
+        let len = self.inner.stats().sent_bytes.saturating_sub(before);
+        if len > 0 {
+            // On the send time stamp, as the peer's inbound radio takes it (`entry_time`).
+            let now = if meta.sim_time.is_finite() {
+                meta.sim_time
+            } else {
+                self.clock.now()
+            };
+            let start = now.max(self.out_free_at);
+            let queue = self.cfg.radio.as_ref().map_or(0, |r| r.queue_bytes) as f64;
+            if (start - now) * rate > queue {
+                // The peer's layer drops it; the channel stays as it was.
+                self.out_over_queue += 1;
+            } else {
+                self.out_free_at = start + len as f64 / rate;
+                self.out_peak = self.out_peak.max((self.out_free_at - now) * rate);
+            }
+        }
+        result
     }
     fn try_recv(&mut self) -> Result<Option<Received>, LinkError> {
         self.step()

@@ -441,7 +441,7 @@ impl Channel {
         }
     }
 
-    fn switch_to_ci(&mut self, origin: Vector3<f64>) {
+    pub(crate) fn switch_to_ci(&mut self, origin: Vector3<f64>) {
         if self.mode == LinkMode::Ci {
             return;
         }

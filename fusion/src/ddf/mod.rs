@@ -61,7 +61,8 @@
 //! `on_message`), at the cost of one more round for J to reach i.
 //!
 //! # Covariance intersection fallback
-//! When a link's byte budget cannot carry the delta, the link switches to CI for good, in both
+//! When a link's byte budget cannot carry the delta — or from the start, for a
+//! capacity-limited link ([`DdfNode::use_ci`]) — the link switches to CI for good, in both
 //! directions (the peer switches on the first submap or on a Hello with `ci` set): its channel
 //! filter is retired, and each round a budgeted [`Submap`](crate::ci::Submap) of the
 //! highest-priority features is sent and fused by the receiver's estimator

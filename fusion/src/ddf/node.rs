@@ -287,6 +287,18 @@ impl DdfNode {
         Ok(())
     }
 
+    /// Makes the link to `peer` a covariance-intersection link from now on (one-way, as when a
+    /// delta exceeds the budget): for a capacity-limited link, which never carries exact deltas
+    /// (design note 13: the channel filter's deltas grow with the map; budgeted CI submaps do
+    /// not). The peer switches on the first submap or Hello it gets.
+    pub fn use_ci(&mut self, peer: NodeId) -> Result<(), DdfError> {
+        self.channels
+            .get_mut(&peer)
+            .ok_or(DdfError::UnknownNeighbour(peer))?
+            .switch_to_ci(self.origin);
+        Ok(())
+    }
+
     fn check_time(now: f64) -> Result<(), DdfError> {
         if now.is_finite() {
             Ok(())

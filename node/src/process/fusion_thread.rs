@@ -52,6 +52,9 @@ pub enum Job {
         now: f64,
         /// The copy.
         filter: Box<SlamFilter>,
+        /// Submap budgets of the capacity-limited links for this round
+        /// ([`crate::radio::capacity_budgets`]).
+        budgets: Vec<(NodeId, usize)>,
     },
 }
 
@@ -143,8 +146,13 @@ impl FusionThread {
                                 view: FusionView::of(&fusion),
                             }
                         }
-                        Job::Round { now, mut filter } => {
-                            // A failed round is counted by reason by the fusion half.
+                        Job::Round {
+                            now,
+                            mut filter,
+                            budgets,
+                        } => {
+                            // A refused budget is counted by reason by the fusion half.
+                            let _ = fusion.set_link_budgets(&budgets);
                             let out = fusion.round(&mut filter, now).unwrap_or_default();
                             Done::Round {
                                 now,

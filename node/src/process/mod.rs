@@ -276,12 +276,11 @@ impl FusionLinks {
             // Same seeds as `canopy sim` for a first start; a restarted process draws anew.
             let seed = vehicle_seed(s.world.seed ^ 0xfa017, ((*li as u32) << 1) | end)
                 ^ u64::from(incarnation).wrapping_mul(0x9e37_79b9_7f4a_7c15);
-            let faulty = FaultyLink::new(
-                inner,
-                l.faults.to_transport(seed, &s.partitions),
-                dyn_clock.clone(),
-            )
-            .with_context(|| format!("fault layer of link {me}-{peer}"))?;
+            let cfg = l
+                .fault_config(s, seed)
+                .with_context(|| format!("radio of link {me}-{peer}"))?;
+            let faulty = FaultyLink::new(inner, cfg, dyn_clock.clone())
+                .with_context(|| format!("fault layer of link {me}-{peer}"))?;
             links.insert(peer, faulty);
         }
         Ok(Self {

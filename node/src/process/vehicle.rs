@@ -402,7 +402,15 @@ impl Vehicle<'_> {
         self.naive_bytes += naive_round_bytes(self.estimator.filter().num_features());
         let start = StallMeter::mark();
         let filter = Box::new(self.estimator.lend());
-        self.fusion.submit(Job::Round { now, filter });
+        let budgets = crate::radio::capacity_budgets(
+            self.links.links.iter().map(|(&p, l)| (NodeId(p), l)),
+            self.s.fusion.rate_hz,
+        );
+        self.fusion.submit(Job::Round {
+            now,
+            filter,
+            budgets,
+        });
         self.stall.add(start, Work::Lend);
     }
 
