@@ -9,6 +9,8 @@
 //!   `world` process and by `canopy sim`.
 //! - [`network`]: the scenario's `[run]`, `[fusion]`, `[[link]]`, `[[partition]]`, `[[event]]`,
 //!   `[secrets]` tables, their validation and the fusion topology.
+//! - [`deploy`]: the scenario's `[zenoh]` and `[[host]]` tables — which host runs which
+//!   vehicles in a multi-host run, derived zenoh endpoints, key prefix, zenoh users.
 //! - [`record`]: what a run gathers (estimates vs truth, maps, link statistics, events).
 //! - [`output`]: summary.json, TUM trajectories, CSVs and report.html.
 //! - [`agent`]: the vehicle and hub agents (estimator + DDF node, sans-IO).
@@ -29,6 +31,7 @@
 pub mod agent;
 pub mod baseline;
 pub mod cli;
+pub mod deploy;
 pub mod eval;
 pub mod import;
 pub mod metrics;
