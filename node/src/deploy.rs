@@ -372,6 +372,24 @@ mod tests {
         s
     }
 
+    /// The shipped example: the endpoints its comments announce, links inside a host on shm.
+    #[test]
+    fn the_two_hosts_example_derives_the_endpoints_it_documents() {
+        let mut s = Scenario::load(
+            &std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../topologies/two-hosts.toml"),
+        )
+        .unwrap();
+        resolve_endpoints(&mut s).unwrap();
+        let listen: Vec<Option<&str>> = s.links.iter().map(|l| l.listen.as_deref()).collect();
+        assert_eq!(
+            listen,
+            vec![None, Some("tcp/10.0.0.2:7461"), Some("tcp/10.0.0.1:7462")]
+        );
+        assert_eq!(key_prefix(&s), "canopy/two-hosts");
+        let alpha = host_named(&s, "alpha").unwrap().1;
+        assert_eq!(local_nodes(&s, alpha), vec![1, 3]);
+    }
+
     #[test]
     fn endpoints_are_derived_from_the_host_of_the_listening_end() {
         let mut s = tree8_on_three_hosts();
