@@ -387,7 +387,12 @@ fn cmd_check(path: &Path) -> Result<()> {
             topo.diameter().unwrap_or(0)
         );
     }
-    for l in effective_links(&s) {
+    // With [[host]] tables, the endpoints a multi-host run derives (validated already).
+    let mut deployed = s.clone();
+    if !s.hosts.is_empty() && s.zenoh.mode == crate::deploy::ZenohModeConfig::Peer {
+        crate::deploy::resolve_endpoints(&mut deployed)?;
+    }
+    for l in effective_links(&deployed) {
         let faults = if l.faults.is_none() {
             "no faults".to_string()
         } else {
@@ -406,11 +411,37 @@ fn cmd_check(path: &Path) -> Result<()> {
             ),
             None => String::new(),
         };
+        let listen = l
+            .listen
+            .as_deref()
+            .map(|ep| {
+                let a = names.get(&l.a).map_or("?", String::as_str);
+                format!(", {a} listens on {ep}")
+            })
+            .unwrap_or_default();
         println!(
-            "  link {}: {:?}, {}{radio}",
+            "  link {}: {:?}, {}{radio}{listen}",
             l.label(&names),
             l.transport,
             faults
+        );
+    }
+    for h in &s.hosts {
+        let nodes: Vec<&str> = crate::deploy::local_nodes(&s, h)
+            .iter()
+            .filter_map(|id| names.get(id).map(String::as_str))
+            .collect();
+        println!(
+            "  host {} ({}): {}",
+            h.name,
+            h.address.as_deref().unwrap_or("no address"),
+            nodes.join(", ")
+        );
+    }
+    if !s.hosts.is_empty() {
+        println!(
+            "  hosts: the per-host launch is not implemented yet; `canopy run` runs every \
+             host's share on this machine (docs/arch/deploy.md)"
         );
     }
     for e in &s.events {

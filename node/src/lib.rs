@@ -12,6 +12,8 @@
 //! - [`radio`]: `[[link]] radio = { … }` — capacity, queue, latency and range of a radio
 //!   link, its vehicles' true separation, and the per-round submap budget derived from the
 //!   capacity and the outbound queue.
+//! - [`deploy`]: the scenario's `[zenoh]` and `[[host]]` tables — which host runs which
+//!   vehicles in a multi-host run, derived zenoh endpoints, key prefix, zenoh users.
 //! - [`record`]: what a run gathers (estimates vs truth, maps, link statistics, events).
 //! - [`output`]: summary.json, TUM trajectories, CSVs and report.html.
 //! - [`agent`]: the vehicle and hub agents (estimator + DDF node, sans-IO).
@@ -32,6 +34,7 @@
 pub mod agent;
 pub mod baseline;
 pub mod cli;
+pub mod deploy;
 pub mod eval;
 pub mod import;
 pub mod metrics;

@@ -530,7 +530,14 @@ pub fn effective_links(s: &Scenario) -> Vec<LinkSpec> {
             .map(|v| LinkSpec {
                 a: s.fusion.hub_id,
                 b: v.id,
-                transport: TransportKind::Shm,
+                // Shared memory on one host; zenoh to a vehicle on another host than the hub's.
+                transport: if crate::deploy::host_of(s, v.id).map(|h| h.0)
+                    == crate::deploy::host_of(s, s.fusion.hub_id).map(|h| h.0)
+                {
+                    TransportKind::Shm
+                } else {
+                    TransportKind::Net
+                },
                 listen: None,
                 byte_budget: None,
                 faults: FaultSpec::default(),

@@ -124,6 +124,12 @@ pub struct Scenario {
     /// Credentials (`[secrets]`).
     #[serde(default)]
     pub secrets: SecretsConfig,
+    /// zenoh deployment of a multi-host run (`[zenoh]`).
+    #[serde(default, skip_serializing_if = "crate::deploy::zenoh_is_default")]
+    pub zenoh: crate::deploy::ZenohDeploy,
+    /// The hosts of a multi-host run and what each runs (`[[host]]`).
+    #[serde(default, rename = "host", skip_serializing_if = "Vec::is_empty")]
+    pub hosts: Vec<crate::deploy::HostSpec>,
 }
 
 impl Scenario {
@@ -238,6 +244,8 @@ impl Scenario {
             partitions: Vec::new(),
             events: Vec::new(),
             secrets: SecretsConfig::default(),
+            zenoh: Default::default(),
+            hosts: Vec::new(),
         }
     }
 
@@ -273,7 +281,8 @@ impl Scenario {
                 }
             }
         }
-        crate::network::validate(self)
+        crate::network::validate(self)?;
+        crate::deploy::validate(self)
     }
 }
 

@@ -103,6 +103,8 @@ fn scenario(earth: EarthModel, sensor: SensorModelConfig, seed: u64) -> Scenario
         partitions: Vec::new(),
         events: Vec::new(),
         secrets: Default::default(),
+        zenoh: Default::default(),
+        hosts: Vec::new(),
     }
 }
 

@@ -14,13 +14,16 @@
 //!   admission check (envelope + "only the configured peer gets in"), [`LinkStats`].
 //! - [`memory`]: deterministic in-memory backend (a hub of endpoints) for simulation and tests.
 //! - [`iceoryx`]: iceoryx2 zero-copy shared-memory backend for processes on one host.
-//! - [`net`]: zenoh backend for links between hosts (peer mode, explicit endpoints, liveliness,
-//!   user/password authentication).
+//! - [`net`]: zenoh backend for links between hosts (peer, client or router mode, explicit
+//!   endpoints, liveliness, user/password authentication).
+//! - [`access`]: zenoh access control for canopy's key layout (default deny, per-user ingress
+//!   rules) and the count of what zenoh refuses.
 //! - [`fault`]: seeded fault injection over any link (delay, jitter, loss, duplication,
 //!   reordering, bandwidth cap, outages and partitions) with an injectable [`fault::Clock`];
 //!   messages it does not hold pass through in the backend's buffer (zero-copy).
 #![deny(unsafe_code)]
 
+pub mod access;
 pub mod codec;
 pub mod envelope;
 pub mod fault;

@@ -40,6 +40,7 @@ use zenoh::qos::CongestionControl;
 use zenoh::sample::SampleKind;
 use zenoh::{Config, Session};
 
+use crate::access::{ZenohAccess, json_list, json_str};
 use crate::codec::{self, WireBody};
 use crate::envelope::{NodeId, SendMeta};
 use crate::link::{
@@ -96,6 +97,37 @@ pub struct ZenohConfig {
     pub lease: Duration,
     /// First reconnection delay to a `connect` endpoint (doubles up to 8×).
     pub reconnect_period: Duration,
+    /// What the session is: a peer (default; talks to the nodes of its `listen` / `connect`
+    /// endpoints), a client of zenoh routers (`connect` = the routers), or a router.
+    pub mode: ZenohMode,
+    /// zenoh's multicast scouting (off by default: sessions only talk to configured endpoints).
+    pub multicast_scouting: bool,
+    /// Access control enforced by this session (or router) on what connected peers send it;
+    /// `None` = none. Needs [`ZenohConfig::auth`] (the rules are per user) and no `connect`
+    /// endpoints (only a listener knows its peers' user names).
+    pub access: Option<ZenohAccess>,
+}
+
+/// The role of a zenoh session.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum ZenohMode {
+    /// Peer-to-peer with explicit endpoints (gossip off: peers do not relay).
+    #[default]
+    Peer,
+    /// A client of the zenoh router(s) in `connect`, which route between clients.
+    Client,
+    /// A zenoh router: listens, routes between the clients and peers that connect.
+    Router,
+}
+
+impl ZenohMode {
+    fn zenoh_name(self) -> &'static str {
+        match self {
+            ZenohMode::Peer => "peer",
+            ZenohMode::Client => "client",
+            ZenohMode::Router => "router",
+        }
+    }
 }
 
 impl ZenohConfig {
@@ -110,34 +142,15 @@ impl ZenohConfig {
             overflow_wait: Duration::from_millis(100),
             lease: Duration::from_secs(3),
             reconnect_period: Duration::from_millis(200),
+            mode: ZenohMode::Peer,
+            multicast_scouting: false,
+            access: None,
         }
     }
 }
 
 fn err(e: impl std::fmt::Display) -> LinkError {
     LinkError::backend(BACKEND, e)
-}
-
-fn json_str(s: &str) -> String {
-    let mut out = String::with_capacity(s.len() + 2);
-    out.push('"');
-    for c in s.chars() {
-        match c {
-            '"' => out.push_str("\\\""),
-            '\\' => out.push_str("\\\\"),
-            c if (c as u32) < 0x20 => out.push_str(&format!("\\u{:04x}", c as u32)),
-            c => out.push(c),
-        }
-    }
-    out.push('"');
-    out
-}
-
-fn json_list(v: &[String]) -> String {
-    format!(
-        "[{}]",
-        v.iter().map(|s| json_str(s)).collect::<Vec<_>>().join(",")
-    )
 }
 
 /// A private file holding the accepted credentials while the session opens (zenoh reads the
@@ -234,9 +247,19 @@ impl ZenohTransport {
             zc.insert_json5(k, &v)
                 .map_err(|e| LinkError::Config(format!("zenoh config {k} = {v}: {e}")))
         };
-        set(&mut zc, "mode", json_str("peer"))?;
-        set(&mut zc, "scouting/multicast/enabled", "false".into())?;
+        set(&mut zc, "mode", json_str(cfg.mode.zenoh_name()))?;
+        set(
+            &mut zc,
+            "scouting/multicast/enabled",
+            cfg.multicast_scouting.to_string(),
+        )?;
         set(&mut zc, "scouting/gossip/enabled", "false".into())?;
+        if cfg.mode == ZenohMode::Client {
+            // A client keeps trying its routers in the background instead of failing to open
+            // when none answers yet (hosts start in any order).
+            set(&mut zc, "connect/exit_on_failure", "false".into())?;
+            set(&mut zc, "connect/timeout_ms", "0".into())?;
+        }
         set(&mut zc, "listen/endpoints", json_list(&cfg.listen))?;
         set(&mut zc, "connect/endpoints", json_list(&cfg.connect))?;
         let period = cfg.reconnect_period.as_millis().max(1);
@@ -268,6 +291,30 @@ impl ZenohTransport {
                 Some(d)
             }
         };
+        if let Some(access) = &cfg.access {
+            if !cfg.connect.is_empty() {
+                // zenoh's user/password check is one-way: a connecting session has no user
+                // name for what it connects to, so default deny would refuse its own links.
+                return Err(LinkError::Config(
+                    "zenoh access control is enforced by a session that only listens (or a \
+                     router): this one also connects"
+                        .into(),
+                ));
+            }
+            if cfg.auth.is_none() {
+                return Err(LinkError::Config(
+                    "zenoh access control needs user/password authentication (its rules are \
+                     per user)"
+                        .into(),
+                ));
+            }
+            let accepted: Vec<&str> = cfg
+                .auth
+                .iter()
+                .flat_map(|a| a.accept.iter().map(|(u, _)| u.as_str()))
+                .collect();
+            set(&mut zc, "access_control", access.to_json5(&accepted))?;
+        }
         let session = zenoh::open(zc).wait().map_err(err)?;
         Ok(Self {
             local,

@@ -1,0 +1,540 @@
+//! The deployment part of a scenario: `[zenoh]` and `[[host]]` — a team spread over several
+//! machines, each running its share (`canopy run SCENARIO --host NAME`), one of them the monitor
+//! (`--monitor`), and how their zenoh sessions find each other.
+//!
+//! # Example
+//! ```toml
+//! [zenoh]
+//! mode = "peer"                       # or "client": every session connects to `connect`
+//! monitor = "tcp/10.0.0.1:7450"       # peer mode: the monitor listens here, hosts connect
+//!
+//! [[host]]
+//! name = "alpha"
+//! address = "10.0.0.1"                # the net links whose end `a` runs here listen on it
+//! vehicles = [1, 2]
+//!
+//! [[host]]
+//! name = "beta"
+//! address = "10.0.0.2"
+//! vehicles = [3, 4]
+//! ```
+//!
+//! Without `[[host]]` tables (or without `--host` / `--monitor`) a run is the single-host run.
+//! With them, every vehicle (and the hub in central mode) belongs to exactly one host; `shm`
+//! links stay within a host; a `net` link without `listen` listens on
+//! `tcp/<address of a's host>:<port_base + link index>` so every host derives the same endpoint.
+
+use std::collections::{BTreeMap, BTreeSet};
+
+use serde::{Deserialize, Serialize};
+
+use crate::network::{FusionMode, TransportKind, effective_links, node_names};
+use crate::scenario::{Scenario, ScenarioError};
+
+/// How the zenoh sessions of a multi-host run connect.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ZenohModeConfig {
+    /// Peer to peer with explicit endpoints: net links between the vehicles' sessions, the host
+    /// launchers connect to the monitor (default).
+    #[default]
+    Peer,
+    /// Through zenoh router(s): every session is a client of the routers in `[zenoh].connect`.
+    Client,
+}
+
+/// `[zenoh]`: the zenoh side of a multi-host run.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct ZenohDeploy {
+    /// `peer` (default) or `client`.
+    pub mode: ZenohModeConfig,
+    /// `client` mode: the router endpoints every session connects to (*required* there). With
+    /// `canopy run --monitor --router` the monitor is that router and listens on them.
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub connect: Vec<String>,
+    /// `peer` mode: the endpoint the monitor listens on, e.g. `tcp/10.0.0.1:7450`; every host
+    /// launcher connects to it (*required* in peer mode with `[[host]]`).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub monitor: Option<String>,
+    /// Key prefix of the run (default `canopy/<scenario name>`): every host of a run uses the same.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub key_prefix: Option<String>,
+    /// zenoh multicast scouting (default false: sessions talk only to configured endpoints).
+    pub multicast_scouting: bool,
+}
+
+impl ZenohDeploy {
+    fn is_default(&self) -> bool {
+        *self == Self::default()
+    }
+}
+
+/// `skip_serializing_if` helper for [`Scenario::zenoh`].
+pub(crate) fn zenoh_is_default(z: &ZenohDeploy) -> bool {
+    z.is_default()
+}
+
+fn default_port_base() -> u16 {
+    7460
+}
+
+/// `[[host]]`: one machine of a multi-host run and the nodes it runs.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct HostSpec {
+    /// Name, used on the command line (`--host NAME`) and as its zenoh user `host-NAME`
+    /// (letters, digits, `_`, `-`) (*required*).
+    pub name: String,
+    /// Ids of the vehicles it runs.
+    #[serde(default)]
+    pub vehicles: Vec<u32>,
+    /// It runs the hub (central mode).
+    #[serde(default)]
+    pub hub: bool,
+    /// Where the other hosts reach it (IP address or host name): its net links listen there.
+    /// *Required* when it holds the listening end (`a`) of a net link without `listen`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub address: Option<String>,
+    /// Its net links without `listen` listen on port `port_base + link index` (default 7460).
+    #[serde(default = "default_port_base")]
+    pub port_base: u16,
+}
+
+/// zenoh user of the monitor.
+pub const MONITOR_USER: &str = "monitor";
+
+/// zenoh user of a host launcher.
+pub fn host_user(h: &HostSpec) -> String {
+    format!("host-{}", h.name)
+}
+
+/// The key prefix of a multi-host run (`[zenoh].key_prefix`, default `canopy/<name>`).
+pub fn key_prefix(s: &Scenario) -> String {
+    if let Some(p) = &s.zenoh.key_prefix {
+        return p.clone();
+    }
+    let name = s.run.name.as_deref().unwrap_or("run");
+    let mut out = String::from("canopy/");
+    let mut dash = false;
+    for c in name.chars() {
+        if c.is_ascii_alphanumeric() || c == '_' || c == '-' {
+            out.push(c);
+            dash = false;
+        } else if !dash {
+            out.push('-');
+            dash = true;
+        }
+    }
+    while out.ends_with('-') || out.ends_with('/') {
+        out.pop();
+    }
+    if out == "canopy" {
+        out.push_str("/run");
+    }
+    out
+}
+
+/// The key prefix of the control plane (host launchers ↔ monitor) under the run's prefix.
+pub fn control_prefix(s: &Scenario) -> String {
+    format!("{}/ctl", key_prefix(s))
+}
+
+/// The host running node `node` (a vehicle, or the hub), with its index.
+pub fn host_of(s: &Scenario, node: u32) -> Option<(usize, &HostSpec)> {
+    let hub = s.fusion.mode == FusionMode::Central && node == s.fusion.hub_id;
+    s.hosts
+        .iter()
+        .enumerate()
+        .find(|(_, h)| h.vehicles.contains(&node) || (hub && h.hub))
+}
+
+/// The host called `name`, with its index.
+pub fn host_named<'s>(s: &'s Scenario, name: &str) -> Option<(usize, &'s HostSpec)> {
+    s.hosts.iter().enumerate().find(|(_, h)| h.name == name)
+}
+
+/// The fusion nodes a host runs: its vehicles (scenario order) and the hub if it has it.
+pub fn local_nodes(s: &Scenario, h: &HostSpec) -> Vec<u32> {
+    let mut v: Vec<u32> = s
+        .vehicles
+        .iter()
+        .map(|v| v.id)
+        .filter(|id| h.vehicles.contains(id))
+        .collect();
+    if h.hub && s.fusion.mode == FusionMode::Central {
+        v.push(s.fusion.hub_id);
+    }
+    v
+}
+
+/// Fills the `listen` endpoint of every net link without one from the hosts: `tcp/<address of
+/// the host of a>:<its port_base + link index>` (the same on every host).
+pub fn resolve_endpoints(s: &mut Scenario) -> Result<(), ScenarioError> {
+    let derived: Vec<(usize, String)> = effective_links(s)
+        .iter()
+        .enumerate()
+        .filter(|(_, l)| l.transport == TransportKind::Net && l.listen.is_none())
+        .map(|(i, l)| {
+            let (_, h) = host_of(s, l.a).ok_or_else(|| {
+                ScenarioError::invalid(format!("link[{i}]"), "its end a runs on no host")
+            })?;
+            let addr = h.address.as_deref().ok_or_else(|| {
+                ScenarioError::invalid(
+                    format!("host `{}`.address", h.name),
+                    format!("needed: link[{i}] ({} - {}) listens on this host", l.a, l.b),
+                )
+            })?;
+            let port = u32::from(h.port_base) + i as u32;
+            let port = u16::try_from(port).map_err(|_| {
+                ScenarioError::invalid(
+                    format!("host `{}`.port_base", h.name),
+                    format!("port_base + link index {i} exceeds 65535"),
+                )
+            })?;
+            let host = if addr.contains(':') {
+                format!("[{addr}]")
+            } else {
+                addr.to_string()
+            };
+            Ok((i, format!("tcp/{host}:{port}")))
+        })
+        .collect::<Result<_, ScenarioError>>()?;
+    if s.links.is_empty() && !derived.is_empty() {
+        // Central mode without [[link]]: the generated star becomes explicit.
+        s.links = effective_links(s);
+    }
+    for (i, ep) in derived {
+        s.links[i].listen = Some(ep);
+    }
+    Ok(())
+}
+
+fn valid_name(n: &str) -> bool {
+    !n.is_empty()
+        && n.bytes()
+            .all(|b| b.is_ascii_alphanumeric() || b == b'_' || b == b'-')
+}
+
+/// Validates `[zenoh]` and `[[host]]` against the rest of the scenario.
+pub fn validate(s: &Scenario) -> Result<(), ScenarioError> {
+    let z = &s.zenoh;
+    if let Some(p) = &z.key_prefix {
+        let ok = valid_name(&p.replace('/', "_")) && !p.starts_with('/') && !p.ends_with('/');
+        if !ok {
+            return Err(ScenarioError::invalid(
+                "zenoh.key_prefix",
+                format!("{p:?}: letters, digits, `_`, `-` and inner `/` only"),
+            ));
+        }
+    }
+    for (i, ep) in z.connect.iter().chain(z.monitor.iter()).enumerate() {
+        if !ep.contains('/') {
+            return Err(ScenarioError::invalid(
+                if i < z.connect.len() {
+                    format!("zenoh.connect[{i}]")
+                } else {
+                    "zenoh.monitor".into()
+                },
+                format!("{ep:?} is not a zenoh endpoint (e.g. `tcp/10.0.0.1:7447`)"),
+            ));
+        }
+    }
+    if s.hosts.is_empty() {
+        return Ok(());
+    }
+    match z.mode {
+        ZenohModeConfig::Peer if z.monitor.is_none() => {
+            return Err(ScenarioError::invalid(
+                "zenoh.monitor",
+                "peer mode with [[host]] tables needs the monitor's endpoint \
+                 (e.g. `tcp/10.0.0.1:7450`)",
+            ));
+        }
+        ZenohModeConfig::Client if z.connect.is_empty() => {
+            return Err(ScenarioError::invalid(
+                "zenoh.connect",
+                "client mode needs the zenoh router endpoint(s)",
+            ));
+        }
+        _ => {}
+    }
+    let names = node_names(s);
+    let mut users: BTreeMap<String, String> = names
+        .iter()
+        .map(|(id, n)| (n.clone(), format!("node {id}")))
+        .collect();
+    users.insert(MONITOR_USER.into(), "the monitor".into());
+    let mut seen: BTreeMap<u32, String> = BTreeMap::new();
+    let mut hub_hosts = 0;
+    for (i, h) in s.hosts.iter().enumerate() {
+        let field = format!("host[{i}]");
+        if !valid_name(&h.name) {
+            return Err(ScenarioError::invalid(
+                format!("{field}.name"),
+                format!("{:?}: letters, digits, `_` and `-` only", h.name),
+            ));
+        }
+        if let Some(other) = users.insert(host_user(h), format!("host[{i}]")) {
+            return Err(ScenarioError::invalid(
+                format!("{field}.name"),
+                format!("its zenoh user `{}` is also {other}", host_user(h)),
+            ));
+        }
+        for &v in &h.vehicles {
+            if !s.vehicles.iter().any(|x| x.id == v) {
+                return Err(ScenarioError::invalid(
+                    format!("{field}.vehicles"),
+                    format!("no vehicle with id {v}"),
+                ));
+            }
+            if let Some(other) = seen.insert(v, h.name.clone()) {
+                return Err(ScenarioError::invalid(
+                    format!("{field}.vehicles"),
+                    format!("vehicle {v} already runs on host `{other}`"),
+                ));
+            }
+        }
+        if h.hub {
+            if s.fusion.mode != FusionMode::Central {
+                return Err(ScenarioError::invalid(
+                    format!("{field}.hub"),
+                    "only central mode has a hub",
+                ));
+            }
+            hub_hosts += 1;
+        }
+    }
+    if let Some(v) = s.vehicles.iter().find(|v| !seen.contains_key(&v.id)) {
+        return Err(ScenarioError::invalid(
+            "host",
+            format!("vehicle {} runs on no host", v.display_name()),
+        ));
+    }
+    if s.fusion.mode == FusionMode::Central && hub_hosts != 1 {
+        return Err(ScenarioError::invalid(
+            "host",
+            format!("exactly one host must run the hub (`hub = true`), found {hub_hosts}"),
+        ));
+    }
+    let hosts: BTreeSet<&str> = s.hosts.iter().map(|h| h.name.as_str()).collect();
+    if hosts.len() != s.hosts.len() {
+        return Err(ScenarioError::invalid("host", "host names must be unique"));
+    }
+    for (i, l) in effective_links(s).iter().enumerate() {
+        let (ha, hb) = (host_of(s, l.a), host_of(s, l.b));
+        if let (Some((ia, a)), Some((ib, b))) = (ha, hb)
+            && ia != ib
+            && l.transport == TransportKind::Shm
+        {
+            return Err(ScenarioError::invalid(
+                format!("link[{i}].transport"),
+                format!(
+                    "shm (shared memory) cannot join hosts `{}` and `{}`: use transport = \"net\"",
+                    a.name, b.name
+                ),
+            ));
+        }
+    }
+    // The derived endpoints exist (addresses, ports).
+    if z.mode == ZenohModeConfig::Peer {
+        let mut copy = s.clone();
+        resolve_endpoints(&mut copy)?;
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn tree8_on_three_hosts() -> Scenario {
+        let text = std::fs::read_to_string(
+            std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../topologies/tree-8.toml"),
+        )
+        .unwrap();
+        let mut s: Scenario = toml::from_str(&text).unwrap();
+        s.zenoh.monitor = Some("tcp/10.0.0.1:7450".into());
+        for (name, addr, vehicles) in [
+            ("alpha", "10.0.0.1", vec![1, 2]),
+            ("beta", "10.0.0.2", vec![3, 4, 7]),
+            ("gamma", "10.0.0.3", vec![5, 6, 8]),
+        ] {
+            s.hosts.push(HostSpec {
+                name: name.into(),
+                vehicles,
+                hub: false,
+                address: Some(addr.into()),
+                port_base: 7460,
+            });
+        }
+        s.links[1].listen = None;
+        s
+    }
+
+    /// The shipped example: the endpoints its comments announce, links inside a host on shm.
+    #[test]
+    fn the_two_hosts_example_derives_the_endpoints_it_documents() {
+        let mut s = Scenario::load(
+            &std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../topologies/two-hosts.toml"),
+        )
+        .unwrap();
+        resolve_endpoints(&mut s).unwrap();
+        let listen: Vec<Option<&str>> = s.links.iter().map(|l| l.listen.as_deref()).collect();
+        assert_eq!(
+            listen,
+            vec![None, Some("tcp/10.0.0.2:7461"), Some("tcp/10.0.0.1:7462")]
+        );
+        assert_eq!(key_prefix(&s), "canopy/two-hosts");
+        let alpha = host_named(&s, "alpha").unwrap().1;
+        assert_eq!(local_nodes(&s, alpha), vec![1, 3]);
+    }
+
+    #[test]
+    fn endpoints_are_derived_from_the_host_of_the_listening_end() {
+        let mut s = tree8_on_three_hosts();
+        validate(&s).unwrap();
+        resolve_endpoints(&mut s).unwrap();
+        // link[1] is uav2 (alpha) – uav3; link[3] uav2 – uav6; link[6] uav7 (beta) – uav8.
+        assert_eq!(s.links[1].listen.as_deref(), Some("tcp/10.0.0.1:7461"));
+        assert_eq!(s.links[3].listen.as_deref(), Some("tcp/10.0.0.1:7463"));
+        assert_eq!(s.links[6].listen.as_deref(), Some("tcp/10.0.0.2:7466"));
+        assert_eq!(key_prefix(&s), "canopy/tree-8");
+    }
+
+    #[test]
+    fn a_bad_deployment_names_the_field() {
+        let mut s = tree8_on_three_hosts();
+        s.hosts[2].vehicles.push(3);
+        let e = validate(&s).unwrap_err().to_string();
+        assert!(
+            e.contains("host[2].vehicles") && e.contains("already runs"),
+            "{e}"
+        );
+
+        let mut s = tree8_on_three_hosts();
+        s.hosts[1].vehicles.retain(|&v| v != 4);
+        s.hosts[2].vehicles.push(4);
+        // uav3 (beta) – uav4 (now gamma) is an shm link.
+        let e = validate(&s).unwrap_err().to_string();
+        assert!(e.contains("link[2].transport") && e.contains("shm"), "{e}");
+
+        let mut s = tree8_on_three_hosts();
+        s.hosts[2].vehicles.pop();
+        let e = validate(&s).unwrap_err().to_string();
+        assert!(e.contains("uav8 runs on no host"), "{e}");
+
+        let mut s = tree8_on_three_hosts();
+        s.hosts[0].address = None;
+        let e = validate(&s).unwrap_err().to_string();
+        assert!(e.contains("host `alpha`.address"), "{e}");
+
+        let mut s = tree8_on_three_hosts();
+        s.zenoh.monitor = None;
+        let e = validate(&s).unwrap_err().to_string();
+        assert!(e.contains("zenoh.monitor"), "{e}");
+    }
+
+    /// Each bad `[zenoh]` / `[[host]]` table is refused with the field and the reason.
+    #[test]
+    fn bad_host_tables_are_refused_with_field_and_reason() {
+        type Spoil = Box<dyn Fn(&mut Scenario)>;
+        let cases: Vec<(&str, Spoil, &[&str])> = vec![
+            (
+                "unknown vehicle",
+                Box::new(|s| s.hosts[0].vehicles.push(42)),
+                &["host[0].vehicles", "no vehicle with id 42"],
+            ),
+            (
+                "bad host name",
+                Box::new(|s| s.hosts[1].name = "be ta".into()),
+                &["host[1].name", "letters, digits"],
+            ),
+            (
+                "duplicate host name",
+                Box::new(|s| s.hosts[2].name = "alpha".into()),
+                &["host[2].name", "host-alpha", "host[0]"],
+            ),
+            (
+                "hub outside central mode",
+                Box::new(|s| s.hosts[0].hub = true),
+                &["host[0].hub", "only central mode"],
+            ),
+            (
+                "client mode without routers",
+                Box::new(|s| s.zenoh.mode = ZenohModeConfig::Client),
+                &["zenoh.connect", "router"],
+            ),
+            (
+                "not an endpoint",
+                Box::new(|s| s.zenoh.monitor = Some("10.0.0.1:7450".into())),
+                &["zenoh.monitor", "not a zenoh endpoint"],
+            ),
+            (
+                "port overflow",
+                Box::new(|s| s.hosts[0].port_base = 65_535),
+                &["host `alpha`.port_base", "exceeds 65535"],
+            ),
+            (
+                "bad key prefix",
+                Box::new(|s| s.zenoh.key_prefix = Some("/canopy/x".into())),
+                &["zenoh.key_prefix"],
+            ),
+        ];
+        for (what, spoil, expected) in cases {
+            let mut s = tree8_on_three_hosts();
+            spoil(&mut s);
+            let e = validate(&s)
+                .err()
+                .unwrap_or_else(|| panic!("{what}: accepted"))
+                .to_string();
+            for x in expected {
+                assert!(e.contains(x), "{what}: {e:?} lacks {x:?}");
+            }
+        }
+    }
+
+    /// Central mode: the hub belongs to exactly one host and its links to vehicles elsewhere
+    /// become net links listening on the hub's host.
+    #[test]
+    fn central_mode_needs_one_hub_host() {
+        let text = std::fs::read_to_string(
+            std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../topologies/central-4.toml"),
+        )
+        .unwrap();
+        let mut s: Scenario = toml::from_str(&text).unwrap();
+        // The generated star (central-4 spells it out as shm links).
+        s.links.clear();
+        s.zenoh.monitor = Some("tcp/10.0.0.1:7450".into());
+        let ids: Vec<u32> = s.vehicles.iter().map(|v| v.id).collect();
+        let (first, rest) = ids.split_at(2);
+        for (name, addr, vehicles, hub) in [
+            ("alpha", "10.0.0.1", first.to_vec(), false),
+            ("beta", "10.0.0.2", rest.to_vec(), false),
+        ] {
+            s.hosts.push(HostSpec {
+                name: name.into(),
+                vehicles,
+                hub,
+                address: Some(addr.into()),
+                port_base: 7460,
+            });
+        }
+        let e = validate(&s).unwrap_err().to_string();
+        assert!(e.contains("exactly one host must run the hub"), "{e}");
+        s.hosts[0].hub = true;
+        validate(&s).unwrap();
+        resolve_endpoints(&mut s).unwrap();
+        for (i, l) in s.links.iter().enumerate() {
+            let remote = rest.contains(&l.b);
+            assert_eq!(
+                l.transport == TransportKind::Net,
+                remote,
+                "link[{i}] {l:?}: net exactly when the vehicle is on another host than the hub"
+            );
+            if remote {
+                assert_eq!(l.listen, Some(format!("tcp/10.0.0.1:{}", 7460 + i)));
+            }
+        }
+    }
+}
