@@ -377,7 +377,9 @@ fn cmd_check(path: &Path) -> Result<()> {
     }
     println!(
         "  fusion: {} at {} Hz, association {:?}",
-        s.fusion.mode, s.fusion.rate_hz, s.fusion.association
+        s.fusion.mode,
+        s.fusion.rate_hz,
+        s.fusion.association_kind(s.world.appearance.identity)
     );
     let topo = topology(&s)?;
     if s.fusion.mode != FusionMode::Isolated {

@@ -10,6 +10,8 @@
 //! - [`network`]: the scenario's `[run]`, `[fusion]`, `[[link]]`, `[[partition]]`, `[[event]]`,
 //!   `[secrets]` tables, their validation and the fusion topology.
 //! - [`record`]: what a run gathers (estimates vs truth, maps, link statistics, events).
+//! - [`truth`]: association against the truth (monitor and `canopy sim` only): each key's
+//!   true feature, wrong associations and merges, duplicates, unmatched features.
 //! - [`output`]: summary.json, TUM trajectories, CSVs and report.html.
 //! - [`agent`]: the vehicle and hub agents (estimator + DDF node, sans-IO).
 //! - [`sim`]: `canopy sim`, the whole scenario in one deterministic process.
@@ -41,5 +43,6 @@ pub mod replay;
 pub mod scenario;
 pub mod sim;
 pub mod team;
+pub mod truth;
 pub mod wire;
 pub mod world;

@@ -134,24 +134,23 @@ pub fn estimate_sample(
 }
 
 /// One feature (mean and covariance in the estimator's frame) as a launch-frame record, with
-/// truth where `truth` allows it and the id names a world feature (a replayed vehicle's
-/// descriptors are its recording's track ids, which name no simulated feature: pass false).
+/// the true feature its key stands for (`truth_id`, [`crate::truth::KeyTruth`]) and that
+/// feature's position.
 pub fn feature_record(
     world: &World,
     id: FeatureId,
+    truth_id: Option<FeatureId>,
     mean: &Vector3<f64>,
     cov: &Matrix3<f64>,
-    truth: bool,
 ) -> MapFeatureRecord {
     let r = launch_from_nav(world);
+    let truth = truth_id.and_then(|t| world.feature(t));
     MapFeatureRecord {
         id,
+        truth_id: truth.map(|f| f.id),
         est: arr(&world.to_launch(mean)),
         cov: arr9(&(r * cov * r.transpose())),
-        truth: world
-            .feature(id)
-            .filter(|_| truth)
-            .map(|f| arr(&f.position_ned)),
+        truth: truth.map(|f| arr(&f.position_ned)),
         held_since: None,
     }
 }
@@ -182,15 +181,18 @@ impl HeldSince {
     }
 }
 
-/// The filter's map in the launch frame, with truth where `truth` allows it and the id names a
-/// world feature ([`feature_record`]).
-pub fn map_records(world: &World, filter: &SlamFilter, truth: bool) -> Vec<MapFeatureRecord> {
+/// The filter's map in the launch frame, each key with the true feature `truth` assigns it.
+pub fn map_records(
+    world: &World,
+    filter: &SlamFilter,
+    truth: impl Fn(FeatureId) -> Option<FeatureId>,
+) -> Vec<MapFeatureRecord> {
     filter
         .features()
         .into_iter()
         .filter_map(|(id, m)| {
             let cov = filter.feature_covariance(id)?;
-            Some(feature_record(world, id, &m, &cov, truth))
+            Some(feature_record(world, id, truth(id), &m, &cov))
         })
         .collect()
 }

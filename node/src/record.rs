@@ -47,13 +47,17 @@ impl PoseSample {
 /// One feature of a final map.
 #[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
 pub struct MapFeatureRecord {
-    /// Global feature id (descriptor).
+    /// The feature's key in the map (the true id with perfect identities; the filter's own
+    /// key with appearance).
     pub id: u64,
+    /// The true feature the key stands for (`crate::truth`), when known.
+    #[serde(default)]
+    pub truth_id: Option<u64>,
     /// Estimated position, launch NED [m].
     pub est: [f64; 3],
     /// Covariance, launch NED, row-major 3×3 [m²].
     pub cov: [f64; 9],
-    /// True position, launch NED [m], when the id names a real feature.
+    /// True position of `truth_id`, launch NED [m].
     pub truth: Option<[f64; 3]>,
     /// Since when this map has held the feature [s]: the first record time of the latest
     /// unbroken stretch of record times at which it was in the map (the end of the run for a
@@ -72,13 +76,38 @@ pub struct VehicleRecord {
     pub samples: Vec<PoseSample>,
     /// The vehicle's map at the end of the run.
     pub map: Vec<MapFeatureRecord>,
-    /// Observations associated to a feature other than the one observed (truth known to the
-    /// harness only).
+    /// Observations associated to a key whose truth is another feature (`crate::truth`;
+    /// truth known to the harness only).
     pub wrong_associations: u64,
-    /// Features initialized for a true feature the vehicle's map already held (missed
-    /// re-observations; the map holds that feature twice).
+    /// Keys of the final map beyond the first for one true feature.
     #[serde(default)]
     pub duplicate_features: u64,
+    /// Features of the final map held at least `crate::truth::MATURE_S` before the end.
+    #[serde(default)]
+    pub mature_features: u64,
+    /// Duplicates among them.
+    #[serde(default)]
+    pub mature_duplicates: u64,
+    /// True features the final map holds under keys of two or more vehicles (a cross-vehicle
+    /// correspondence never found).
+    #[serde(default)]
+    pub unmatched_features: u64,
+    /// Correspondences (key merges) adopted.
+    #[serde(default)]
+    pub merges_adopted: u64,
+    /// Of them, between keys first made by different vehicles.
+    #[serde(default)]
+    pub merges_cross_vehicle: u64,
+    /// Adopted merges whose keys stand for different true features.
+    #[serde(default)]
+    pub wrong_merges: u64,
+    /// Of them, between keys first made by different vehicles.
+    #[serde(default)]
+    pub wrong_cross_vehicle_merges: u64,
+    /// Neighbours' correspondences the vehicle refused (its estimate had evidence against
+    /// them: rejected candidate correspondences).
+    #[serde(default)]
+    pub merges_refused: u64,
     /// Observations processed.
     pub observations: u64,
     /// Received fusion messages rejected (malformed, non-neighbour, non-PD result, …).
@@ -174,6 +203,9 @@ pub struct RunRecord {
     pub baseline: Option<Vec<VehicleRecord>>,
     /// True feature positions (launch NED) by id, for the map plot.
     pub truth_features: Vec<(u64, [f64; 3])>,
+    /// Distinct wrong merge facts adopted anywhere in the team (`crate::truth`).
+    #[serde(default)]
+    pub team_wrong_merges: u64,
     /// The recording's clock at t = 0 [ns] (`[run] time_origin_ns`): output timestamps are
     /// origin + t, in the recording's time base.
     #[serde(default)]

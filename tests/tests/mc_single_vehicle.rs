@@ -19,7 +19,7 @@ fn scenario(earth: EarthModel, association: AssociationKind, seed: u64) -> Scena
     s.vehicles.truncate(1);
     s.links.clear();
     s.fusion.mode = FusionMode::Isolated;
-    s.fusion.association = association;
+    s.fusion.association = Some(association);
     s.world.earth_model = earth;
     s.world.seed = seed;
     s.run.duration_s = DURATION;

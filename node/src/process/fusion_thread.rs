@@ -16,7 +16,8 @@
 use std::sync::mpsc::{Receiver, Sender, channel};
 use std::thread::JoinHandle;
 
-use canopy_fusion::ddf::{ChannelView, DdfMessage, Outgoing};
+use canopy_fusion::ddf::{ChannelView, DdfMessage, NodeStats, Outgoing};
+use canopy_fusion::keys::Merge;
 use canopy_fusion::slam::SlamFilter;
 use canopy_fusion::topology::NodeId;
 
@@ -62,6 +63,10 @@ pub struct FusionView {
     pub counters: FusionCounters,
     /// Every channel of the DDF node.
     pub channels: Vec<ChannelView>,
+    /// The DDF node's counters.
+    pub node: NodeStats,
+    /// The correspondences the DDF node has adopted.
+    pub merges: Vec<Merge>,
 }
 
 impl FusionView {
@@ -69,6 +74,8 @@ impl FusionView {
         Self {
             counters: f.counters(),
             channels: f.ddf().map(|d| d.channels().collect()).unwrap_or_default(),
+            node: f.ddf().map(|d| d.stats()).unwrap_or_default(),
+            merges: f.ddf().map(|d| d.keys().merges()).unwrap_or_default(),
         }
     }
 
