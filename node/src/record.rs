@@ -108,6 +108,10 @@ pub struct VehicleRecord {
     /// them: rejected candidate correspondences).
     #[serde(default)]
     pub merges_refused: u64,
+    /// Frames whose true ids were missing or did not match the estimator's outcomes (their
+    /// observations are not judged: 0 for every simulated vehicle).
+    #[serde(default)]
+    pub unaudited_frames: u64,
     /// Observations processed.
     pub observations: u64,
     /// Received fusion messages rejected (malformed, non-neighbour, non-PD result, …).
@@ -206,6 +210,10 @@ pub struct RunRecord {
     /// Distinct wrong merge facts adopted anywhere in the team (`crate::truth`).
     #[serde(default)]
     pub team_wrong_merges: u64,
+    /// What the sensors told the estimators about identity: `perfect` (descriptor = true
+    /// id) or `appearance` (`[world.appearance] identity`).
+    #[serde(default)]
+    pub identity: String,
     /// The recording's clock at t = 0 [ns] (`[run] time_origin_ns`): output timestamps are
     /// origin + t, in the recording's time base.
     #[serde(default)]

@@ -550,6 +550,15 @@ pub enum Identity {
     Appearance,
 }
 
+impl std::fmt::Display for Identity {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            Self::Perfect => "perfect",
+            Self::Appearance => "appearance",
+        })
+    }
+}
+
 /// The identity model of every scenario that does not name one (flipping the shipped default
 /// is this one line).
 pub const DEFAULT_IDENTITY: Identity = Identity::Perfect;

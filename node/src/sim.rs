@@ -842,6 +842,7 @@ pub fn simulate(s: &Scenario, mut opts: SimOptions<'_>) -> Result<SimOutcome, Si
         truth_features: truth_features(s, &world),
         time_origin_ns: s.run.time_origin_ns,
         team_wrong_merges: truth.team_wrong_merges(),
+        identity: s.world.appearance.identity.to_string(),
     };
     record.events.sort_by(|a, b| a.t.total_cmp(&b.t));
     Ok(SimOutcome {

@@ -31,6 +31,7 @@ use std::collections::{BTreeMap, BTreeSet, HashMap};
 
 use canopy_fusion::keys::Merge;
 use canopy_fusion::sensor::FeatureId;
+use serde::{Deserialize, Serialize};
 
 use crate::process::protocol::{FrameAssociations, Outcome};
 use crate::record::{MapFeatureRecord, VehicleRecord};
@@ -168,6 +169,9 @@ impl TruthAudit {
         for (&v, &n) in &self.observations {
             out.vehicles.entry(v).or_default().observations = n;
         }
+        for (&v, &n) in &self.unaudited_frames {
+            out.vehicles.entry(v).or_default().unaudited_frames = n;
+        }
         for (&(v, k), votes) in &self.associated {
             if let Some(&t) = out.truth.get(&k) {
                 let wrong: u64 = votes.iter().filter(|(id, _)| **id != t).map(|e| e.1).sum();
@@ -209,7 +213,7 @@ impl TruthAudit {
 }
 
 /// One vehicle's association figures against the truth.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
 pub struct AssociationTruth {
     /// Observations processed.
     pub observations: u64,
@@ -223,10 +227,12 @@ pub struct AssociationTruth {
     pub wrong_merges: u64,
     /// Of them, between keys of different owners.
     pub wrong_cross_vehicle_merges: u64,
+    /// Frames whose true ids were missing or did not match the outcomes (not judged).
+    pub unaudited_frames: u64,
 }
 
 /// A final map judged against the truth.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
 pub struct MapTruth {
     /// Keys beyond the first for one true feature.
     pub duplicates: u64,
@@ -310,6 +316,7 @@ pub fn fill_record(truth: &KeyTruth, vehicle: u32, rec: &mut VehicleRecord, end:
     rec.mature_features = m.mature_features;
     rec.mature_duplicates = m.mature_duplicates;
     rec.unmatched_features = m.unmatched;
+    rec.unaudited_frames = a.unaudited_frames;
 }
 
 #[cfg(test)]
@@ -409,6 +416,7 @@ mod tests {
         assert_eq!(v2.wrong_cross_vehicle_merges, 1);
         assert_eq!(k.team_wrong_merges(), 1);
         assert_eq!(a.unaudited_frames(1), 1);
+        assert_eq!((v1.unaudited_frames, v2.unaudited_frames), (1, 0));
 
         // Vehicle 1's final map at t = 30: 101, 102, 103 (own duplicate of 7, mature), 201
         // (vehicle 2's key for 7, held only since 25: not mature).

@@ -136,6 +136,12 @@ pub struct VehicleCheck {
     pub map_sizes: Vec<(f64, usize)>,
     /// Times it was initialised (1 + restarts).
     pub initialisations: usize,
+    /// Its association against the truth (`crate::truth`; also in `summary.json`).
+    #[serde(default)]
+    pub association: crate::truth::AssociationTruth,
+    /// Its final map against the truth.
+    #[serde(default)]
+    pub map_truth: crate::truth::MapTruth,
     /// Inputs its estimator rejected, by reason, summed over incarnations (as in
     /// `summary.json`).
     #[serde(default)]
@@ -1135,6 +1141,12 @@ fn assemble(
             }
         }
         let rec_rejections = rec.rejections.clone();
+        let map_truth = crate::truth::MapTruth {
+            duplicates: rec.duplicate_features,
+            mature_features: rec.mature_features,
+            mature_duplicates: rec.mature_duplicates,
+            unmatched: rec.unmatched_features,
+        };
         vehicles.push(rec);
         if let Some(b) = &baseline {
             for (t, feats) in &v.maps {
@@ -1183,6 +1195,8 @@ fn assemble(
             final_map_features: v.last_map.as_ref().map_or(0, |m| m.1.len()),
             map_sizes: v.maps.iter().map(|(t, f)| (*t, f.len())).collect(),
             initialisations: v.initialisations,
+            association: truth.vehicle(cfg.id),
+            map_truth,
         });
     }
     // Links: both ends' counters at every record time.
@@ -1282,6 +1296,7 @@ fn assemble(
         truth_features: crate::sim::truth_features(s, world),
         time_origin_ns: s.run.time_origin_ns,
         team_wrong_merges: truth.team_wrong_merges(),
+        identity: s.world.appearance.identity.to_string(),
     };
     let processes = m
         .procs
