@@ -347,13 +347,20 @@ impl<'s> Sim<'s> {
             }
         }
         if let Some(b) = &self.baseline {
+            let identity = self.s.world.appearance.identity;
             self.baseline_held
                 .observe(now, b.features().into_iter().map(|x| x.0));
             let worst = self
                 .nodes
                 .values()
                 .filter_map(|n| match n.agent.as_ref() {
-                    Some(Agent::Vehicle(a)) => confidence_ratio(a.filter(), b).map(|r| r.0),
+                    Some(Agent::Vehicle(a)) => match identity {
+                        Identity::Perfect => confidence_ratio(a.filter(), b, Some),
+                        Identity::Appearance => {
+                            confidence_ratio(a.filter(), b, |k| self.audit.truth_of(k))
+                        }
+                    }
+                    .map(|r| r.0),
                     _ => None,
                 })
                 .fold(f64::NAN, f64::max);

@@ -132,34 +132,35 @@ impl TruthAudit {
         self.unaudited_frames.get(&vehicle).copied().unwrap_or(0)
     }
 
+    /// The true feature key `k` stands for so far (module docs, "The truth of a key"): the
+    /// majority of its owner's observations, or of everyone's when nobody initialized it.
+    pub fn truth_of(&self, k: FeatureId) -> Option<FeatureId> {
+        match self.owner.get(&k) {
+            Some(&(_, o)) => majority(
+                [self.associated.get(&(o, k)), self.initialized.get(&(o, k))]
+                    .into_iter()
+                    .flatten(),
+            ),
+            None => majority(
+                self.associated
+                    .iter()
+                    .filter(|((_, key), _)| *key == k)
+                    .map(|(_, v)| v),
+            ),
+        }
+    }
+
     /// Assigns every key its truth and judges associations and merges.
     pub fn finish(&self) -> KeyTruth {
         let mut keys: BTreeSet<FeatureId> = BTreeSet::new();
         keys.extend(self.associated.keys().map(|k| k.1));
         keys.extend(self.initialized.keys().map(|k| k.1));
-        let mut truth = HashMap::new();
-        let mut owner = HashMap::new();
-        for &k in &keys {
-            let t = match self.owner.get(&k) {
-                Some(&(_, o)) => {
-                    owner.insert(k, o);
-                    majority(
-                        [self.associated.get(&(o, k)), self.initialized.get(&(o, k))]
-                            .into_iter()
-                            .flatten(),
-                    )
-                }
-                None => majority(
-                    self.associated
-                        .iter()
-                        .filter(|((_, key), _)| *key == k)
-                        .map(|(_, v)| v),
-                ),
-            };
-            if let Some(t) = t {
-                truth.insert(k, t);
-            }
-        }
+        let truth: HashMap<FeatureId, FeatureId> = keys
+            .iter()
+            .filter_map(|&k| self.truth_of(k).map(|t| (k, t)))
+            .collect();
+        let owner: HashMap<FeatureId, u32> =
+            self.owner.iter().map(|(&k, &(_, o))| (k, o)).collect();
         let mut out = KeyTruth {
             truth,
             owner,
