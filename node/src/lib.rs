@@ -5,8 +5,9 @@
 //!   built-in default scenario and validation with typed errors naming the field.
 //! - [`world`]: the world simulator — seeded terrain and features, analytic trajectories with
 //!   coordinated-flight attitude, IMU synthesis (discrete inverse of the mechanization or
-//!   continuous), the terrain sensor, and per-step truth; a pure, step-able library used by the
-//!   `world` process and by `canopy sim`.
+//!   continuous), the terrain sensor, simulated appearance (descriptors, trackers; `[world.
+//!   appearance]`), and per-step truth; a pure, step-able library used by the `world` process
+//!   and by `canopy sim`.
 //! - [`network`]: the scenario's `[run]`, `[fusion]`, `[[link]]`, `[[partition]]`, `[[event]]`,
 //!   `[secrets]` tables, their validation and the fusion topology.
 //! - [`record`]: what a run gathers (estimates vs truth, maps, link statistics, events).

@@ -76,42 +76,10 @@ pub struct VehicleRecord {
     pub samples: Vec<PoseSample>,
     /// The vehicle's map at the end of the run.
     pub map: Vec<MapFeatureRecord>,
-    /// Observations associated to a key whose truth is another feature (`crate::truth`;
-    /// truth known to the harness only).
-    pub wrong_associations: u64,
-    /// Keys of the final map beyond the first for one true feature.
-    #[serde(default)]
-    pub duplicate_features: u64,
-    /// Features of the final map held at least `crate::truth::MATURE_S` before the end.
-    #[serde(default)]
-    pub mature_features: u64,
-    /// Duplicates among them.
-    #[serde(default)]
-    pub mature_duplicates: u64,
-    /// True features the final map holds under keys of two or more vehicles (a cross-vehicle
-    /// correspondence never found).
-    #[serde(default)]
-    pub unmatched_features: u64,
-    /// Correspondences (key merges) adopted.
-    #[serde(default)]
-    pub merges_adopted: u64,
-    /// Of them, between keys first made by different vehicles.
-    #[serde(default)]
-    pub merges_cross_vehicle: u64,
-    /// Adopted merges whose keys stand for different true features.
-    #[serde(default)]
-    pub wrong_merges: u64,
-    /// Of them, between keys first made by different vehicles.
-    #[serde(default)]
-    pub wrong_cross_vehicle_merges: u64,
-    /// Neighbours' correspondences the vehicle refused (its estimate had evidence against
-    /// them: rejected candidate correspondences).
-    #[serde(default)]
-    pub merges_refused: u64,
-    /// Frames whose true ids were missing or did not match the estimator's outcomes (their
-    /// observations are not judged: 0 for every simulated vehicle).
-    #[serde(default)]
-    pub unaudited_frames: u64,
+    /// Association and final map against the truth (`crate::truth`; known to the harness
+    /// only). Flattened: its fields sit beside these in JSON.
+    #[serde(flatten)]
+    pub association: crate::truth::TruthFigures,
     /// Observations processed.
     pub observations: u64,
     /// Received fusion messages rejected (malformed, non-neighbour, non-PD result, …).

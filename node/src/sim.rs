@@ -816,7 +816,8 @@ pub fn simulate(s: &Scenario, mut opts: SimOptions<'_>) -> Result<SimOutcome, Si
             let c = a.counters();
             sim.records[i].rejected_messages = c.fusion.messages_rejected;
             sim.records[i].rejections = a.rejections().counts.clone();
-            sim.records[i].merges_refused = a.ddf().map_or(0, |d| d.stats().merges_refused);
+            sim.records[i].association.merges_refused =
+                a.ddf().map_or(0, |d| d.stats().merges_refused);
             sim.checks
                 .rejected_messages
                 .insert(node.name.clone(), c.fusion.messages_rejected);

@@ -214,7 +214,7 @@ impl TruthAudit {
 }
 
 /// One vehicle's association figures against the truth.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub struct AssociationTruth {
     /// Observations processed.
     pub observations: u64,
@@ -233,7 +233,7 @@ pub struct AssociationTruth {
 }
 
 /// A final map judged against the truth.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub struct MapTruth {
     /// Keys beyond the first for one true feature.
     pub duplicates: u64,
@@ -243,6 +243,38 @@ pub struct MapTruth {
     pub mature_duplicates: u64,
     /// True features held under keys of two or more owners (never matched).
     pub unmatched: u64,
+}
+
+/// One vehicle's association and final map against the truth, as a run records and
+/// summarizes them (flattened into `VehicleRecord` and `summary.json`'s `vehicles[]`).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct TruthFigures {
+    /// Observations associated to a key that stands for another true feature.
+    pub wrong_associations: u64,
+    /// Keys of the final map beyond the first for one true feature.
+    pub duplicate_features: u64,
+    /// Features of the final map held at least [`MATURE_S`] before the end.
+    pub mature_features: u64,
+    /// Duplicates among them.
+    pub mature_duplicates: u64,
+    /// True features the final map holds under keys first made by two or more vehicles (a
+    /// cross-vehicle correspondence never found).
+    pub unmatched_features: u64,
+    /// Correspondences (key merges) the vehicle adopted.
+    pub merges_adopted: u64,
+    /// Of them, between keys first made by different vehicles.
+    pub merges_cross_vehicle: u64,
+    /// Adopted merges whose keys stand for different true features.
+    pub wrong_merges: u64,
+    /// Of them, between keys first made by different vehicles.
+    pub wrong_cross_vehicle_merges: u64,
+    /// Neighbours' correspondences the vehicle refused (its estimate had evidence against
+    /// them: rejected candidate correspondences).
+    pub merges_refused: u64,
+    /// Frames whose true ids were missing or did not match the estimator's outcomes (not
+    /// judged: 0 for every simulated vehicle).
+    pub unaudited_frames: u64,
 }
 
 /// The truth of every key, and the figures of each vehicle.
@@ -302,22 +334,33 @@ impl KeyTruth {
     }
 }
 
-/// Fills `rec`'s association and map figures for `vehicle` from `truth` (its final map must
-/// carry `truth_id` and `held_since`, taken at `end`); observations and `merges_refused` are
-/// left to the caller.
-pub fn fill_record(truth: &KeyTruth, vehicle: u32, rec: &mut VehicleRecord, end: f64) {
+/// The figures of `vehicle` whose final map `map` (records with `truth_id` and `held_since`)
+/// was taken at `end`; `merges_refused` is left to the caller (a DDF counter).
+pub fn figures(truth: &KeyTruth, vehicle: u32, map: &[MapFeatureRecord], end: f64) -> TruthFigures {
     let a = truth.vehicle(vehicle);
-    let m = truth.judge_map(&rec.map, end);
-    rec.wrong_associations = a.wrong_associations;
-    rec.merges_adopted = a.merges_adopted;
-    rec.merges_cross_vehicle = a.merges_cross_vehicle;
-    rec.wrong_merges = a.wrong_merges;
-    rec.wrong_cross_vehicle_merges = a.wrong_cross_vehicle_merges;
-    rec.duplicate_features = m.duplicates;
-    rec.mature_features = m.mature_features;
-    rec.mature_duplicates = m.mature_duplicates;
-    rec.unmatched_features = m.unmatched;
-    rec.unaudited_frames = a.unaudited_frames;
+    let m = truth.judge_map(map, end);
+    TruthFigures {
+        wrong_associations: a.wrong_associations,
+        duplicate_features: m.duplicates,
+        mature_features: m.mature_features,
+        mature_duplicates: m.mature_duplicates,
+        unmatched_features: m.unmatched,
+        merges_adopted: a.merges_adopted,
+        merges_cross_vehicle: a.merges_cross_vehicle,
+        wrong_merges: a.wrong_merges,
+        wrong_cross_vehicle_merges: a.wrong_cross_vehicle_merges,
+        merges_refused: 0,
+        unaudited_frames: a.unaudited_frames,
+    }
+}
+
+/// Fills `rec`'s figures for `vehicle` ([`figures`] of its final map taken at `end`), keeping
+/// its `merges_refused`.
+pub fn fill_record(truth: &KeyTruth, vehicle: u32, rec: &mut VehicleRecord, end: f64) {
+    rec.association = TruthFigures {
+        merges_refused: rec.association.merges_refused,
+        ..figures(truth, vehicle, &rec.map, end)
+    };
 }
 
 #[cfg(test)]

@@ -39,8 +39,14 @@ fn check(earth: EarthModel, association: AssociationKind) -> (u64, u64) {
     let records: Vec<_> = outcomes.iter().map(|o| &o.record.vehicles[0]).collect();
     let pose = pose_consistency(&records, 0.0);
     let map = map_consistency(&records);
-    let wrong: u64 = records.iter().map(|r| r.wrong_associations).sum();
-    let duplicates: u64 = records.iter().map(|r| r.duplicate_features).sum();
+    let wrong: u64 = records
+        .iter()
+        .map(|r| r.association.wrong_associations)
+        .sum();
+    let duplicates: u64 = records
+        .iter()
+        .map(|r| r.association.duplicate_features)
+        .sum();
     let obs: u64 = records.iter().map(|r| r.observations).sum();
     println!(
         "{earth:?}/{association:?}: {RUNS} runs × {DURATION} s: pose ANEES/6 = {:.3} (band [{:.3}, {:.3}], {:.0} % of \

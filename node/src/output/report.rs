@@ -419,8 +419,9 @@ fn association(summary: &Summary) -> String {
     let cell = |v: String| format!("<td style=\"text-align:right\">{v}</td>");
     for v in &summary.vehicles {
         html.push_str(&format!("<tr><td>{}</td>", escape(&v.name)));
+        let (obs, v) = (v.observations, &v.association);
         for c in [
-            v.observations.to_string(),
+            obs.to_string(),
             v.wrong_associations.to_string(),
             v.duplicate_features.to_string(),
             format!("{} / {}", v.mature_duplicates, v.mature_features),

@@ -59,40 +59,10 @@ pub struct VehicleSummary {
     /// Mean per-feature map NEES divided by its 3 dof.
     #[serde(deserialize_with = "null_as_nan")]
     pub map_anees: f64,
-    /// Observations associated to a key that stands for another true feature
-    /// (`crate::truth`: a key stands for the majority true id of its first owner's
-    /// observations).
-    pub wrong_associations: u64,
-    /// Keys of the final map beyond the first for one true feature.
-    pub duplicate_features: u64,
-    /// Features of the final map held at least `crate::truth::MATURE_S` before the end.
-    #[serde(default)]
-    pub mature_features: u64,
-    /// Duplicates among them.
-    #[serde(default)]
-    pub mature_duplicates: u64,
-    /// True features the final map holds under keys first made by two or more vehicles (a
-    /// cross-vehicle correspondence never found).
-    #[serde(default)]
-    pub unmatched_features: u64,
-    /// Correspondences (key merges) the vehicle adopted.
-    #[serde(default)]
-    pub merges_adopted: u64,
-    /// Of them, between keys first made by different vehicles.
-    #[serde(default)]
-    pub merges_cross_vehicle: u64,
-    /// Adopted merges whose keys stand for different true features.
-    #[serde(default)]
-    pub wrong_merges: u64,
-    /// Of them, between keys first made by different vehicles.
-    #[serde(default)]
-    pub wrong_cross_vehicle_merges: u64,
-    /// Neighbours' correspondences the vehicle refused.
-    #[serde(default)]
-    pub merges_refused: u64,
-    /// Frames not judged against the truth (true ids missing: a replayed vehicle).
-    #[serde(default)]
-    pub unaudited_frames: u64,
+    /// Association and final map against the truth (`crate::truth::TruthFigures`; its fields
+    /// sit beside these in JSON).
+    #[serde(flatten)]
+    pub association: crate::truth::TruthFigures,
     /// Observations processed.
     pub observations: u64,
     /// Received fusion messages rejected.
@@ -220,17 +190,19 @@ pub struct AssociationSummary {
 
 /// The team's association figures from its vehicles' and the run's distinct wrong merges.
 pub fn summarize_association(vs: &[VehicleSummary], team_wrong_merges: u64) -> AssociationSummary {
-    let sum = |f: fn(&VehicleSummary) -> u64| vs.iter().map(f).sum::<u64>();
-    let mature_features = sum(|v| v.mature_features);
-    let mature_duplicates = sum(|v| v.mature_duplicates);
+    let t = |f: fn(&crate::truth::TruthFigures) -> u64| {
+        vs.iter().map(|v| f(&v.association)).sum::<u64>()
+    };
+    let mature_features = t(|a| a.mature_features);
+    let mature_duplicates = t(|a| a.mature_duplicates);
     AssociationSummary {
-        observations: sum(|v| v.observations),
-        wrong_associations: sum(|v| v.wrong_associations),
+        observations: vs.iter().map(|v| v.observations).sum(),
+        wrong_associations: t(|a| a.wrong_associations),
         wrong_merges: team_wrong_merges,
-        wrong_cross_vehicle_merges: sum(|v| v.wrong_cross_vehicle_merges),
-        merges_adopted: sum(|v| v.merges_adopted),
-        merges_refused: sum(|v| v.merges_refused),
-        duplicate_features: sum(|v| v.duplicate_features),
+        wrong_cross_vehicle_merges: t(|a| a.wrong_cross_vehicle_merges),
+        merges_adopted: t(|a| a.merges_adopted),
+        merges_refused: t(|a| a.merges_refused),
+        duplicate_features: t(|a| a.duplicate_features),
         mature_features,
         mature_duplicates,
         mature_duplicate_share: if mature_features > 0 {
@@ -238,8 +210,8 @@ pub fn summarize_association(vs: &[VehicleSummary], team_wrong_merges: u64) -> A
         } else {
             f64::NAN
         },
-        unmatched_features: sum(|v| v.unmatched_features),
-        unaudited_frames: sum(|v| v.unaudited_frames),
+        unmatched_features: t(|a| a.unmatched_features),
+        unaudited_frames: t(|a| a.unaudited_frames),
     }
 }
 
@@ -313,17 +285,7 @@ pub fn summarize_vehicle(v: &VehicleRecord) -> VehicleSummary {
         map_features: v.map.len(),
         map_rmse_m,
         map_anees,
-        wrong_associations: v.wrong_associations,
-        duplicate_features: v.duplicate_features,
-        mature_features: v.mature_features,
-        mature_duplicates: v.mature_duplicates,
-        unmatched_features: v.unmatched_features,
-        merges_adopted: v.merges_adopted,
-        merges_cross_vehicle: v.merges_cross_vehicle,
-        wrong_merges: v.wrong_merges,
-        wrong_cross_vehicle_merges: v.wrong_cross_vehicle_merges,
-        merges_refused: v.merges_refused,
-        unaudited_frames: v.unaudited_frames,
+        association: v.association,
         observations: v.observations,
         rejected_messages: v.rejected_messages,
         restarts: v.restarts,
@@ -553,13 +515,16 @@ mod tests {
         let v = |obs, wrong, dup, mature, mdup| {
             summarize_vehicle(&VehicleRecord {
                 observations: obs,
-                wrong_associations: wrong,
-                duplicate_features: dup,
-                mature_features: mature,
-                mature_duplicates: mdup,
-                unmatched_features: dup,
-                merges_adopted: 3,
-                wrong_cross_vehicle_merges: 1,
+                association: crate::truth::TruthFigures {
+                    wrong_associations: wrong,
+                    duplicate_features: dup,
+                    mature_features: mature,
+                    mature_duplicates: mdup,
+                    unmatched_features: dup,
+                    merges_adopted: 3,
+                    wrong_cross_vehicle_merges: 1,
+                    ..Default::default()
+                },
                 ..VehicleRecord::default()
             })
         };

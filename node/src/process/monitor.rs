@@ -136,12 +136,10 @@ pub struct VehicleCheck {
     pub map_sizes: Vec<(f64, usize)>,
     /// Times it was initialised (1 + restarts).
     pub initialisations: usize,
-    /// Its association against the truth (`crate::truth`; also in `summary.json`).
+    /// Its association and final map against the truth (`crate::truth`; as in
+    /// `summary.json`).
     #[serde(default)]
-    pub association: crate::truth::AssociationTruth,
-    /// Its final map against the truth.
-    #[serde(default)]
-    pub map_truth: crate::truth::MapTruth,
+    pub association: crate::truth::TruthFigures,
     /// Inputs its estimator rejected, by reason, summed over incarnations (as in
     /// `summary.json`).
     #[serde(default)]
@@ -1133,7 +1131,7 @@ fn assemble(
             fill_record(&truth, cfg.id, &mut rec, end);
         }
         rec.observations = truth.vehicle(cfg.id).observations;
-        rec.merges_refused = v.counters.values().map(|c| c.merges_refused).sum();
+        rec.association.merges_refused = v.counters.values().map(|c| c.merges_refused).sum();
         rec.rejected_messages = v.counters.values().map(|c| c.messages_rejected).sum();
         for c in v.counters.values() {
             for (k, n) in &c.rejections {
@@ -1141,12 +1139,7 @@ fn assemble(
             }
         }
         let rec_rejections = rec.rejections.clone();
-        let map_truth = crate::truth::MapTruth {
-            duplicates: rec.duplicate_features,
-            mature_features: rec.mature_features,
-            mature_duplicates: rec.mature_duplicates,
-            unmatched: rec.unmatched_features,
-        };
+        let association = rec.association;
         vehicles.push(rec);
         if let Some(b) = &baseline {
             for (t, feats) in &v.maps {
@@ -1195,8 +1188,7 @@ fn assemble(
             final_map_features: v.last_map.as_ref().map_or(0, |m| m.1.len()),
             map_sizes: v.maps.iter().map(|(t, f)| (*t, f.len())).collect(),
             initialisations: v.initialisations,
-            association: truth.vehicle(cfg.id),
-            map_truth,
+            association,
         });
     }
     // Links: both ends' counters at every record time.
