@@ -17,11 +17,13 @@ use canopy_fusion::slam::{
 };
 use nalgebra::{Matrix3, Vector3};
 
-use crate::agent::AssociationAudit;
 use crate::metrics::{HeldSince, estimate_sample, map_records, pose_sample};
+use crate::process::protocol::FrameAssociations;
 use crate::record::VehicleRecord;
 use crate::replay::{ReplayError, SensorSource};
+use crate::scenario::Identity;
 use crate::scenario::{Scenario, VehicleConfig};
+use crate::truth::{TruthAudit, fill_record};
 use crate::world::{InitialEstimate, World};
 
 /// The estimator setup of a vehicle from its configuration and an initial estimate (the same as
@@ -205,7 +207,7 @@ pub fn run_reference(
     let eps = 1e-9;
     let mut next_record = 0.0;
     let mut next_progress = 1.0;
-    let mut audit = AssociationAudit::default();
+    let mut audit = TruthAudit::default();
     let mut fixes = restarts(s).into_iter().peekable();
     let record = |run: &mut BaselineRun, filter: &SlamFilter, sources: &[SensorSource], t: f64| {
         for (i, src) in sources.iter().enumerate() {
@@ -261,15 +263,22 @@ pub fn run_reference(
             break;
         };
         let _ = filter.predict(vi, &step.imu);
-        if let Some((frame, true_ids)) = &step.frame
-            && let Ok(report) = filter.process_frame(vi, frame)
-        {
-            if let Some(ids) = true_ids {
-                let c = audit.audit(&filter, &report, ids);
-                run.vehicles[vi].wrong_associations += c.wrong;
-                run.vehicles[vi].duplicate_features += c.duplicates;
+        if let Some((frame, true_ids)) = &step.frame {
+            // With appearance the reference still associates by the true ids.
+            let perfect = match true_ids {
+                Some(ids) if s.world.appearance.identity == Identity::Appearance => {
+                    Some(crate::world::with_true_ids(frame, ids))
+                }
+                _ => None,
+            };
+            if let Ok(report) = filter.process_frame(vi, perfect.as_ref().unwrap_or(frame)) {
+                audit.frame(
+                    s.vehicles[vi].id,
+                    &FrameAssociations::from_report(frame.time, &report),
+                    true_ids.as_deref(),
+                );
+                run.vehicles[vi].observations += frame.observations.len() as u64;
             }
-            run.vehicles[vi].observations += frame.observations.len() as u64;
         }
         let tmin = sources
             .iter()
@@ -292,14 +301,19 @@ pub fn run_reference(
         .map(SensorSource::time)
         .fold(f64::INFINITY, f64::min)
         .min(duration);
-    let mut map = map_records(&world, &filter, crate::metrics::maps_have_truth(s));
+    let have_truth = crate::metrics::maps_have_truth(s);
+    let truth = audit.finish();
+    let mut map = map_records(&world, &filter, |k| {
+        if have_truth { truth.truth(k) } else { None }
+    });
     let mut held = HeldSince::default();
     for snap in &run.snapshots {
         held.observe(snap.t, snap.covariances.keys().copied());
     }
     held.stamp(run.duration, &mut map);
-    for r in &mut run.vehicles {
+    for (r, cfg) in run.vehicles.iter_mut().zip(&s.vehicles) {
         r.map = map.clone();
+        fill_record(&truth, cfg.id, r, run.duration);
     }
     if let Some(p) = progress {
         p.store(run.duration.to_bits(), Ordering::Relaxed);

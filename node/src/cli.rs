@@ -318,12 +318,13 @@ fn cmd_check(path: &Path) -> Result<()> {
     println!("{}: valid", path.display());
     if s.vehicles.iter().any(|v| v.replay.is_none()) {
         println!(
-            "  world: seed {}, {} frame, {} features over {:.0} m × {:.0} m",
+            "  world: seed {}, {} frame, {} features over {:.0} m × {:.0} m, identity {}",
             s.world.seed,
             s.world.earth_model.frame(),
             s.world.feature_count(),
             s.world.area.size_north_m,
-            s.world.area.size_east_m
+            s.world.area.size_east_m,
+            s.world.appearance.identity
         );
     } else {
         println!(
@@ -377,7 +378,9 @@ fn cmd_check(path: &Path) -> Result<()> {
     }
     println!(
         "  fusion: {} at {} Hz, association {:?}",
-        s.fusion.mode, s.fusion.rate_hz, s.fusion.association
+        s.fusion.mode,
+        s.fusion.rate_hz,
+        s.fusion.association_kind(s.world.appearance.identity)
     );
     let topo = topology(&s)?;
     if s.fusion.mode != FusionMode::Isolated {

@@ -5,8 +5,9 @@
 //!   built-in default scenario and validation with typed errors naming the field.
 //! - [`world`]: the world simulator — seeded terrain and features, analytic trajectories with
 //!   coordinated-flight attitude, IMU synthesis (discrete inverse of the mechanization or
-//!   continuous), the terrain sensor, and per-step truth; a pure, step-able library used by the
-//!   `world` process and by `canopy sim`.
+//!   continuous), the terrain sensor, simulated appearance (descriptors, trackers; `[world.
+//!   appearance]`), and per-step truth; a pure, step-able library used by the `world` process
+//!   and by `canopy sim`.
 //! - [`network`]: the scenario's `[run]`, `[fusion]`, `[[link]]`, `[[partition]]`, `[[event]]`,
 //!   `[secrets]` tables, their validation and the fusion topology.
 //! - [`radio`]: `[[link]] radio = { … }` — capacity, queue, latency and range of a radio
@@ -15,6 +16,8 @@
 //! - [`deploy`]: the scenario's `[zenoh]` and `[[host]]` tables — which host runs which
 //!   vehicles in a multi-host run, derived zenoh endpoints, key prefix, zenoh users.
 //! - [`record`]: what a run gathers (estimates vs truth, maps, link statistics, events).
+//! - [`truth`]: association against the truth (monitor and `canopy sim` only): each key's
+//!   true feature, wrong associations and merges, duplicates, unmatched features.
 //! - [`output`]: summary.json, TUM trajectories, CSVs and report.html.
 //! - [`agent`]: the vehicle and hub agents (estimator + DDF node, sans-IO).
 //! - [`sim`]: `canopy sim`, the whole scenario in one deterministic process.
@@ -48,5 +51,6 @@ pub mod replay;
 pub mod scenario;
 pub mod sim;
 pub mod team;
+pub mod truth;
 pub mod wire;
 pub mod world;

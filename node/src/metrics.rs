@@ -134,24 +134,23 @@ pub fn estimate_sample(
 }
 
 /// One feature (mean and covariance in the estimator's frame) as a launch-frame record, with
-/// truth where `truth` allows it and the id names a world feature (a replayed vehicle's
-/// descriptors are its recording's track ids, which name no simulated feature: pass false).
+/// the true feature its key stands for (`truth_id`, [`crate::truth::KeyTruth`]) and that
+/// feature's position.
 pub fn feature_record(
     world: &World,
     id: FeatureId,
+    truth_id: Option<FeatureId>,
     mean: &Vector3<f64>,
     cov: &Matrix3<f64>,
-    truth: bool,
 ) -> MapFeatureRecord {
     let r = launch_from_nav(world);
+    let truth = truth_id.and_then(|t| world.feature(t));
     MapFeatureRecord {
         id,
+        truth_id: truth.map(|f| f.id),
         est: arr(&world.to_launch(mean)),
         cov: arr9(&(r * cov * r.transpose())),
-        truth: world
-            .feature(id)
-            .filter(|_| truth)
-            .map(|f| arr(&f.position_ned)),
+        truth: truth.map(|f| arr(&f.position_ned)),
         held_since: None,
     }
 }
@@ -182,15 +181,18 @@ impl HeldSince {
     }
 }
 
-/// The filter's map in the launch frame, with truth where `truth` allows it and the id names a
-/// world feature ([`feature_record`]).
-pub fn map_records(world: &World, filter: &SlamFilter, truth: bool) -> Vec<MapFeatureRecord> {
+/// The filter's map in the launch frame, each key with the true feature `truth` assigns it.
+pub fn map_records(
+    world: &World,
+    filter: &SlamFilter,
+    truth: impl Fn(FeatureId) -> Option<FeatureId>,
+) -> Vec<MapFeatureRecord> {
     filter
         .features()
         .into_iter()
         .filter_map(|(id, m)| {
             let cov = filter.feature_covariance(id)?;
-            Some(feature_record(world, id, &m, &cov, truth))
+            Some(feature_record(world, id, truth(id), &m, &cov))
         })
         .collect()
 }
@@ -210,25 +212,25 @@ pub fn feature_confidence_ratio(p_i: &Matrix3<f64>, p_ref: &Matrix3<f64>) -> Opt
 /// Largest over common features of λ_max(P_ref · P_i⁻¹): how much more confident the vehicle
 /// is about a feature than the reference filter (≤ 1 when it is never more confident). With a
 /// centralized all-data reference, a value well above 1 means information was counted twice.
-pub fn confidence_ratio(filter: &SlamFilter, reference: &SlamFilter) -> Option<(f64, FeatureId)> {
+/// `reference_key` names the reference's feature for a key of `filter` (the key itself with
+/// perfect identities; its true feature, `crate::truth`, with appearance, where the reference
+/// keys features by their true ids).
+pub fn confidence_ratio(
+    filter: &SlamFilter,
+    reference: &SlamFilter,
+    reference_key: impl Fn(FeatureId) -> Option<FeatureId>,
+) -> Option<(f64, FeatureId)> {
     let mut worst: Option<(f64, FeatureId)> = None;
     for (id, _) in filter.features() {
         let (Some(pi), Some(pr)) = (
             filter.feature_covariance(id),
-            reference.feature_covariance(id),
+            reference_key(id).and_then(|r| reference.feature_covariance(r)),
         ) else {
             continue;
         };
-        // Eigenvalues of P_i^{-1/2} P_ref P_i^{-1/2} via the Cholesky factor of P_i.
-        let Some(l) = pi.cholesky().map(|c| c.l()) else {
+        let Some(lmax) = feature_confidence_ratio(&pi, &pr) else {
             continue;
         };
-        let Some(linv) = l.try_inverse() else {
-            continue;
-        };
-        let m = linv * pr * linv.transpose();
-        let m = (m + m.transpose()) * 0.5;
-        let lmax = m.symmetric_eigenvalues().max();
         if worst.is_none_or(|(w, _)| lmax > w) {
             worst = Some((lmax, id));
         }

@@ -38,7 +38,7 @@ use canopy_fusion::slam::{AssociationConfig, AssociationMode, DEFAULT_NEW_FEATUR
 use canopy_fusion::topology::{NodeId, Topology, TopologyError};
 use serde::{Deserialize, Serialize};
 
-use crate::scenario::{Scenario, ScenarioError};
+use crate::scenario::{AppearanceConfig, Identity, Scenario, ScenarioError};
 
 /// `[run]`: how long and how a run goes.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -115,6 +115,10 @@ pub enum AssociationKind {
     NearestNeighbour,
     /// Descriptors ignored: joint compatibility branch and bound.
     Jcbb,
+    /// Track ids as hints, appearance descriptors within `[world.appearance] max_distance`
+    /// bits as candidates, chosen by the gate and JCBB (`jcbb_max_nodes`); needs
+    /// `[world.appearance] identity = "appearance"`.
+    Appearance,
 }
 
 /// What covariance intersection's ω minimises.
@@ -136,8 +140,11 @@ pub struct FusionConfig {
     pub mode: FusionMode,
     /// Fusion rounds per simulated second (default 1).
     pub rate_hz: f64,
-    /// Data association inside each vehicle (default `descriptor`).
-    pub association: AssociationKind,
+    /// Data association inside each vehicle. Default: `descriptor` with perfect identities,
+    /// `appearance` with `[world.appearance] identity = "appearance"`
+    /// ([`crate::scenario::Scenario::association_config`]).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub association: Option<AssociationKind>,
     /// χ² gate probability (default 0.95, eq. 21.55).
     pub gate_probability: f64,
     /// JCBB search budget per frame (default 2000 nodes).
@@ -166,7 +173,7 @@ impl Default for FusionConfig {
         Self {
             mode: FusionMode::Decentralized,
             rate_hz: 1.0,
-            association: AssociationKind::Descriptor,
+            association: None,
             gate_probability: 0.95,
             jcbb_max_nodes: 2000,
             byte_budget: None,
@@ -181,19 +188,33 @@ impl Default for FusionConfig {
 }
 
 impl FusionConfig {
-    /// The filter's association options.
-    pub fn association_config(&self) -> AssociationConfig {
+    /// The vehicles' association options given the world's identity model: `association`,
+    /// or its default for `identity` (descriptor for perfect identities, appearance otherwise);
+    /// appearance association takes its candidate distance from `appearance`.
+    pub fn association_config(&self, appearance: &AppearanceConfig) -> AssociationConfig {
         AssociationConfig {
-            mode: match self.association {
+            mode: match self.association_kind(appearance.identity) {
                 AssociationKind::Descriptor => AssociationMode::Descriptor,
                 AssociationKind::NearestNeighbour => AssociationMode::NearestNeighbour,
                 AssociationKind::Jcbb => AssociationMode::Jcbb {
+                    max_nodes: self.jcbb_max_nodes,
+                },
+                AssociationKind::Appearance => AssociationMode::Appearance {
+                    max_distance: appearance.association_distance(),
                     max_nodes: self.jcbb_max_nodes,
                 },
             },
             gate_probability: self.gate_probability,
             new_feature_probability: DEFAULT_NEW_FEATURE_PROBABILITY,
         }
+    }
+
+    /// `association`, or its default for the identity model.
+    pub fn association_kind(&self, identity: Identity) -> AssociationKind {
+        self.association.unwrap_or(match identity {
+            Identity::Perfect => AssociationKind::Descriptor,
+            Identity::Appearance => AssociationKind::Appearance,
+        })
     }
 
     /// The DDF protocol parameters (times in simulated seconds).
@@ -652,7 +673,29 @@ pub fn validate(s: &Scenario) -> Result<(), ScenarioError> {
             ));
         }
     }
-    if f.association == AssociationKind::Jcbb && f.jcbb_max_nodes == 0 {
+    let identity = s.world.appearance.identity;
+    let kind = f.association_kind(identity);
+    if kind == AssociationKind::Appearance && identity == Identity::Perfect {
+        return Err(ScenarioError::invalid(
+            "fusion.association",
+            "\"appearance\" needs [world.appearance] identity = \"appearance\" (perfect \
+             identities carry no appearance descriptors)",
+        ));
+    }
+    if identity == Identity::Appearance
+        && let Some(i) = s
+            .vehicles
+            .iter()
+            .position(|v| v.replay.is_none() && v.sensor.mismatch_probability > 0.0)
+    {
+        return Err(ScenarioError::invalid(
+            format!("vehicle[{i}].sensor.mismatch_probability"),
+            "descriptor mismatches model wrong identities; with identity = \"appearance\" the \
+             errors are [world.appearance]'s bit flips, confusable features and track breaks",
+        ));
+    }
+    if matches!(kind, AssociationKind::Jcbb | AssociationKind::Appearance) && f.jcbb_max_nodes == 0
+    {
         return Err(ScenarioError::invalid(
             "fusion.jcbb_max_nodes",
             "must be ≥ 1",

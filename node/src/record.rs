@@ -47,13 +47,17 @@ impl PoseSample {
 /// One feature of a final map.
 #[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
 pub struct MapFeatureRecord {
-    /// Global feature id (descriptor).
+    /// The feature's key in the map (the true id with perfect identities; the filter's own
+    /// key with appearance).
     pub id: u64,
+    /// The true feature the key stands for (`crate::truth`), when known.
+    #[serde(default)]
+    pub truth_id: Option<u64>,
     /// Estimated position, launch NED [m].
     pub est: [f64; 3],
     /// Covariance, launch NED, row-major 3×3 [m²].
     pub cov: [f64; 9],
-    /// True position, launch NED [m], when the id names a real feature.
+    /// True position of `truth_id`, launch NED [m].
     pub truth: Option<[f64; 3]>,
     /// Since when this map has held the feature [s]: the first record time of the latest
     /// unbroken stretch of record times at which it was in the map (the end of the run for a
@@ -72,13 +76,10 @@ pub struct VehicleRecord {
     pub samples: Vec<PoseSample>,
     /// The vehicle's map at the end of the run.
     pub map: Vec<MapFeatureRecord>,
-    /// Observations associated to a feature other than the one observed (truth known to the
-    /// harness only).
-    pub wrong_associations: u64,
-    /// Features initialized for a true feature the vehicle's map already held (missed
-    /// re-observations; the map holds that feature twice).
-    #[serde(default)]
-    pub duplicate_features: u64,
+    /// Association and final map against the truth (`crate::truth`; known to the harness
+    /// only). Flattened: its fields sit beside these in JSON.
+    #[serde(flatten)]
+    pub association: crate::truth::TruthFigures,
     /// Observations processed.
     pub observations: u64,
     /// Received fusion messages rejected (malformed, non-neighbour, non-PD result, …).
@@ -174,6 +175,13 @@ pub struct RunRecord {
     pub baseline: Option<Vec<VehicleRecord>>,
     /// True feature positions (launch NED) by id, for the map plot.
     pub truth_features: Vec<(u64, [f64; 3])>,
+    /// Distinct wrong merge facts adopted anywhere in the team (`crate::truth`).
+    #[serde(default)]
+    pub team_wrong_merges: u64,
+    /// What the sensors told the estimators about identity: `perfect` (descriptor = true
+    /// id) or `appearance` (`[world.appearance] identity`).
+    #[serde(default)]
+    pub identity: String,
     /// The recording's clock at t = 0 [ns] (`[run] time_origin_ns`): output timestamps are
     /// origin + t, in the recording's time base.
     #[serde(default)]

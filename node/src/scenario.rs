@@ -332,6 +332,8 @@ pub struct WorldConfig {
     pub features: FeatureConfig,
     /// The smooth seeded terrain surface the features sit on.
     pub terrain: TerrainConfig,
+    /// What the sensors tell about a feature's identity (`[world.appearance]`).
+    pub appearance: AppearanceConfig,
 }
 
 impl Default for WorldConfig {
@@ -344,6 +346,7 @@ impl Default for WorldConfig {
             area: AreaConfig::default(),
             features: FeatureConfig::default(),
             terrain: TerrainConfig::default(),
+            appearance: AppearanceConfig::default(),
         }
     }
 }
@@ -439,7 +442,9 @@ impl WorldConfig {
                 "must be in 1..=4096",
             ));
         }
-        Ok(())
+        self.appearance
+            .validate()
+            .map_err(|e| e.within("appearance"))
     }
 
     /// The launch site's gravity magnitude [m/s²]: `gravity_mps2`, or WGS-84 normal gravity at
@@ -541,6 +546,143 @@ impl Default for FeatureConfig {
             density_per_km2: None,
             max_height_above_ground_m: 10.0,
         }
+    }
+}
+
+/// What the simulated sensors tell the estimators about which feature they see.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Identity {
+    /// The observation's descriptor is the true feature id (the ablation of a perfect
+    /// correspondence between all vehicles' maps; descriptor mismatches may be injected).
+    Perfect,
+    /// The descriptor is a per-vehicle tracker's short-lived track id and the observation
+    /// carries a noisy 256-bit appearance descriptor ([`crate::world::appearance`]); the true
+    /// id reaches only the monitor.
+    Appearance,
+}
+
+impl std::fmt::Display for Identity {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            Self::Perfect => "perfect",
+            Self::Appearance => "appearance",
+        })
+    }
+}
+
+/// The identity model of every scenario that does not name one (flipping the shipped default
+/// is this one line).
+pub const DEFAULT_IDENTITY: Identity = Identity::Perfect;
+
+/// `[world.appearance]`: the identity model and, for `identity = "appearance"`, the
+/// descriptors, their noise and the trackers (model in [`crate::world::appearance`]).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct AppearanceConfig {
+    /// `"perfect"` (descriptor = true id) or `"appearance"`. Default [`DEFAULT_IDENTITY`].
+    pub identity: Identity,
+    /// Share of the features whose descriptor is a near-copy of another feature's (repeated
+    /// texture), in [0, 0.5]. Default 0.02.
+    pub confusable_share: f64,
+    /// Bits in which a confusable feature's descriptor differs from the one it copies, in
+    /// [0, 256]. Default 8.
+    pub confusable_bits: u32,
+    /// Bit-flip probability of an observation's descriptor at the least range from the first
+    /// viewpoint, in [0, 0.5]. Default 0.02.
+    pub bit_flip_min: f64,
+    /// Bit-flip probability at the sensor's maximum range or `viewpoint_full_deg` away from the
+    /// first viewpoint, in [`bit_flip_min`, 0.5]. Default 0.10.
+    pub bit_flip_max: f64,
+    /// Change of viewpoint at which the descriptor noise reaches `bit_flip_max` [deg], in
+    /// (0, 180]. Default 60.
+    pub viewpoint_full_deg: f64,
+    /// Probability per frame that a continuing track breaks (the tracker loses it), in
+    /// [0, 1). Tracks also break when the feature is missed for a frame. Default 0.02.
+    pub track_break_probability: f64,
+    /// Largest descriptor distance [bits] of an association candidate. Default: the 99.9 %
+    /// quantile of the distance between two noisy copies at `bit_flip_max`
+    /// ([`crate::world::appearance::default_max_distance`]).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub max_distance: Option<u32>,
+}
+
+impl Default for AppearanceConfig {
+    fn default() -> Self {
+        Self {
+            identity: DEFAULT_IDENTITY,
+            confusable_share: 0.02,
+            confusable_bits: 8,
+            bit_flip_min: 0.02,
+            bit_flip_max: 0.10,
+            viewpoint_full_deg: 60.0,
+            track_break_probability: 0.02,
+            max_distance: None,
+        }
+    }
+}
+
+impl AppearanceConfig {
+    /// Field checks (paths relative to `appearance`).
+    pub fn validate(&self) -> Result<(), ScenarioError> {
+        in_range(
+            "confusable_share",
+            self.confusable_share,
+            0.0,
+            0.5,
+            "each confusable feature copies a distinct non-confusable one's descriptor",
+        )?;
+        if self.confusable_bits > crate::world::appearance::DESCRIPTOR_BITS {
+            return Err(ScenarioError::invalid(
+                "confusable_bits",
+                format!("must be in 0..=256, got {}", self.confusable_bits),
+            ));
+        }
+        in_range(
+            "bit_flip_min",
+            self.bit_flip_min,
+            0.0,
+            0.5,
+            "a probability below ½ (at ½ the descriptor says nothing)",
+        )?;
+        in_range(
+            "bit_flip_max",
+            self.bit_flip_max,
+            self.bit_flip_min,
+            0.5,
+            "a probability from bit_flip_min to ½",
+        )?;
+        positive_at_most("viewpoint_full_deg", self.viewpoint_full_deg, 180.0)?;
+        if !(self.track_break_probability.is_finite()
+            && (0.0..1.0).contains(&self.track_break_probability))
+        {
+            return Err(ScenarioError::invalid(
+                "track_break_probability",
+                format!("must be in [0, 1), got {}", self.track_break_probability),
+            ));
+        }
+        if let Some(d) = self.max_distance {
+            if self.identity == Identity::Perfect {
+                return Err(ScenarioError::invalid(
+                    "max_distance",
+                    "applies to identity = \"appearance\" only",
+                ));
+            }
+            if d > crate::world::appearance::DESCRIPTOR_BITS {
+                return Err(ScenarioError::invalid(
+                    "max_distance",
+                    format!("must be in 0..=256, got {d}"),
+                ));
+            }
+        }
+        Ok(())
+    }
+
+    /// The association's largest candidate distance: `max_distance` or the default of the
+    /// bit-flip model.
+    pub fn association_distance(&self) -> u32 {
+        self.max_distance
+            .unwrap_or_else(|| crate::world::appearance::default_max_distance(self.bit_flip_max))
     }
 }
 

@@ -21,13 +21,16 @@ use canopy_transport::fault::{Clock, FaultyLink, ManualClock};
 use canopy_transport::link::{Link, LinkEvent, PeerState};
 use canopy_transport::memory::{InMemoryHub, InMemoryLink};
 
-use crate::agent::{AgentError, AssociationAudit, HubAgent, VehicleAgent};
+use crate::agent::{AgentError, HubAgent, VehicleAgent};
 use crate::baseline::estimator_setup;
 use crate::metrics::{HeldSince, confidence_ratio, estimate_sample, map_records, pose_sample};
 use crate::network::{EventKind, FusionMode, effective_links, node_names, topology};
+use crate::process::protocol::FrameAssociations;
 use crate::record::{EventRecord, LinkRecord, LinkSample, RunRecord, VehicleRecord};
 use crate::replay::{ReplayError, SensorSource};
+use crate::scenario::Identity;
 use crate::scenario::{Scenario, ScenarioError};
+use crate::truth::{TruthAudit, fill_record};
 use crate::wire::{decode_ddf, send_ddf};
 use crate::world::{self, InitialEstimate, World};
 
@@ -209,7 +212,7 @@ pub fn vehicle_agent(
         frame: world.frame(),
         local_gravity_mps2: world.local_gravity(),
         origin: world.map_origin(),
-        association: s.fusion.association_config(),
+        association: s.fusion.association_config(&s.world.appearance),
         fresh_id_namespace: cfg.id,
     };
     let agent_error = |source| SimError::Agent {
@@ -262,8 +265,10 @@ struct Sim<'s> {
     baseline_held: HeldSince,
     links: Vec<(NodeId, NodeId, LinkRecord)>,
     checks: SimChecks,
-    audit: AssociationAudit,
-    baseline_audit: AssociationAudit,
+    /// What the vehicles did with their observations, against the truth.
+    audit: TruthAudit,
+    /// The same for the reference.
+    baseline_audit: TruthAudit,
 }
 
 impl<'s> Sim<'s> {
@@ -381,13 +386,20 @@ impl<'s> Sim<'s> {
             }
         }
         if let Some(b) = &self.baseline {
+            let identity = self.s.world.appearance.identity;
             self.baseline_held
                 .observe(now, b.features().into_iter().map(|x| x.0));
             let worst = self
                 .nodes
                 .values()
                 .filter_map(|n| match n.agent.as_ref() {
-                    Some(Agent::Vehicle(a)) => confidence_ratio(a.filter(), b).map(|r| r.0),
+                    Some(Agent::Vehicle(a)) => match identity {
+                        Identity::Perfect => confidence_ratio(a.filter(), b, Some),
+                        Identity::Appearance => {
+                            confidence_ratio(a.filter(), b, |k| self.audit.truth_of(k))
+                        }
+                    }
+                    .map(|r| r.0),
                     _ => None,
                 })
                 .fold(f64::NAN, f64::max);
@@ -490,8 +502,8 @@ pub fn simulate(s: &Scenario, mut opts: SimOptions<'_>) -> Result<SimOutcome, Si
         baseline_held: HeldSince::default(),
         links: Vec::new(),
         checks: SimChecks::default(),
-        audit: AssociationAudit::default(),
-        baseline_audit: AssociationAudit::default(),
+        audit: TruthAudit::default(),
+        baseline_audit: TruthAudit::default(),
     };
 
     // Agents.
@@ -753,11 +765,11 @@ pub fn simulate(s: &Scenario, mut opts: SimOptions<'_>) -> Result<SimOutcome, Si
             if let Some((frame, true_ids)) = &out.frame {
                 match a.on_frame(frame) {
                     Ok(report) => {
-                        if let Some(ids) = true_ids {
-                            let c = sim.audit.audit(a.filter(), &report, ids);
-                            sim.records[vi].wrong_associations += c.wrong;
-                            sim.records[vi].duplicate_features += c.duplicates;
-                        }
+                        sim.audit.frame(
+                            id.0,
+                            &FrameAssociations::from_report(frame.time, &report),
+                            true_ids.as_deref(),
+                        );
                         sim.records[vi].observations += frame.observations.len() as u64;
                     }
                     Err(_) => sim.checks.inputs_rejected += 1,
@@ -766,15 +778,22 @@ pub fn simulate(s: &Scenario, mut opts: SimOptions<'_>) -> Result<SimOutcome, Si
         }
         if let Some(b) = sim.baseline.as_mut() {
             let _ = b.predict(vi, &out.imu);
-            if let Some((frame, true_ids)) = &out.frame
-                && let Ok(report) = b.process_frame(vi, frame)
-            {
-                if let Some(ids) = true_ids {
-                    let c = sim.baseline_audit.audit(b, &report, ids);
-                    sim.baseline_records[vi].wrong_associations += c.wrong;
-                    sim.baseline_records[vi].duplicate_features += c.duplicates;
+            if let Some((frame, true_ids)) = &out.frame {
+                // With appearance the reference still associates by the true ids.
+                let perfect = match true_ids {
+                    Some(ids) if s.world.appearance.identity == Identity::Appearance => {
+                        Some(world::with_true_ids(frame, ids))
+                    }
+                    _ => None,
+                };
+                if let Ok(report) = b.process_frame(vi, perfect.as_ref().unwrap_or(frame)) {
+                    sim.baseline_audit.frame(
+                        id.0,
+                        &FrameAssociations::from_report(frame.time, &report),
+                        true_ids.as_deref(),
+                    );
+                    sim.baseline_records[vi].observations += frame.observations.len() as u64;
                 }
-                sim.baseline_records[vi].observations += frame.observations.len() as u64;
             }
         }
         if t + eps >= next_poll {
@@ -812,27 +831,47 @@ pub fn simulate(s: &Scenario, mut opts: SimOptions<'_>) -> Result<SimOutcome, Si
         .iter()
         .map(|v| v.time())
         .fold(f64::INFINITY, f64::min);
+    let have_truth = crate::metrics::maps_have_truth(s);
+    for cfg in &s.vehicles {
+        if let Some(Agent::Vehicle(a)) = sim
+            .nodes
+            .get(&NodeId(cfg.id))
+            .and_then(|n| n.agent.as_ref())
+            && let Some(d) = a.ddf()
+        {
+            sim.audit.set_merges(cfg.id, d.keys().merges());
+        }
+    }
+    let truth = sim.audit.finish();
+    let key_truth = |k| if have_truth { truth.truth(k) } else { None };
     for (i, cfg) in s.vehicles.iter().enumerate() {
         if let Some(node) = sim.nodes.get(&NodeId(cfg.id))
             && let Some(Agent::Vehicle(a)) = node.agent.as_ref()
         {
-            let mut map = map_records(&world, a.filter(), crate::metrics::maps_have_truth(s));
+            let mut map = map_records(&world, a.filter(), key_truth);
             sim.held[i].stamp(end, &mut map);
             sim.records[i].map = map;
             let c = a.counters();
             sim.records[i].rejected_messages = c.fusion.messages_rejected;
             sim.records[i].rejections = a.rejections().counts.clone();
+            sim.records[i].association.merges_refused =
+                a.ddf().map_or(0, |d| d.stats().merges_refused);
             sim.checks
                 .rejected_messages
                 .insert(node.name.clone(), c.fusion.messages_rejected);
             sim.checks.fuse_refused += c.fusion.fuse_refused;
         }
+        fill_record(&truth, cfg.id, &mut sim.records[i], end);
     }
     if let Some(b) = &sim.baseline {
-        let mut map = map_records(&world, b, crate::metrics::maps_have_truth(s));
+        let reference = sim.baseline_audit.finish();
+        let mut map = map_records(&world, b, |k| {
+            if have_truth { reference.truth(k) } else { None }
+        });
         sim.baseline_held.stamp(end, &mut map);
-        for r in &mut sim.baseline_records {
+        for (r, cfg) in sim.baseline_records.iter_mut().zip(&s.vehicles) {
             r.map = map.clone();
+            fill_record(&reference, cfg.id, r, end);
         }
     }
     let mut record = RunRecord {
@@ -848,6 +887,8 @@ pub fn simulate(s: &Scenario, mut opts: SimOptions<'_>) -> Result<SimOutcome, Si
         baseline: with_baseline.then(|| std::mem::take(&mut sim.baseline_records)),
         truth_features: truth_features(s, &world),
         time_origin_ns: s.run.time_origin_ns,
+        team_wrong_merges: truth.team_wrong_merges(),
+        identity: s.world.appearance.identity.to_string(),
     };
     record.events.sort_by(|a, b| a.t.total_cmp(&b.t));
     Ok(SimOutcome {

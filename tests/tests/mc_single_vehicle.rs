@@ -19,7 +19,7 @@ fn scenario(earth: EarthModel, association: AssociationKind, seed: u64) -> Scena
     s.vehicles.truncate(1);
     s.links.clear();
     s.fusion.mode = FusionMode::Isolated;
-    s.fusion.association = association;
+    s.fusion.association = Some(association);
     s.world.earth_model = earth;
     s.world.seed = seed;
     s.run.duration_s = DURATION;
@@ -39,8 +39,14 @@ fn check(earth: EarthModel, association: AssociationKind) -> (u64, u64) {
     let records: Vec<_> = outcomes.iter().map(|o| &o.record.vehicles[0]).collect();
     let pose = pose_consistency(&records, 0.0);
     let map = map_consistency(&records);
-    let wrong: u64 = records.iter().map(|r| r.wrong_associations).sum();
-    let duplicates: u64 = records.iter().map(|r| r.duplicate_features).sum();
+    let wrong: u64 = records
+        .iter()
+        .map(|r| r.association.wrong_associations)
+        .sum();
+    let duplicates: u64 = records
+        .iter()
+        .map(|r| r.association.duplicate_features)
+        .sum();
     let obs: u64 = records.iter().map(|r| r.observations).sum();
     println!(
         "{earth:?}/{association:?}: {RUNS} runs × {DURATION} s: pose ANEES/6 = {:.3} (band [{:.3}, {:.3}], {:.0} % of \

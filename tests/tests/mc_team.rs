@@ -70,7 +70,7 @@ fn decentralized_matches_central_and_beats_isolated() {
         .iter()
         .flat_map(|o| o.checks.confidence_ratio.iter().map(|p| p.1))
         .fold(0.0, f64::max);
-    let wrong: u64 = dec_v.iter().map(|r| r.wrong_associations).sum();
+    let wrong: u64 = dec_v.iter().map(|r| r.association.wrong_associations).sum();
     let bytes: u64 = dec
         .iter()
         .flat_map(|o| o.record.links.iter())

@@ -109,7 +109,11 @@ fn bearing_only_team_runs() {
     );
     assert_sound(&r);
     for v in &r.summary.vehicles {
-        assert_eq!(v.wrong_associations, 0, "{}: wrong associations", v.name);
+        assert_eq!(
+            v.association.wrong_associations, 0,
+            "{}: wrong associations",
+            v.name
+        );
         assert!(v.map_features > 0, "{}: empty map", v.name);
     }
     for (name, s) in r.print_standing(&r.summary.scenario) {

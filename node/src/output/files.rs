@@ -61,7 +61,7 @@ pub fn tum(v: &VehicleRecord, truth: bool, origin_ns: Option<u64>) -> String {
 pub fn map_csv(run: &RunRecord) -> String {
     let mut out = String::from(
         "vehicle,id,x,y,z,cov_xx,cov_xy,cov_xz,cov_yy,cov_yz,cov_zz,truth_x,truth_y,truth_z,error_m,\
-         held_since_s\n",
+         held_since_s,truth_id\n",
     );
     let baseline_map = run
         .baseline
@@ -93,7 +93,13 @@ pub fn map_csv(run: &RunRecord) -> String {
             }
             match f.held_since {
                 Some(t) => {
-                    let _ = writeln!(out, ",{t:.3}");
+                    let _ = write!(out, ",{t:.3}");
+                }
+                None => out.push(','),
+            }
+            match f.truth_id {
+                Some(id) => {
+                    let _ = writeln!(out, ",{id}");
                 }
                 None => out.push_str(",\n"),
             }

@@ -400,6 +400,45 @@ fn rejections(summary: &Summary) -> String {
     html
 }
 
+/// The table of association against the truth, per vehicle (`crate::truth`).
+fn association(summary: &Summary) -> String {
+    let mut html = format!(
+        "<h2>Association against the truth</h2><p>identity <b>{}</b>; a key stands for the \
+         majority true feature of its first owner's observations; a feature is mature when held \
+         ≥ {} s before the end.</p><table><tr><th>vehicle</th><th>observations</th>\
+         <th>wrong associations</th><th>duplicates</th><th>mature duplicates / mature</th>\
+         <th>unmatched</th><th>merges adopted (cross-vehicle)</th><th>wrong merges \
+         (cross-vehicle)</th><th>merges refused</th><th>unaudited frames</th></tr>",
+        escape(if summary.identity.is_empty() {
+            "-"
+        } else {
+            &summary.identity
+        }),
+        crate::truth::MATURE_S
+    );
+    let cell = |v: String| format!("<td style=\"text-align:right\">{v}</td>");
+    for v in &summary.vehicles {
+        html.push_str(&format!("<tr><td>{}</td>", escape(&v.name)));
+        let (obs, v) = (v.observations, &v.association);
+        for c in [
+            obs.to_string(),
+            v.wrong_associations.to_string(),
+            v.duplicate_features.to_string(),
+            format!("{} / {}", v.mature_duplicates, v.mature_features),
+            v.unmatched_features.to_string(),
+            format!("{} ({})", v.merges_adopted, v.merges_cross_vehicle),
+            format!("{} ({})", v.wrong_merges, v.wrong_cross_vehicle_merges),
+            v.merges_refused.to_string(),
+            v.unaudited_frames.to_string(),
+        ] {
+            html.push_str(&cell(c));
+        }
+        html.push_str("</tr>");
+    }
+    html.push_str("</table>");
+    html
+}
+
 /// Renders the report page.
 pub fn render(run: &RunRecord, summary: &Summary) -> String {
     let mut html = String::from(
@@ -419,6 +458,7 @@ pub fn render(run: &RunRecord, summary: &Summary) -> String {
         "<h2>Summary</h2><pre>{}</pre>",
         escape(&table(&[("this run", summary)]))
     ));
+    html.push_str(&association(summary));
     html.push_str(&rejections(summary));
     html.push_str("<h2>Trajectories and map</h2>");
     html.push_str(&trajectories(run));

@@ -59,10 +59,10 @@ pub struct VehicleSummary {
     /// Mean per-feature map NEES divided by its 3 dof.
     #[serde(deserialize_with = "null_as_nan")]
     pub map_anees: f64,
-    /// Wrong associations (observation associated to another feature).
-    pub wrong_associations: u64,
-    /// Features initialized twice for the same true feature.
-    pub duplicate_features: u64,
+    /// Association and final map against the truth (`crate::truth::TruthFigures`; its fields
+    /// sit beside these in JSON).
+    #[serde(flatten)]
+    pub association: crate::truth::TruthFigures,
     /// Observations processed.
     pub observations: u64,
     /// Received fusion messages rejected.
@@ -195,8 +195,15 @@ pub struct Summary {
     pub team: TeamSummary,
     /// Per-link totals.
     pub links: Vec<LinkSummary>,
-    /// The centralized all-data EKF's figures, when it ran.
+    /// The centralized all-data EKF's figures, when it ran (under appearance it associates
+    /// by the true ids: the perfect-association reference).
     pub baseline: Option<BaselineSummary>,
+    /// `perfect` or `appearance` (`[world.appearance] identity`).
+    #[serde(default)]
+    pub identity: String,
+    /// Association against the truth over the team.
+    #[serde(default)]
+    pub association: AssociationSummary,
     /// Number of fault and lifecycle events.
     pub events: usize,
 }
@@ -216,6 +223,65 @@ pub struct TeamSummary {
     /// Mean map ANEES.
     #[serde(deserialize_with = "null_as_nan")]
     pub map_anees: f64,
+}
+
+/// Association against the truth over the team: sums of the vehicles' figures (map figures
+/// summed over the vehicles' final maps), except `wrong_merges`.
+#[derive(Clone, Debug, Default, Serialize, Deserialize, PartialEq)]
+pub struct AssociationSummary {
+    /// Observations processed.
+    pub observations: u64,
+    /// Wrong associations.
+    pub wrong_associations: u64,
+    /// Distinct wrong correspondences adopted anywhere in the team (each fact once).
+    pub wrong_merges: u64,
+    /// Wrong correspondences between keys of different vehicles, summed over the vehicles
+    /// that adopted them.
+    pub wrong_cross_vehicle_merges: u64,
+    /// Correspondences adopted, summed over vehicles.
+    pub merges_adopted: u64,
+    /// Neighbours' correspondences refused, summed over vehicles.
+    pub merges_refused: u64,
+    /// Duplicate keys in the final maps.
+    pub duplicate_features: u64,
+    /// Mature features of the final maps.
+    pub mature_features: u64,
+    /// Duplicates among them.
+    pub mature_duplicates: u64,
+    /// `mature_duplicates / mature_features` (`null` without mature features).
+    #[serde(deserialize_with = "null_as_nan")]
+    pub mature_duplicate_share: f64,
+    /// True features held under keys of two or more vehicles.
+    pub unmatched_features: u64,
+    /// Frames not judged against the truth.
+    pub unaudited_frames: u64,
+}
+
+/// The team's association figures from its vehicles' and the run's distinct wrong merges.
+pub fn summarize_association(vs: &[VehicleSummary], team_wrong_merges: u64) -> AssociationSummary {
+    let t = |f: fn(&crate::truth::TruthFigures) -> u64| {
+        vs.iter().map(|v| f(&v.association)).sum::<u64>()
+    };
+    let mature_features = t(|a| a.mature_features);
+    let mature_duplicates = t(|a| a.mature_duplicates);
+    AssociationSummary {
+        observations: vs.iter().map(|v| v.observations).sum(),
+        wrong_associations: t(|a| a.wrong_associations),
+        wrong_merges: team_wrong_merges,
+        wrong_cross_vehicle_merges: t(|a| a.wrong_cross_vehicle_merges),
+        merges_adopted: t(|a| a.merges_adopted),
+        merges_refused: t(|a| a.merges_refused),
+        duplicate_features: t(|a| a.duplicate_features),
+        mature_features,
+        mature_duplicates,
+        mature_duplicate_share: if mature_features > 0 {
+            mature_duplicates as f64 / mature_features as f64
+        } else {
+            f64::NAN
+        },
+        unmatched_features: t(|a| a.unmatched_features),
+        unaudited_frames: t(|a| a.unaudited_frames),
+    }
 }
 
 /// The centralized baseline's figures.
@@ -298,8 +364,7 @@ pub fn summarize_vehicle(v: &VehicleRecord) -> VehicleSummary {
         map_features: v.map.len(),
         map_rmse_m,
         map_anees,
-        wrong_associations: v.wrong_associations,
-        duplicate_features: v.duplicate_features,
+        association: v.association,
         observations: v.observations,
         rejected_messages: v.rejected_messages,
         restarts: v.restarts,
@@ -370,9 +435,11 @@ pub fn summarize(run: &RunRecord) -> Summary {
             f64::NAN
         },
         team: team(&vehicles),
+        association: summarize_association(&vehicles, run.team_wrong_merges),
         vehicles,
         links: run.links.iter().map(summarize_link).collect(),
         baseline,
+        identity: run.identity.clone(),
         events: run.events.len(),
     }
 }
@@ -417,19 +484,36 @@ pub fn table(summaries: &[(&str, &Summary)]) -> String {
     push("map ANEES (1 = ideal)", &|s| {
         format!("{:.2}", s.team.map_anees)
     });
+    push("identity", &|s| {
+        if s.identity.is_empty() {
+            "-".into()
+        } else {
+            s.identity.clone()
+        }
+    });
     push("wrong associations", &|s| {
-        s.vehicles
-            .iter()
-            .map(|v| v.wrong_associations)
-            .sum::<u64>()
-            .to_string()
+        format!(
+            "{} of {}",
+            s.association.wrong_associations, s.association.observations
+        )
     });
     push("duplicate features", &|s| {
-        s.vehicles
-            .iter()
-            .map(|v| v.duplicate_features)
-            .sum::<u64>()
-            .to_string()
+        s.association.duplicate_features.to_string()
+    });
+    push("mature duplicates", &|s| {
+        let a = &s.association;
+        format!("{} of {}", a.mature_duplicates, a.mature_features)
+    });
+    push("unmatched features", &|s| {
+        s.association.unmatched_features.to_string()
+    });
+    push("merges adopted / refused", &|s| {
+        let a = &s.association;
+        format!("{} / {}", a.merges_adopted, a.merges_refused)
+    });
+    push("wrong merges (cross-vehicle)", &|s| {
+        let a = &s.association;
+        format!("{} ({})", a.wrong_merges, a.wrong_cross_vehicle_merges)
     });
     push("link bytes", &|s| {
         s.links
@@ -577,5 +661,45 @@ mod tests {
             sum.pose_anees
         );
         assert!(sum.position_rmse_m.is_finite());
+    }
+
+    /// The team's association figures are the vehicles' sums, the mature-duplicate share their
+    /// ratio (null without mature features), and the distinct wrong merges the run's count.
+    #[test]
+    fn team_association_sums_vehicles() {
+        let v = |obs, wrong, dup, mature, mdup| {
+            summarize_vehicle(&VehicleRecord {
+                observations: obs,
+                association: crate::truth::TruthFigures {
+                    wrong_associations: wrong,
+                    duplicate_features: dup,
+                    mature_features: mature,
+                    mature_duplicates: mdup,
+                    unmatched_features: dup,
+                    merges_adopted: 3,
+                    wrong_cross_vehicle_merges: 1,
+                    ..Default::default()
+                },
+                ..VehicleRecord::default()
+            })
+        };
+        let a = summarize_association(&[v(100, 2, 5, 40, 4), v(50, 0, 1, 10, 1)], 1);
+        assert_eq!(
+            (a.observations, a.wrong_associations, a.duplicate_features),
+            (150, 2, 6)
+        );
+        assert_eq!((a.mature_features, a.mature_duplicates), (50, 5));
+        // 5 / 50 and the literal 0.1 are the same correctly rounded double.
+        assert_eq!(a.mature_duplicate_share, 0.1);
+        assert_eq!(
+            (a.unmatched_features, a.merges_adopted, a.wrong_merges),
+            (6, 6, 1)
+        );
+        assert_eq!(a.wrong_cross_vehicle_merges, 2);
+        assert!(
+            summarize_association(&[v(1, 0, 0, 0, 0)], 0)
+                .mature_duplicate_share
+                .is_nan()
+        );
     }
 }

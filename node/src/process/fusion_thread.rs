@@ -16,7 +16,8 @@
 use std::sync::mpsc::{Receiver, Sender, channel};
 use std::thread::JoinHandle;
 
-use canopy_fusion::ddf::{ChannelView, DdfMessage, Outgoing};
+use canopy_fusion::ddf::{ChannelView, DdfMessage, NodeStats, Outgoing};
+use canopy_fusion::keys::Merge;
 use canopy_fusion::slam::SlamFilter;
 use canopy_fusion::topology::NodeId;
 
@@ -67,6 +68,10 @@ pub struct FusionView {
     pub channels: Vec<ChannelView>,
     /// Failures of the fusion half by reason ([`VehicleFusion::rejections`]).
     pub rejections: std::collections::BTreeMap<String, u64>,
+    /// The DDF node's counters.
+    pub node: NodeStats,
+    /// The correspondences the DDF node has adopted.
+    pub merges: Vec<Merge>,
 }
 
 impl FusionView {
@@ -75,6 +80,8 @@ impl FusionView {
             counters: f.counters(),
             channels: f.ddf().map(|d| d.channels().collect()).unwrap_or_default(),
             rejections: f.rejections().counts.clone(),
+            node: f.ddf().map(|d| d.stats()).unwrap_or_default(),
+            merges: f.ddf().map(|d| d.keys().merges()).unwrap_or_default(),
         }
     }
 

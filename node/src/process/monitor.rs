@@ -35,8 +35,8 @@ use nalgebra::{Matrix3, Vector3};
 use serde::{Deserialize, Serialize};
 
 use super::protocol::{
-    Control, EstimateReport, FeatureReport, FrameAssociations, LinkReport, MONITOR_ID, Outcome,
-    Report, TruthReport, VehicleCounters, WORLD_ID,
+    Control, EstimateReport, FeatureReport, FrameAssociations, LinkReport, MONITOR_ID, Report,
+    TruthReport, VehicleCounters, WORLD_ID,
 };
 use super::{ENV_ZENOH_PASSWORD, ENV_ZENOH_USER, control_link, decode_body, send_body};
 use crate::baseline::{BaselineRun, run_reference};
@@ -46,6 +46,7 @@ use crate::metrics::{
 use crate::network::{EventKind, FusionMode, TransportKind, effective_links, node_names};
 use crate::record::{EventRecord, LinkRecord, LinkSample, RunRecord, VehicleRecord};
 use crate::scenario::Scenario;
+use crate::truth::{KeyTruth, TruthAudit, fill_record};
 use crate::world::{TruthSample, World};
 
 /// Options of a multi-process run.
@@ -135,6 +136,10 @@ pub struct VehicleCheck {
     pub map_sizes: Vec<(f64, usize)>,
     /// Times it was initialised (1 + restarts).
     pub initialisations: usize,
+    /// Its association and final map against the truth (`crate::truth`; as in
+    /// `summary.json`).
+    #[serde(default)]
+    pub association: crate::truth::TruthFigures,
     /// Inputs its estimator rejected, by reason, summed over incarnations (as in
     /// `summary.json`).
     #[serde(default)]
@@ -258,6 +263,8 @@ struct Gathered {
     maps: Vec<(f64, Vec<FeatureReport>)>,
     last_map: Option<(f64, Vec<FeatureReport>)>,
     associations: Vec<FrameAssociations>,
+    /// The correspondences of its latest map report.
+    merges: Vec<canopy_fusion::keys::Merge>,
     counters: BTreeMap<u32, VehicleCounters>,
     initialisations: usize,
     restarts: u32,
@@ -513,6 +520,7 @@ impl Monitor {
                 v.last_t = v.last_t.max(m.t);
                 v.maps.push((m.t, m.features.clone()));
                 v.last_map = Some((m.t, m.features));
+                v.merges = m.merges;
             }
             Report::Finished { t } => {
                 v.last_t = v.last_t.max(t);
@@ -1071,7 +1079,8 @@ fn assemble(
 ) -> (RunRecord, RunChecks) {
     let s = &m.s;
     let lead = s.run.max_lead_s;
-    let audits = audit(m);
+    let truth = audit(m);
+    let have_truth = crate::metrics::maps_have_truth(s);
     let mut vehicles = Vec::new();
     let mut vchecks = Vec::new();
     let mut confidence = Vec::new();
@@ -1105,9 +1114,9 @@ fn assemble(
                     feature_record(
                         world,
                         f.id,
+                        truth.truth(f.id).filter(|_| have_truth),
                         &Vector3::from(f.mean),
                         &f.covariance(),
-                        crate::metrics::maps_have_truth(s),
                     )
                 })
                 .collect();
@@ -1118,11 +1127,12 @@ fn assemble(
                 held.observe(*t, f.iter().map(|x| x.id));
             }
             held.stamp(*t_last, &mut rec.map);
+            fill_record(&truth, cfg.id, &mut rec, *t_last);
+        } else {
+            fill_record(&truth, cfg.id, &mut rec, end);
         }
-        let a = audits.get(&cfg.id).copied().unwrap_or_default();
-        rec.observations = a.observations;
-        rec.wrong_associations = a.wrong;
-        rec.duplicate_features = a.duplicates;
+        rec.observations = truth.vehicle(cfg.id).observations;
+        rec.association.merges_refused = v.counters.values().map(|c| c.merges_refused).sum();
         rec.rejected_messages = v.counters.values().map(|c| c.messages_rejected).sum();
         for c in v.counters.values() {
             for (k, n) in &c.rejections {
@@ -1130,6 +1140,7 @@ fn assemble(
             }
         }
         let rec_rejections = rec.rejections.clone();
+        let association = rec.association;
         vehicles.push(rec);
         if let Some(b) = &baseline {
             for (t, feats) in &v.maps {
@@ -1140,7 +1151,12 @@ fn assemble(
                 let mut worst: Option<(f64, FeatureId)> = None;
                 let mut n = 0;
                 for f in feats {
-                    let Some(pr) = snap.covariances.get(&f.id) else {
+                    // The reference keys features by their true ids under appearance.
+                    let Some(pr) = snap
+                        .covariances
+                        .get(&f.id)
+                        .or_else(|| truth.truth(f.id).and_then(|t| snap.covariances.get(&t)))
+                    else {
                         continue;
                     };
                     let pi: Matrix3<f64> = f.covariance();
@@ -1173,6 +1189,7 @@ fn assemble(
             final_map_features: v.last_map.as_ref().map_or(0, |m| m.1.len()),
             map_sizes: v.maps.iter().map(|(t, f)| (*t, f.len())).collect(),
             initialisations: v.initialisations,
+            association,
         });
     }
     // Links: both ends' counters at every record time.
@@ -1271,6 +1288,8 @@ fn assemble(
         }),
         truth_features: crate::sim::truth_features(s, world),
         time_origin_ns: s.run.time_origin_ns,
+        team_wrong_merges: truth.team_wrong_merges(),
+        identity: s.world.appearance.identity.to_string(),
     };
     let processes = m
         .procs
@@ -1319,90 +1338,17 @@ fn assemble(
     (record, checks)
 }
 
-/// Association counts of one vehicle.
-#[derive(Clone, Copy, Debug, Default)]
-struct AuditCounts {
-    observations: u64,
-    wrong: u64,
-    duplicates: u64,
-}
-
-/// Audits every vehicle's association outcomes against the world's true ids, in time order
-/// over the whole team (the same rules as [`crate::agent::AssociationAudit`]: a feature stands
-/// for the true feature of the observation that created it; an observation associated to a
-/// feature standing for another true feature is wrong; a feature created for a true feature
-/// the vehicle already represents is a duplicate). What a vehicle "already represents" is its
-/// last map report before the frame plus the features it created since.
-fn audit(m: &Monitor) -> BTreeMap<u32, AuditCounts> {
-    use std::collections::{HashMap, HashSet};
-    let mut origin: HashMap<FeatureId, FeatureId> = HashMap::new();
-    let mut tracks: HashMap<(u32, u64), FeatureId> = HashMap::new();
-    let mut frames: Vec<(f64, u32, &FrameAssociations)> = m
-        .vehicles
-        .iter()
-        .flat_map(|(&id, v)| v.associations.iter().map(move |a| (a.t, id, a)))
-        .collect();
-    frames.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
-    let mut maps: BTreeMap<u32, (usize, HashSet<FeatureId>, HashSet<FeatureId>)> = m
-        .vehicles
-        .keys()
-        .map(|&id| (id, (0, HashSet::new(), HashSet::new())))
-        .collect();
-    let mut out: BTreeMap<u32, AuditCounts> = BTreeMap::new();
-    for (t, id, fa) in frames {
-        let v = &m.vehicles[&id];
-        let (next, current, created) = maps.get_mut(&id).expect("every vehicle has an entry");
-        while *next < v.maps.len() && v.maps[*next].0 <= t + 1e-9 {
-            *current = v.maps[*next].1.iter().map(|f| f.id).collect();
-            created.clear();
-            *next += 1;
+/// Judges every vehicle's association outcomes and adopted merges against the world's true
+/// ids ([`crate::truth`]).
+fn audit(m: &Monitor) -> KeyTruth {
+    let mut audit = TruthAudit::default();
+    for (&id, v) in &m.vehicles {
+        for fa in &v.associations {
+            audit.frame(id, fa, m.true_ids.get(&(id, ms(fa.t))).map(Vec::as_slice));
         }
-        let c = out.entry(id).or_default();
-        c.observations += fa.outcomes.len() as u64;
-        let Some(ids) = m.true_ids.get(&(id, ms(t))) else {
-            continue;
-        };
-        let stands_for = |origin: &HashMap<FeatureId, FeatureId>, f: FeatureId| {
-            origin.get(&f).copied().unwrap_or(f)
-        };
-        let initialized = |c: &mut AuditCounts,
-                           origin: &mut HashMap<FeatureId, FeatureId>,
-                           created: &mut HashSet<FeatureId>,
-                           feature: FeatureId,
-                           truth: FeatureId| {
-            let already = current
-                .iter()
-                .chain(created.iter())
-                .any(|&g| g != feature && stands_for(origin, g) == truth);
-            if already {
-                c.duplicates += 1;
-            }
-            origin.entry(feature).or_insert(truth);
-            created.insert(feature);
-        };
-        for (o, &truth) in fa.outcomes.iter().zip(ids) {
-            match *o {
-                Outcome::Associated(f) => {
-                    if stands_for(&origin, f) != truth {
-                        c.wrong += 1;
-                    }
-                }
-                Outcome::Initialized(f) => initialized(c, &mut origin, created, f, truth),
-                Outcome::Stored(track) => {
-                    if *tracks.entry((id, track)).or_insert(truth) != truth {
-                        c.wrong += 1;
-                    }
-                }
-                Outcome::Rejected => {}
-            }
-        }
-        for &(track, feature) in &fa.initialized_tracks {
-            if let Some(&truth) = tracks.get(&(id, track)) {
-                initialized(c, &mut origin, created, feature, truth);
-            }
-        }
+        audit.set_merges(id, v.merges.clone());
     }
-    out
+    audit.finish()
 }
 
 fn truth_sample(world: &World, r: &TruthReport) -> TruthSample {

@@ -230,6 +230,12 @@ pub struct VehicleCounters {
     /// samples, whole frames and single observations.
     #[serde(default)]
     pub rejections: std::collections::BTreeMap<String, u64>,
+    /// Correspondences adopted by the DDF node (`NodeStats::merges_adopted`).
+    #[serde(default)]
+    pub merges_adopted: u64,
+    /// Neighbours' correspondences refused (`NodeStats::merges_refused`).
+    #[serde(default)]
+    pub merges_refused: u64,
 }
 
 /// What the estimator did with one observation (the monitor audits it against the truth).
@@ -255,6 +261,27 @@ pub struct FrameAssociations {
     pub outcomes: Vec<Outcome>,
     /// (track, feature) pairs.
     pub initialized_tracks: Vec<(u64, FeatureId)>,
+}
+
+impl FrameAssociations {
+    /// The outcomes of a frame at time `t` as the estimator reported them.
+    pub fn from_report(t: f64, report: &canopy_fusion::slam::FrameReport) -> Self {
+        use canopy_fusion::slam::ObservationOutcome;
+        Self {
+            t,
+            outcomes: report
+                .outcomes
+                .iter()
+                .map(|o| match *o {
+                    ObservationOutcome::Associated { feature, .. } => Outcome::Associated(feature),
+                    ObservationOutcome::Initialized { feature } => Outcome::Initialized(feature),
+                    ObservationOutcome::Stored { track } => Outcome::Stored(track),
+                    ObservationOutcome::Rejected(_) => Outcome::Rejected,
+                })
+                .collect(),
+            initialized_tracks: report.initialized_tracks.clone(),
+        }
+    }
 }
 
 /// A vehicle's estimate at a record time.
@@ -302,6 +329,10 @@ pub struct MapReport {
     pub last: bool,
     /// Features.
     pub features: Vec<FeatureReport>,
+    /// The correspondences the vehicle has adopted so far (each merged key → its canonical
+    /// key), for the monitor's truth metrics.
+    #[serde(default)]
+    pub merges: Vec<canopy_fusion::keys::Merge>,
 }
 
 /// Truth of one vehicle at a record time (world → monitor only).
@@ -514,6 +545,7 @@ mod tests {
                 mean: [1.0, 2.0, 3.0],
                 cov: [1.0, 0.1, 0.0, 2.0, 0.0, 3.0],
             }],
+            merges: vec![canopy_fusion::keys::Merge { from: 9, into: 4 }],
         });
         assert_eq!(round_trip(&report).unwrap(), report);
         assert_eq!(round_trip(&Control::Shutdown).unwrap(), Control::Shutdown);
@@ -539,6 +571,7 @@ mod tests {
                 mean: [f64::NAN, 0.0, 0.0],
                 cov: [1.0, 0.0, 0.0, 1.0, 0.0, 1.0],
             }],
+            merges: Vec::new(),
         });
         assert!(matches!(
             round_trip(&nan),

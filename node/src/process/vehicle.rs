@@ -26,7 +26,6 @@ use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result, bail};
 use canopy_fusion::ins::{VehicleState, VehicleVector};
-use canopy_fusion::slam::ObservationOutcome;
 use canopy_fusion::state::VEHICLE_DIM;
 use canopy_fusion::topology::NodeId;
 use canopy_transport::link::{Link, LinkEvent};
@@ -36,7 +35,7 @@ use nalgebra::{SMatrix, Vector3};
 use super::fusion_thread::{Done, FusionThread, FusionView, Job};
 use super::protocol::{
     Control, EstimateReport, FeatureReport, FrameAssociations, InitMsg, MONITOR_ID, MapReport,
-    Outcome, Progress, Report, SensorItem, VehicleCounters, WORLD_ID, WorldMsg,
+    Progress, Report, SensorItem, VehicleCounters, WORLD_ID, WorldMsg,
 };
 use super::world::stream_buffer;
 use super::{
@@ -336,6 +335,8 @@ impl Vehicle<'_> {
                 r.merge(&self.view.rejections);
                 r.counts
             },
+            merges_adopted: self.view.node.merges_adopted,
+            merges_refused: self.view.node.merges_refused,
         }
     }
 
@@ -389,6 +390,7 @@ impl Vehicle<'_> {
             t: self.t,
             last,
             features,
+            merges: self.view.merges.clone(),
         });
         self.report(&r);
     }
@@ -454,24 +456,9 @@ impl Vehicle<'_> {
         // The frame changes the map: the round lent out must be back first.
         self.wait_for_round();
         match self.estimator.on_frame(frame) {
-            Ok(rep) => self.associations.push(FrameAssociations {
-                t: frame.time,
-                outcomes: rep
-                    .outcomes
-                    .iter()
-                    .map(|o| match *o {
-                        ObservationOutcome::Associated { feature, .. } => {
-                            Outcome::Associated(feature)
-                        }
-                        ObservationOutcome::Initialized { feature } => {
-                            Outcome::Initialized(feature)
-                        }
-                        ObservationOutcome::Stored { track } => Outcome::Stored(track),
-                        ObservationOutcome::Rejected(_) => Outcome::Rejected,
-                    })
-                    .collect(),
-                initialized_tracks: rep.initialized_tracks.clone(),
-            }),
+            Ok(rep) => self
+                .associations
+                .push(FrameAssociations::from_report(frame.time, &rep)),
             // Counted by reason in the estimator (`Rejections`), logged once per reason.
             Err(_) => self.counters.inputs_rejected += 1,
         }

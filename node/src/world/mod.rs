@@ -19,9 +19,16 @@
 //! # Seeds
 //! The world draws terrain and features from streams of its seed; each vehicle's seed
 //! ([`vehicle_seed`]) feeds independent streams for IMU white noise, IMU bias walk, sensor noise,
-//! descriptor mismatches and the initial-estimate offset, so changing one setting does not
-//! reshuffle the other draws.
+//! descriptor mismatches and the initial-estimate offset (and, with appearance, descriptor
+//! noise and track breaks), so changing one setting does not reshuffle the other draws.
+//!
+//! # Identity
+//! With `[world.appearance] identity = "perfect"` an observation's descriptor is the true
+//! feature id; with `"appearance"` it is a per-vehicle tracker's track id and the observation
+//! carries a noisy 256-bit descriptor ([`appearance`]). Either way the true ids travel beside
+//! the frame ([`SensedFrame::true_ids`]) for the monitor only.
 
+pub mod appearance;
 pub mod imu;
 pub mod sensor;
 pub mod terrain;
@@ -32,7 +39,9 @@ pub use imu::{
     BodyMotion, ImuErrors, ImuIdeal, ImuStreams, NavTruth, SensorErrors, continuous_ideal,
     discrete_ideal, exact_increments,
 };
-pub use sensor::{RANDOM_ID_BASE, SensedFrame, TerrainSensor, feature_in_sensor, measure};
+pub use sensor::{
+    RANDOM_ID_BASE, SensedFrame, TerrainSensor, feature_in_sensor, measure, with_true_ids,
+};
 pub use terrain::Terrain;
 pub use trajectory::{FlightState, Kinematics, Trajectory, coordinated_attitude};
 pub use vehicle::{InitialEstimate, StepOutput, TruthSample, VehicleSim};
@@ -50,12 +59,14 @@ use nalgebra::{Matrix3, Vector3};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
-use crate::scenario::{Scenario, ScenarioError, WorldConfig};
+use crate::scenario::{Identity, Scenario, ScenarioError, WorldConfig};
 
 /// Random stream of the terrain surface (world seed).
 const STREAM_TERRAIN: u64 = 1;
 /// Random stream of the feature placement (world seed).
 const STREAM_FEATURES: u64 = 2;
+/// Random stream of the features' appearance descriptors (world seed).
+pub const STREAM_APPEARANCE: u64 = 3;
 
 /// A ChaCha8 generator on stream `stream` of `seed`.
 pub fn rng_stream(seed: u64, stream: u64) -> ChaCha8Rng {
@@ -107,6 +118,8 @@ pub struct World {
     launch: LocalFrame,
     terrain: Terrain,
     features: Vec<Feature>,
+    /// The features' descriptors (`identity = "appearance"` only).
+    appearance: Option<appearance::AppearanceTable>,
 }
 
 impl World {
@@ -121,7 +134,7 @@ impl World {
         let terrain = Terrain::new(&cfg.terrain, &mut rng_stream(seed, STREAM_TERRAIN));
         let mut rng = rng_stream(seed, STREAM_FEATURES);
         let a = &cfg.area;
-        let features = (0..cfg.feature_count())
+        let features: Vec<Feature> = (0..cfg.feature_count())
             .map(|i| {
                 let n = a.centre_north_m + a.size_north_m * (rng.random::<f64>() - 0.5);
                 let e = a.centre_east_m + a.size_east_m * (rng.random::<f64>() - 0.5);
@@ -138,6 +151,13 @@ impl World {
         let frame = cfg.earth_model.frame();
         let mechanization = Mechanization::new(frame, cfg.local_gravity())
             .map_err(|e| ScenarioError::invalid("gravity_mps2", e.to_string()))?;
+        let appearance = (cfg.appearance.identity == Identity::Appearance).then(|| {
+            appearance::AppearanceTable::new(
+                features.len(),
+                &cfg.appearance,
+                &mut rng_stream(seed, STREAM_APPEARANCE),
+            )
+        });
         Ok(Self {
             frame,
             mechanization,
@@ -145,7 +165,13 @@ impl World {
             launch,
             terrain,
             features,
+            appearance,
         })
+    }
+
+    /// The features' appearance descriptors (`None` with perfect identities).
+    pub fn appearance(&self) -> Option<&appearance::AppearanceTable> {
+        self.appearance.as_ref()
     }
 
     /// The vehicles' navigation frame.

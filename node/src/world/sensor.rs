@@ -7,6 +7,11 @@
 //! inside the image; the noisy pixel must also fall inside the image (a detector cannot report
 //! outside it), otherwise the observation is dropped. The nearest `max_observations` visible
 //! features are kept. Terrain occlusion is not modelled.
+//!
+//! With perfect identities an observation's descriptor is the feature's true id (or, with the
+//! configured probability, a wrong one); with appearance ([`super::appearance`]) it is the
+//! vehicle's tracker's track id and the observation carries a noisy descriptor. The true ids
+//! travel beside the frame ([`SensedFrame::true_ids`]) and must reach the monitor only.
 
 use canopy_fusion::sensor::{
     FeatureId, Measurement, Observation, ObservationFrame, SensorModel, SensorMount,
@@ -17,6 +22,7 @@ use rand_chacha::ChaCha8Rng;
 use rand_distr::StandardNormal;
 
 use super::Feature;
+use super::appearance::{AppearanceTable, Tracker};
 use crate::scenario::SensorConfig;
 
 /// Random (wrong) descriptors are drawn from [RANDOM_ID_BASE, 2·RANDOM_ID_BASE), a range no
@@ -64,6 +70,25 @@ pub struct SensedFrame {
     pub true_ids: Vec<FeatureId>,
 }
 
+/// `frame` with perfect identities: each descriptor the observation's true id, no appearance
+/// (what the centralized reference is fed when the vehicles see appearance only: the
+/// all-data EKF with perfect association).
+pub fn with_true_ids(frame: &ObservationFrame, true_ids: &[FeatureId]) -> ObservationFrame {
+    ObservationFrame {
+        time: frame.time,
+        observations: frame
+            .observations
+            .iter()
+            .zip(true_ids)
+            .map(|(o, &id)| Observation {
+                descriptor: id,
+                z: o.z,
+                appearance: None,
+            })
+            .collect(),
+    }
+}
+
 /// A vehicle's terrain sensor with its random streams.
 #[derive(Clone, Debug)]
 pub struct TerrainSensor {
@@ -78,12 +103,20 @@ pub struct TerrainSensor {
     random_id_fraction: f64,
     noise: ChaCha8Rng,
     mismatch: ChaCha8Rng,
+    /// Tracker and descriptor extractor (`identity = "appearance"`).
+    tracker: Option<Tracker>,
 }
 
 impl TerrainSensor {
     /// A sensor from its (validated) configuration; `noise` draws measurement noise, `mismatch`
-    /// the descriptor errors (separate so that turning mismatches on keeps the noise path).
-    pub fn new(cfg: &SensorConfig, noise: ChaCha8Rng, mismatch: ChaCha8Rng) -> Self {
+    /// the descriptor errors (separate so that turning mismatches on keeps the noise path);
+    /// `tracker` gives track ids and noisy descriptors instead of true ids (appearance).
+    pub fn new(
+        cfg: &SensorConfig,
+        noise: ChaCha8Rng,
+        mismatch: ChaCha8Rng,
+        tracker: Option<Tracker>,
+    ) -> Self {
         Self {
             model: cfg.model(),
             mount: cfg.mount(),
@@ -96,6 +129,7 @@ impl TerrainSensor {
             random_id_fraction: cfg.mismatch_random_id_fraction,
             noise,
             mismatch,
+            tracker,
         }
     }
 
@@ -132,15 +166,20 @@ impl TerrainSensor {
     }
 
     /// Observes `features` (positions in the world frame w) from the true pose
-    /// (`world_from_body` = C_b^w, `position` = p^w) at `time`.
+    /// (`world_from_body` = C_b^w, `position` = p^w) at `time`. `appearance` holds the
+    /// features' descriptors when the sensor has a tracker (index-aligned with `features`).
     pub fn observe(
         &mut self,
         time: f64,
         world_from_body: &Matrix3<f64>,
         position: &Vector3<f64>,
         features: &[Feature],
+        appearance: Option<&AppearanceTable>,
         feature_position: impl Fn(&Feature) -> Vector3<f64>,
     ) -> SensedFrame {
+        if let Some(t) = self.tracker.as_mut() {
+            t.begin_frame();
+        }
         let mut visible: Vec<(f64, usize, Vector3<f64>)> = features
             .iter()
             .enumerate()
@@ -159,10 +198,25 @@ impl TerrainSensor {
                 continue;
             };
             let id = features[i].id;
-            observations.push(Observation {
-                descriptor: self.descriptor(id, features),
-                z,
-                appearance: None,
+            let described = match (self.tracker.as_mut(), appearance) {
+                (Some(tracker), Some(table)) => table.descriptor(i).map(|truth| {
+                    // Unit line of sight sensor → feature in the world frame.
+                    let los = world_from_body * self.mount.sensor_from_body.transpose() * p;
+                    tracker.describe(id, truth, p.norm(), &los.normalize())
+                }),
+                _ => None,
+            };
+            observations.push(match described {
+                Some(d) => Observation {
+                    descriptor: d.track,
+                    z,
+                    appearance: Some(d.appearance),
+                },
+                None => Observation {
+                    descriptor: self.descriptor(id, features),
+                    z,
+                    appearance: None,
+                },
             });
             true_ids.push(id);
         }

@@ -952,3 +952,50 @@ fn bearing_and_pixel_measurements_match_the_estimators_model_at_the_truth() {
         }
     }
 }
+
+/// With `identity = "appearance"` the estimator's frame names no true feature: each descriptor
+/// is a track id that follows one true feature only, tracks break (more tracks than features
+/// seen), every observation carries a descriptor whose share of flipped bits against the
+/// feature's lies between the configured p_min and p_max; the true ids travel beside the frame.
+#[test]
+fn appearance_frames_carry_tracks_and_noisy_descriptors() {
+    use crate::scenario::{AppearanceConfig, Identity};
+    let cfg_w = WorldConfig {
+        seed: 4,
+        earth_model: EarthModel::Flat,
+        appearance: AppearanceConfig {
+            identity: Identity::Appearance,
+            ..AppearanceConfig::default()
+        },
+        ..WorldConfig::default()
+    };
+    let w = Arc::new(World::new(&cfg_w, 4).unwrap());
+    let table = w.appearance().expect("appearance world has descriptors");
+    let mut v = VehicleSim::new(&vehicle_cfg(lawnmower()), w.clone(), 2).unwrap();
+    let mut track_truth: std::collections::HashMap<u64, u64> = Default::default();
+    let mut features = std::collections::HashSet::new();
+    let (mut bits, mut total) = (0u64, 0u64);
+    while total < 5_000 {
+        let Some(sf) = v.step().frame else { continue };
+        assert_eq!(sf.frame.observations.len(), sf.true_ids.len());
+        for (o, &id) in sf.frame.observations.iter().zip(&sf.true_ids) {
+            let a = o.appearance.expect("every observation is described");
+            let t = *track_truth.entry(o.descriptor).or_insert(id);
+            assert_eq!(t, id, "track {} follows one feature", o.descriptor);
+            features.insert(id);
+            bits += u64::from(canopy_fusion::sensor::hamming(
+                &a,
+                table.descriptor(id as usize - 1).unwrap(),
+            ));
+            total += 1;
+        }
+    }
+    let share = bits as f64 / (256 * total) as f64;
+    eprintln!(
+        "{} tracks for {} features; flipped-bit share {share:.4} over {total} observations",
+        track_truth.len(),
+        features.len()
+    );
+    assert!(track_truth.len() > features.len());
+    assert!((0.02..=0.10).contains(&share), "{share}");
+}

@@ -10,6 +10,7 @@ use nalgebra::{Matrix3, SMatrix, Vector3};
 use rand::Rng;
 use rand_distr::StandardNormal;
 
+use super::appearance::Tracker;
 use super::imu::{
     BodyMotion, ImuErrors, ImuIdeal, ImuStreams, NavTruth, continuous_ideal, discrete_ideal,
     exact_increments,
@@ -27,6 +28,8 @@ const STREAM_MISMATCH: u64 = 4;
 const STREAM_INITIAL: u64 = 5;
 const STREAM_IMU_CALIBRATION: u64 = 6;
 const STREAM_IMU_INSTABILITY: u64 = 7;
+const STREAM_APPEARANCE_FLIPS: u64 = 8;
+const STREAM_TRACK_BREAKS: u64 = 9;
 
 /// Truth of one vehicle at one IMU step.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -141,10 +144,20 @@ impl VehicleSim {
                 calibration: rng_stream(seed, STREAM_IMU_CALIBRATION),
             },
         );
+        let tracker = world.appearance().map(|table| {
+            Tracker::new(
+                table.config(),
+                cfg.sensor.min_range_m,
+                cfg.sensor.max_range_m,
+                rng_stream(seed, STREAM_APPEARANCE_FLIPS),
+                rng_stream(seed, STREAM_TRACK_BREAKS),
+            )
+        });
         let sensor = TerrainSensor::new(
             &cfg.sensor,
             rng_stream(seed, STREAM_SENSOR_NOISE),
             rng_stream(seed, STREAM_MISMATCH),
+            tracker,
         );
         let truth = truth_at(&world, &trajectory, &imu, 0.0);
         let motion = world.body_motion(0.0, &trajectory.state(0.0));
@@ -315,6 +328,7 @@ impl VehicleSim {
                 &world_from_body,
                 &nav.position,
                 self.world.features(),
+                self.world.appearance(),
                 |f| f.position(frame),
             )
         });
