@@ -90,6 +90,10 @@ pub struct VehicleRecord {
     /// its incarnations.
     #[serde(default)]
     pub rejections: std::collections::BTreeMap<String, u64>,
+    /// Peak resident memory of its process [bytes] (`canopy run`; absent in `canopy sim`,
+    /// where every vehicle shares one process).
+    #[serde(default)]
+    pub peak_rss_bytes: Option<u64>,
 }
 
 /// One statistics sample of a link (cumulative counters at time `t`).

@@ -79,6 +79,10 @@ pub struct VehicleSummary {
     /// a path).
     #[serde(default)]
     pub ate: Option<AteSummary>,
+    /// Peak resident memory of the vehicle's process [MB] (`canopy run` on Linux; `null` in
+    /// `canopy sim`).
+    #[serde(default)]
+    pub peak_rss_mb: Option<f64>,
 }
 
 /// The ATE of one vehicle: RMS over the samples with truth, after each alignment.
@@ -370,6 +374,7 @@ pub fn summarize_vehicle(v: &VehicleRecord) -> VehicleSummary {
         restarts: v.restarts,
         rejections: v.rejections.clone(),
         ate,
+        peak_rss_mb: v.peak_rss_bytes.map(|b| b as f64 / 1e6),
     }
 }
 
@@ -478,6 +483,13 @@ pub fn table(summaries: &[(&str, &Summary)]) -> String {
         }
     });
     push("map RMSE [m]", &|s| format!("{:.3}", s.team.map_rmse_m));
+    push("peak RSS per vehicle [MB]", &|s| {
+        s.vehicles
+            .iter()
+            .filter_map(|v| v.peak_rss_mb)
+            .reduce(f64::max)
+            .map_or("-".into(), |m| format!("{m:.0}"))
+    });
     push("pose ANEES (1 = ideal)", &|s| {
         format!("{:.2}", s.team.pose_anees)
     });

@@ -24,6 +24,20 @@
 //! ```
 
 mod fusion_thread;
+
+/// This process's peak resident set size [bytes]: `VmHWM` of `/proc/self/status`; `None` where
+/// the kernel does not report it (not Linux) or the line cannot be read.
+pub fn peak_rss_bytes() -> Option<u64> {
+    parse_vm_hwm(&std::fs::read_to_string("/proc/self/status").ok()?)
+}
+
+/// `VmHWM:  <n> kB` of a `/proc/<pid>/status` text, in bytes.
+fn parse_vm_hwm(status: &str) -> Option<u64> {
+    let line = status.lines().find(|l| l.starts_with("VmHWM:"))?;
+    let mut parts = line["VmHWM:".len()..].split_whitespace();
+    let kb: u64 = parts.next()?.parse().ok()?;
+    (parts.next()? == "kB").then_some(kb * 1024)
+}
 pub mod hub;
 pub mod monitor;
 pub mod protocol;
@@ -360,4 +374,23 @@ pub(crate) fn naive_round_bytes(features: usize) -> u64 {
 /// A fresh random DDF epoch for this process start (never 0).
 pub(crate) fn fresh_epoch() -> u64 {
     rand::random::<u64>() | 1
+}
+
+#[cfg(test)]
+mod rss_tests {
+    use super::*;
+
+    /// `VmHWM` is read in kB and given in bytes; a status without it, or in another unit, gives
+    /// none; on Linux this process's own figure is there and at least the 1 MB its test
+    /// harness holds.
+    #[test]
+    fn peak_rss_reads_vm_hwm() {
+        let status = "Name:\tcanopy\nVmPeak:\t  900 kB\nVmHWM:\t  2048 kB\nVmRSS:\t 1024 kB\n";
+        assert_eq!(parse_vm_hwm(status), Some(2048 * 1024));
+        assert_eq!(parse_vm_hwm("VmRSS:\t 1024 kB\n"), None);
+        assert_eq!(parse_vm_hwm("VmHWM:\t 1024 MB\n"), None);
+        if cfg!(target_os = "linux") {
+            assert!(peak_rss_bytes().is_some_and(|b| b > 1 << 20));
+        }
+    }
 }

@@ -144,6 +144,10 @@ pub struct VehicleCheck {
     /// `summary.json`).
     #[serde(default)]
     pub rejections: BTreeMap<String, u64>,
+    /// Peak resident memory of its process [MB] (the largest over its incarnations; absent
+    /// where the kernel does not report it).
+    #[serde(default)]
+    pub peak_rss_mb: Option<f64>,
 }
 
 /// One end of a fusion link at the end of the run.
@@ -1139,7 +1143,9 @@ fn assemble(
                 *rec.rejections.entry(k.clone()).or_insert(0) += n;
             }
         }
+        rec.peak_rss_bytes = v.counters.values().filter_map(|c| c.peak_rss_bytes).max();
         let rec_rejections = rec.rejections.clone();
+        let rec_peak_rss = rec.peak_rss_bytes;
         let association = rec.association;
         vehicles.push(rec);
         if let Some(b) = &baseline {
@@ -1183,6 +1189,7 @@ fn assemble(
             name: v.name.clone(),
             counters: v.counters.values().cloned().collect(),
             rejections: rec_rejections,
+            peak_rss_mb: rec_peak_rss.map(|b| b as f64 / 1e6),
             estimate_reports: v.estimates.len(),
             map_reports: v.maps.len(),
             last_report_t: v.estimates.iter().map(|e| e.0).fold(f64::NAN, f64::max),

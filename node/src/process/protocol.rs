@@ -236,6 +236,10 @@ pub struct VehicleCounters {
     /// Neighbours' correspondences refused (`NodeStats::merges_refused`).
     #[serde(default)]
     pub merges_refused: u64,
+    /// Peak resident memory of the process so far [bytes] (Linux `VmHWM`; absent where the
+    /// kernel does not report it).
+    #[serde(default)]
+    pub peak_rss_bytes: Option<u64>,
 }
 
 /// What the estimator did with one observation (the monitor audits it against the truth).

@@ -319,6 +319,13 @@ pub fn assert_sound(r: &Run) {
     );
     assert!(!r.checks.interrupted);
     assert!(!text.contains("panicked"), "the launcher panicked:\n{text}");
+    // Every vehicle process reports its peak resident memory (Linux VmHWM), printed for the
+    // test log.
+    for v in &r.checks.vehicles {
+        let mb = v.peak_rss_mb.expect("peak RSS reported");
+        assert!(mb.is_finite() && mb > 0.0, "{}: peak RSS {mb} MB", v.name);
+        eprintln!("{}: peak RSS {mb:.0} MB", v.name);
+    }
     for p in &r.checks.processes {
         assert!(
             !p.panicked,
