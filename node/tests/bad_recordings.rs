@@ -7,44 +7,10 @@
 //! `canopy run`. Every process runs under a deadline: none may hang.
 
 use std::path::Path;
-use std::process::{Command, Stdio};
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
-/// Runs `canopy ARGS` with a deadline: (success, stdout, stderr); a hang fails the test.
-fn run_bounded(args: &[&str], deadline: Duration) -> (bool, String, String) {
-    let dir = tempfile::tempdir().unwrap();
-    let (out_path, err_path) = (dir.path().join("out"), dir.path().join("err"));
-    let mut child = Command::new(env!("CARGO_BIN_EXE_canopy"))
-        .args(args)
-        .env("RUST_BACKTRACE", "0")
-        .env("RUST_LIB_BACKTRACE", "0")
-        .stdin(Stdio::null())
-        .stdout(std::fs::File::create(&out_path).unwrap())
-        .stderr(std::fs::File::create(&err_path).unwrap())
-        .spawn()
-        .expect("the canopy binary runs");
-    let start = Instant::now();
-    let status = loop {
-        if let Some(st) = child.try_wait().unwrap() {
-            break st;
-        }
-        if start.elapsed() > deadline {
-            let _ = child.kill();
-            let _ = child.wait();
-            panic!(
-                "`canopy {}` did not finish within {deadline:?} (hung); stderr:\n{}",
-                args.join(" "),
-                std::fs::read_to_string(&err_path).unwrap_or_default()
-            );
-        }
-        std::thread::sleep(Duration::from_millis(50));
-    };
-    (
-        status.success(),
-        std::fs::read_to_string(&out_path).unwrap(),
-        std::fs::read_to_string(&err_path).unwrap(),
-    )
-}
+mod common;
+use common::run_bounded;
 
 const T0: u64 = 1_403_715_273_262_143_232;
 

@@ -13,8 +13,10 @@
 
 use std::collections::{BTreeMap, HashSet};
 use std::path::{Path, PathBuf};
-use std::process::{Command, Stdio};
-use std::time::{Duration, Instant};
+use std::time::Duration;
+
+mod common;
+use common::run_bounded;
 
 use canopy_fusion::rotation::nav_from_body;
 use canopy_node::replay::ReplayLog;
@@ -48,43 +50,6 @@ fn euroc_dir() -> Option<PathBuf> {
          (README, \"Real data\"), or set CANOPY_SKIP_REAL_DATA=1 to opt out of this test",
         dir.display()
     );
-}
-
-/// Runs `canopy ARGS` with a deadline: (success, stdout, stderr). A process still running at
-/// the deadline is killed and the test fails.
-fn run_bounded(args: &[&str], deadline: Duration) -> (bool, String, String) {
-    let dir = tempfile::tempdir().unwrap();
-    let (out_path, err_path) = (dir.path().join("out"), dir.path().join("err"));
-    let mut child = Command::new(env!("CARGO_BIN_EXE_canopy"))
-        .args(args)
-        .env("RUST_BACKTRACE", "0")
-        .env("RUST_LIB_BACKTRACE", "0")
-        .stdin(Stdio::null())
-        .stdout(std::fs::File::create(&out_path).unwrap())
-        .stderr(std::fs::File::create(&err_path).unwrap())
-        .spawn()
-        .expect("the canopy binary runs");
-    let start = Instant::now();
-    let status = loop {
-        if let Some(st) = child.try_wait().unwrap() {
-            break st;
-        }
-        if start.elapsed() > deadline {
-            let _ = child.kill();
-            let _ = child.wait();
-            panic!(
-                "`canopy {}` did not finish within {deadline:?} (hung); stderr:\n{}",
-                args.join(" "),
-                std::fs::read_to_string(&err_path).unwrap_or_default()
-            );
-        }
-        std::thread::sleep(Duration::from_millis(50));
-    };
-    (
-        status.success(),
-        std::fs::read_to_string(&out_path).unwrap(),
-        std::fs::read_to_string(&err_path).unwrap(),
-    )
 }
 
 /// Imports the recording into `out`.
