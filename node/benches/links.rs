@@ -414,11 +414,7 @@ impl JoinSeries for Vec<Series<'_>> {
 // ------------------------------------------------------------------ zenoh
 
 fn free_port() -> u16 {
-    std::net::TcpListener::bind("127.0.0.1:0")
-        .unwrap()
-        .local_addr()
-        .unwrap()
-        .port()
+    canopy_transport::net::free_loopback_port().expect("a free loopback port")
 }
 
 /// Payload bytes delivered per second (MB/s, 10⁶ bytes) and messages not delivered.

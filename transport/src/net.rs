@@ -149,6 +149,14 @@ impl ZenohConfig {
     }
 }
 
+/// A TCP port on 127.0.0.1 that is free now (bind port 0, read it back, release it), for
+/// endpoints of processes on one host. Another process may take it before the caller binds it.
+pub fn free_loopback_port() -> std::io::Result<u16> {
+    Ok(std::net::TcpListener::bind("127.0.0.1:0")?
+        .local_addr()?
+        .port())
+}
+
 fn err(e: impl std::fmt::Display) -> LinkError {
     LinkError::backend(BACKEND, e)
 }

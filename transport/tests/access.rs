@@ -17,11 +17,7 @@ use tracing_subscriber::util::SubscriberInitExt;
 const PASSWORD: &str = "team-secret-for-tests";
 
 fn free_port() -> u16 {
-    std::net::TcpListener::bind("127.0.0.1:0")
-        .unwrap()
-        .local_addr()
-        .unwrap()
-        .port()
+    canopy_transport::net::free_loopback_port().expect("a free loopback port")
 }
 
 fn auth(user: &str) -> ZenohAuth {

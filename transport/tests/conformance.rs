@@ -7,7 +7,6 @@
 //! (documented at [`LIVENESS_TIMEOUT`]); nothing asserts a wall-clock bound.
 
 use std::collections::HashMap;
-use std::sync::atomic::{AtomicU32, Ordering};
 use std::time::{Duration, Instant};
 
 use std::sync::Arc;
@@ -113,17 +112,10 @@ fn short(test: &str) -> String {
 
 // ---------------------------------------------------------------- zenoh
 
-static PORT_SALT: AtomicU32 = AtomicU32::new(0);
-
 fn free_port() -> u16 {
     // Bind-and-release: the OS hands out distinct ephemeral ports, so parallel tests do not
     // collide (a race with unrelated processes is possible but not observed in practice).
-    let _ = PORT_SALT.fetch_add(1, Ordering::Relaxed);
-    std::net::TcpListener::bind("127.0.0.1:0")
-        .unwrap()
-        .local_addr()
-        .unwrap()
-        .port()
+    canopy_transport::net::free_loopback_port().expect("a free loopback port")
 }
 
 fn endpoint_of(port: u16) -> String {

@@ -154,11 +154,7 @@ fn zenoh_cfg(prefix: &str, listen: u16, connect: Option<u16>) -> ZenohConfig {
 }
 
 fn free_port() -> u16 {
-    std::net::TcpListener::bind("127.0.0.1:0")
-        .unwrap()
-        .local_addr()
-        .unwrap()
-        .port()
+    canopy_transport::net::free_loopback_port().expect("a free loopback port")
 }
 
 #[test]

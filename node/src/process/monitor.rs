@@ -314,9 +314,8 @@ pub fn resolve(
     }
     for l in &mut s.links {
         if l.transport == TransportKind::Net && l.listen.is_none() {
-            let sock = std::net::TcpListener::bind("127.0.0.1:0")
+            let port = canopy_transport::net::free_loopback_port()
                 .context("finding a free loopback port for a net link")?;
-            let port = sock.local_addr()?.port();
             l.listen = Some(format!("tcp/127.0.0.1:{port}"));
         }
     }
