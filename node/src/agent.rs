@@ -505,11 +505,10 @@ impl VehicleEstimator {
     }
 
     /// A zero-velocity update at the frame at `t`, when one is due within the rest period.
-    /// Updates go with frames, which only come while no copy is lent out (an update to a lent
-    /// filter would be lost at the give back), so that `canopy sim` and `canopy run` apply the
-    /// same ones.
+    /// Updates go with frames, which only come while no copy is lent out (a frame in between
+    /// makes the give back fail safe, as for the frame's own update), so that `canopy sim` and
+    /// `canopy run` apply the same ones.
     fn rest_update(&mut self, t: f64) {
-        let lent = self.lent.is_some();
         let Some(r) = &mut self.rest else {
             return;
         };
@@ -522,7 +521,7 @@ impl VehicleEstimator {
             self.rest = None;
             return;
         }
-        if lent || t < r.next {
+        if t < r.next {
             return;
         }
         match self.filter.zero_velocity_update(0, r.config.sigma_mps) {

@@ -1,6 +1,6 @@
 //! `summary.json`: the run's figures (field names documented in the README).
 
-use crate::record::{LinkRecord, RunRecord, VehicleRecord};
+use crate::record::{LinkRecord, PoseSample, RunRecord, VehicleRecord};
 use serde::{Deserialize, Serialize};
 use statrs::distribution::{ChiSquared, ContinuousCDF};
 
@@ -98,24 +98,14 @@ pub struct AteSummary {
     pub posyaw_deg: f64,
 }
 
-/// The ATE of `v`'s samples that have truth (launch frame, z down), if an alignment can be
+/// The ATE of a vehicle's samples with truth (launch frame, z down), if an alignment can be
 /// made; why not otherwise.
-fn ate(v: &VehicleRecord) -> Result<AteSummary, String> {
+fn ate(name: &str, samples: &[&PoseSample]) -> Result<AteSummary, String> {
     use crate::eval::{Alignment, EvalOptions, RecordSide, Trajectory, ZAxis, evaluate};
     let with_truth = VehicleRecord {
-        samples: v
-            .samples
-            .iter()
-            .filter(|s| {
-                s.truth_pos
-                    .iter()
-                    .chain(&s.truth_att)
-                    .all(|x| x.is_finite())
-            })
-            .cloned()
-            .collect(),
-        map: Vec::new(),
-        ..v.clone()
+        name: name.to_string(),
+        samples: samples.iter().map(|&s| s.clone()).collect(),
+        ..VehicleRecord::default()
     };
     let traj = |side| Trajectory::from_record(&with_truth, side).map_err(|e| e.to_string());
     let opts = EvalOptions {
@@ -318,12 +308,17 @@ pub fn summarize_vehicle(v: &VehicleRecord) -> VehicleSummary {
     // The samples with truth: all of a simulated vehicle's, those a replayed vehicle's ground
     // truth covers. (A NaN NEES of a sample with truth — a covariance that is not positive
     // definite — stays in and shows as NaN.)
-    let samples: Vec<_> = v
+    let truth_samples: Vec<&PoseSample> = v
         .samples
         .iter()
-        .filter(|s| s.truth_pos[0].is_finite())
+        .filter(|s| {
+            s.truth_pos
+                .iter()
+                .chain(&s.truth_att)
+                .all(|x| x.is_finite())
+        })
         .collect();
-    let samples = || samples.iter().copied();
+    let samples = || truth_samples.iter().copied();
     let position_rmse_m = mean(samples().map(|s| s.position_error().powi(2))).sqrt();
     let final_position_error_m = samples().last().map_or(f64::NAN, |s| s.position_error());
     let position_anees = mean(samples().map(|s| s.nees_pos / 3.0));
@@ -348,9 +343,9 @@ pub fn summarize_vehicle(v: &VehicleRecord) -> VehicleSummary {
             .filter_map(|(f, t)| feature_nees(&f.est, &f.cov, t))
             .map(|n| n / 3.0),
     );
-    let metrics_available = v.samples.iter().any(|s| s.truth_pos[0].is_finite());
+    let metrics_available = !truth_samples.is_empty();
     let ate = if metrics_available {
-        ate(v)
+        ate(&v.name, &truth_samples)
             .inspect_err(|e| tracing::warn!(vehicle = %v.name, "no ATE: {e}"))
             .ok()
     } else {
