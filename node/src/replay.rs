@@ -884,28 +884,59 @@ pub fn record_logs(
         let mut sim = VehicleSim::new(v, world.clone(), world::vehicle_seed(s.world.seed, v.id))
             .map_err(|e| e.within(&format!("vehicle[{i}]")))?;
         let name = v.display_name();
-        let cfg = ReplayConfig::in_dir(dir, &name);
+        let mut cfg = ReplayConfig::in_dir(dir, &name);
+        // Flat world: the truth in the navigation frame is the replay's ground truth (global
+        // runs have none: a ground-truth file is read in a local frame).
+        let mut truth = (s.world.earth_model == EarthModel::Flat).then(|| {
+            format!(
+                "# ground truth of {name} (canopy sim --record-logs): run time [s], body position in the navigation frame (NED) [m], C_b^n as qx qy qz qw\n"
+            )
+        });
         let mut imu = format!(
             "# canopy IMU log v{FORMAT_VERSION}: vehicle {name}, estimator navigation frame\n{IMU_HEADER}\n"
         );
         let mut obs = format!(
             "# canopy observation log v{FORMAT_VERSION}: vehicle {name}, estimator navigation frame\n{OBS_HEADER}\n"
         );
-        while sim.time() + sim.imu_dt() <= duration + 1e-9 {
+        if let Some(t) = &mut truth {
+            truth_row(t, sim.truth());
+        }
+        // The raw samples (a sample that straddles a frame is split by the replay, as a real
+        // recording's is), the frames at their own times.
+        while sim.next_time() <= duration + 1e-9 {
             let step = sim.step();
             imu_row(&mut imu, &step.imu);
             if let Some(f) = &step.frame {
                 frame_rows(&mut obs, &f.frame);
             }
+            if let Some(t) = &mut truth {
+                truth_row(t, &step.truth);
+            }
         }
         write_file(&cfg.imu, &imu)?;
         write_file(&cfg.observations, &obs)?;
+        if let Some(t) = truth {
+            let path = dir.join(format!("{name}.groundtruth.tum"));
+            write_file(&path, &t)?;
+            cfg.groundtruth = Some(path);
+        }
         if let InitialSource::File(p) = &cfg.initial {
             write_file(p, &initial_text(sim.initial_estimate()))?;
         }
         out.push((name, cfg));
     }
     Ok(out)
+}
+
+/// One TUM row of a truth sample (run time, position, C_b^n), every digit kept.
+fn truth_row(out: &mut String, t: &TruthSample) {
+    let q = UnitQuaternion::from_matrix(&canopy_fusion::rotation::nav_from_body(&t.attitude));
+    let p = t.position;
+    let _ = writeln!(
+        out,
+        "{} {} {} {} {} {} {} {}",
+        t.time, p.x, p.y, p.z, q.i, q.j, q.k, q.w
+    );
 }
 
 /// One step of a sensor source.
@@ -1094,7 +1125,7 @@ impl SensorSource {
     /// Time of the last step (or of the initial estimate).
     pub fn time(&self) -> f64 {
         match self {
-            SensorSource::Sim(s) => s.time(),
+            SensorSource::Sim(s) => s.stream_time(),
             SensorSource::Replay(r) => r
                 .next
                 .checked_sub(1)
@@ -1105,7 +1136,7 @@ impl SensorSource {
     /// Time of the next step; `None` once a log is exhausted (a simulator never is).
     pub fn next_time(&self) -> Option<f64> {
         match self {
-            SensorSource::Sim(s) => Some(s.time() + s.imu_dt()),
+            SensorSource::Sim(s) => Some(s.stream_next_time()),
             SensorSource::Replay(r) => r.log.steps.get(r.next).map(|s| s.0.time),
         }
     }
@@ -1114,7 +1145,7 @@ impl SensorSource {
     pub fn step(&mut self) -> Option<SourceStep> {
         match self {
             SensorSource::Sim(s) => {
-                let out = s.step();
+                let out = s.stream_step();
                 Some(SourceStep {
                     imu: out.imu,
                     frame: out.frame.map(|f| (f.frame, Some(f.true_ids))),
@@ -1157,7 +1188,7 @@ impl SensorSource {
     /// Current truth: the simulator's, or a replayed vehicle's ground truth where it has one.
     pub fn truth(&self) -> Option<&TruthSample> {
         match self {
-            SensorSource::Sim(s) => Some(s.truth()),
+            SensorSource::Sim(s) => Some(s.stream_truth()),
             SensorSource::Replay(r) => r.truth.as_deref(),
         }
     }

@@ -905,7 +905,10 @@ impl VehicleConfig {
         }
         self.imu.validate().map_err(|e| e.within("imu"))?;
         // A replayed vehicle's frames come when they were recorded: its rates are not tied.
-        let tied_rate = self.replay.is_none().then_some(self.imu.rate_hz);
+        let tied_rate = self
+            .replay
+            .is_none()
+            .then_some((self.imu.rate_hz, self.imu.timestamp_jitter_s));
         self.sensor
             .validate(tied_rate)
             .map_err(|e| e.within("sensor"))?;
@@ -1035,9 +1038,13 @@ pub enum MountOrientation {
 pub struct SensorConfig {
     /// Measurement model and noise. Default: range-bearing, σ 0.5 m and 0.2°.
     pub model: SensorModelConfig,
-    /// Frame rate [Hz], > 0; the IMU rate must be an integer multiple of it (simulated vehicles;
-    /// a replayed vehicle's frames come at their recorded times). Default 2.
+    /// Frame rate [Hz], > 0 (simulated vehicles: the IMU rate an integer multiple of it, or at
+    /// most half the IMU rate, when frames fall between IMU samples; a replayed vehicle's frames
+    /// come at their recorded times). Default 2.
     pub rate_hz: f64,
+    /// Simulated vehicles: frame n is taken at n/`rate_hz` + this [s], in [0, 1/`rate_hz`): a
+    /// camera not synchronised with the IMU, its frames between IMU samples. Default 0.
+    pub time_offset_s: f64,
     /// Mounting orientation, `"down"` or `"forward"`. Default `"down"` unless
     /// `sensor_from_body` gives a general mount.
     #[serde(skip_serializing_if = "Option::is_none")]
@@ -1073,6 +1080,7 @@ impl Default for SensorConfig {
         Self {
             model: SensorModelConfig::default(),
             rate_hz: 2.0,
+            time_offset_s: 0.0,
             orientation: None,
             sensor_from_body: None,
             lever_arm_m: [0.3, 0.0, 0.1],
@@ -1111,19 +1119,40 @@ impl SensorConfig {
         }
     }
 
-    /// Field checks (paths relative to `sensor`); `imu_rate_hz`, when given, must be an integer
-    /// multiple of the frame rate (simulated vehicles).
-    pub fn validate(&self, imu_rate_hz: Option<f64>) -> Result<(), ScenarioError> {
+    /// Field checks (paths relative to `sensor`); `imu`, when given (simulated vehicles: its
+    /// rate [Hz] and timestamp jitter [s]), must put at most one frame in any IMU interval:
+    /// frames on the samples (the IMU rate an integer multiple of the frame rate, no offset, no
+    /// jitter), or a frame period of at least two nominal IMU periods (an interval is at most
+    /// 1.5 of them with jitter ≤ Δt/4).
+    pub fn validate(&self, imu: Option<(f64, f64)>) -> Result<(), ScenarioError> {
         self.model.validate().map_err(|e| e.within("model"))?;
         positive_at_most("rate_hz", self.rate_hz, 1000.0)?;
-        if let Some(imu_rate_hz) = imu_rate_hz {
+        let period = 1.0 / self.rate_hz;
+        if !(self.time_offset_s.is_finite()
+            && self.time_offset_s >= 0.0
+            && self.time_offset_s < period)
+        {
+            return Err(ScenarioError::invalid(
+                "time_offset_s",
+                format!("must lie in [0, 1/rate_hz = {period}) s"),
+            ));
+        }
+        if let Some((imu_rate_hz, jitter)) = imu {
             let ratio = imu_rate_hz / self.rate_hz;
             // Rates are user-typed decimals: 1e-9 relative slack absorbs their binary rounding
             // only.
-            if (ratio - ratio.round()).abs() > 1e-9 * ratio || ratio.round() < 1.0 {
+            let on_samples = (ratio - ratio.round()).abs() <= 1e-9 * ratio
+                && ratio.round() >= 1.0
+                && self.time_offset_s == 0.0
+                && jitter == 0.0;
+            if !on_samples && ratio < 2.0 - 1e-9 {
                 return Err(ScenarioError::invalid(
                     "rate_hz",
-                    format!("the IMU rate {imu_rate_hz} Hz must be an integer multiple of it"),
+                    format!(
+                        "frames between IMU samples (a frame rate that does not divide the IMU \
+                         rate {imu_rate_hz} Hz, a time offset or timestamp jitter) need a frame \
+                         rate of at most half the IMU rate"
+                    ),
                 ));
             }
         }
@@ -1460,6 +1489,9 @@ pub struct ImuConfig {
     pub rate_hz: f64,
     /// Noise-free sample synthesis. Default `exact`.
     pub synthesis: ImuSynthesis,
+    /// Simulated vehicles: sample k is stamped k/`rate_hz` + U(−j, j) and measures its actual
+    /// interval (a real IMU's clock jitter) [s], in [0, 1/(4·`rate_hz`)]. Default 0.
+    pub timestamp_jitter_s: f64,
     /// Replaces the grade's noise figures in the estimator's model when given.
     pub noise: Option<ImuNoiseConfig>,
     /// The simulated sensor's errors (`[vehicle.imu.truth]`). Default: the `sensor` model with
@@ -1473,6 +1505,7 @@ impl Default for ImuConfig {
             grade: ImuGrade::Tactical,
             rate_hz: 100.0,
             synthesis: ImuSynthesis::Exact,
+            timestamp_jitter_s: 0.0,
             noise: None,
             truth: ImuTruthConfig::default(),
         }
@@ -1531,6 +1564,11 @@ impl ImuConfig {
     /// Field checks (paths relative to `imu`).
     pub fn validate(&self) -> Result<(), ScenarioError> {
         positive_at_most("rate_hz", self.rate_hz, 10_000.0)?;
+        non_negative_at_most(
+            "timestamp_jitter_s",
+            self.timestamp_jitter_s,
+            0.25 / self.rate_hz,
+        )?;
         if let Some(n) = &self.noise {
             for (name, v) in [
                 ("noise.accel_noise_density", n.accel_noise_density),
@@ -1951,7 +1989,19 @@ synthesis = "continuous"
                 "max_range_m = 5",
                 "vehicle[0].sensor.max_range_m",
             ),
-            ("rate_hz = 4", "rate_hz = 3", "vehicle[0].sensor.rate_hz"),
+            // 100 Hz IMU: 70 Hz frames do not fall on its samples and two could share one
+            // interval.
+            ("rate_hz = 4", "rate_hz = 70", "vehicle[0].sensor.rate_hz"),
+            (
+                "rate_hz = 4",
+                "rate_hz = 4\ntime_offset_s = 0.25",
+                "vehicle[0].sensor.time_offset_s",
+            ),
+            (
+                "rate_hz = 200",
+                "rate_hz = 200\ntimestamp_jitter_s = 0.002",
+                "vehicle[1].imu.timestamp_jitter_s",
+            ),
             (
                 "sigma_px = 1",
                 "sigma_px = -1",

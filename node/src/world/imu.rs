@@ -396,13 +396,19 @@ impl ImuErrors {
 
     /// Advances the biases one sample and returns the measured sample (module doc).
     pub fn corrupt(&mut self, ideal: &ImuIdeal) -> ImuIdeal {
+        self.corrupt_over(ideal, self.dt)
+    }
+
+    /// [`ImuErrors::corrupt`] over an interval of `dt` seconds instead of the nominal period (a
+    /// sample whose time stamp jitters integrates over its actual interval).
+    pub fn corrupt_over(&mut self, ideal: &ImuIdeal, dt: f64) -> ImuIdeal {
         let m = &self.model;
-        let sdt = self.dt.sqrt();
+        let sdt = dt.sqrt();
         self.accel_walk += normal3(&mut self.walk) * (m.accel_bias_rw_density * sdt);
         self.gyro_walk += normal3(&mut self.walk) * (m.gyro_bias_rw_density * sdt);
         if m.accel_bias_instability > 0.0 || m.gyro_bias_instability > 0.0 {
             // Exact discretisation of ḃ = −b/τ + w: b_k = e^{−Δt/τ} b + σ√(1 − e^{−2Δt/τ}) n.
-            let decay = (-self.dt / m.bias_correlation_time).exp();
+            let decay = (-dt / m.bias_correlation_time).exp();
             let drive = (1.0 - decay * decay).sqrt();
             self.accel_markov = self.accel_markov * decay
                 + normal3(&mut self.instability) * (m.accel_bias_instability * drive);

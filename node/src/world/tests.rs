@@ -999,3 +999,88 @@ fn appearance_frames_carry_tracks_and_noisy_descriptors() {
     assert!(track_truth.len() > features.len());
     assert!((0.02..=0.10).contains(&share), "{share}");
 }
+
+/// Off-grid frames and jittered samples (issue #11): sample k lies within the configured jitter
+/// of k·Δt and the intervals tile; frame n is stamped n/rate + offset, inside the interval of the
+/// sample it comes with, and its observations are those of the truth at its own time (noise-free
+/// ranges equal the distance from the sensor at that time, computed here); the
+/// estimator's stream splits that sample at the frame, the parts tiling the interval with the
+/// frame after the first.
+#[test]
+fn off_grid_frames_and_jittered_samples() {
+    let mut cfg = vehicle_cfg(lawnmower());
+    cfg.imu.rate_hz = 100.0;
+    cfg.imu.timestamp_jitter_s = 1e-3;
+    cfg.sensor.rate_hz = 3.0;
+    cfg.sensor.time_offset_s = 0.0123;
+    // Noise-free ranges: a frame taken at the sample's time instead of its own would be off by
+    // the distance flown in between (up to 25 m/s × 10 ms), far above round-off.
+    cfg.sensor.model = crate::scenario::SensorModelConfig::RangeBearing {
+        sigma_range_m: 0.0,
+        sigma_bearing_deg: 0.0,
+    };
+    let w = world(EarthModel::Flat, 3);
+    let mut raw = VehicleSim::new(&cfg, w.clone(), 5).unwrap();
+    let mut stream = VehicleSim::new(&cfg, w.clone(), 5).unwrap();
+    let (dt, j) = (0.01, 1e-3);
+    let mut prev = 0.0;
+    let mut frames = 0u64;
+    let mut checked = 0;
+    let mut parts = Vec::new();
+    for k in 1..=1000u64 {
+        let o = raw.step();
+        let t = o.imu.time;
+        assert!((t - k as f64 * dt).abs() <= j, "sample {k} at {t}");
+        assert!((o.imu.dt - (t - prev)).abs() < 1e-15, "intervals tile");
+        if let Some(f) = &o.frame {
+            frames += 1;
+            let tf = frames as f64 / 3.0 + 0.0123;
+            assert!(
+                (f.frame.time - tf).abs() < 1e-12,
+                "frame {frames} at {}",
+                f.frame.time
+            );
+            assert!(
+                f.frame.time > prev && f.frame.time < t,
+                "inside its interval"
+            );
+            let truth = raw.nav_truth_at(tf);
+            for (obs, id) in f.frame.observations.iter().zip(&f.true_ids) {
+                if let (Measurement::RangeBearing(z), Some(feat)) =
+                    (&obs.z, w.features().iter().find(|x| x.id == *id))
+                {
+                    let nav_from_body = canopy_fusion::rotation::nav_from_body(&truth.attitude);
+                    let lever = Vector3::from(cfg.sensor.lever_arm_m);
+                    let r = (feat.position_ned - truth.position - nav_from_body * lever).norm();
+                    // Round-off of an independent sum of a few hundred metres.
+                    assert!((z.x - r).abs() < 1e-6, "range {} vs {r}", z.x);
+                    checked += 1;
+                }
+            }
+        }
+        // The stream's parts up to this sample's time.
+        while stream.stream_next_time() <= t + 1e-12 {
+            let before = stream.stream_time();
+            let p = stream.stream_step();
+            assert!((p.imu.time - p.imu.dt - before).abs() < 1e-12, "parts tile");
+            assert_eq!(stream.stream_time(), p.imu.time);
+            parts.push((p.imu.time, p.frame.map(|f| f.frame.time)));
+        }
+        prev = t;
+    }
+    assert!(
+        frames >= 25 && checked > 0,
+        "{frames} frames, {checked} ranges checked"
+    );
+    let with_frame: Vec<_> = parts.iter().filter(|p| p.1.is_some()).collect();
+    assert_eq!(with_frame.len() as u64, frames);
+    assert!(
+        with_frame.iter().all(|p| p.1 == Some(p.0)),
+        "a frame ends its part"
+    );
+    assert_eq!(
+        parts.len() as u64,
+        1000 + frames,
+        "one extra part per frame"
+    );
+}

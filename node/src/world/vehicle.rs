@@ -30,6 +30,7 @@ const STREAM_IMU_CALIBRATION: u64 = 6;
 const STREAM_IMU_INSTABILITY: u64 = 7;
 const STREAM_APPEARANCE_FLIPS: u64 = 8;
 const STREAM_TRACK_BREAKS: u64 = 9;
+const STREAM_IMU_JITTER: u64 = 10;
 
 /// Truth of one vehicle at one IMU step.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -113,6 +114,20 @@ pub struct VehicleSim {
     synthesis: ImuSynthesis,
     dt: f64,
     frame_every: u64,
+    /// Frame schedule: frame n ≥ 1 at n·`frame_period` + `frame_offset` [s].
+    frame_period: f64,
+    frame_offset: f64,
+    /// Index of the next frame.
+    next_frame: u64,
+    /// Sample-time jitter: sample k at k·Δt + U(−j, j) [s] (`[vehicle.imu] timestamp_jitter_s`).
+    jitter: f64,
+    jitter_rng: rand_chacha::ChaCha8Rng,
+    /// Time of the next IMU sample (drawn ahead, so the streams can say when they step next).
+    next_time: f64,
+    /// The second part of a sample split at a frame time ([`VehicleSim::stream_step`]).
+    pending: Option<(ImuSample, TruthSample)>,
+    /// Truth at the end of the last part [`VehicleSim::stream_step`] returned.
+    stream_truth: TruthSample,
     imu: ImuErrors,
     sensor: TerrainSensor,
     step: u64,
@@ -162,6 +177,9 @@ impl VehicleSim {
         let truth = truth_at(&world, &trajectory, &imu, 0.0);
         let motion = world.body_motion(0.0, &trajectory.state(0.0));
         let initial_estimate = draw_initial_estimate(cfg, &world, &truth, seed);
+        let jitter = cfg.imu.timestamp_jitter_s;
+        let mut jitter_rng = rng_stream(seed, STREAM_IMU_JITTER);
+        let next_time = sample_time(1, dt, jitter, &mut jitter_rng);
         Ok(Self {
             id: cfg.id,
             name: cfg.display_name(),
@@ -170,6 +188,14 @@ impl VehicleSim {
             synthesis: cfg.imu.synthesis,
             dt,
             frame_every,
+            frame_period: 1.0 / cfg.sensor.rate_hz,
+            frame_offset: cfg.sensor.time_offset_s,
+            next_frame: 1,
+            jitter,
+            jitter_rng,
+            next_time,
+            pending: None,
+            stream_truth: truth,
             imu,
             sensor,
             step: 0,
@@ -305,26 +331,49 @@ impl VehicleSim {
         }
     }
 
-    /// Advances one IMU period: the IMU sample of (t_{k−1}, t_k], a sensor frame at t_k when
-    /// k is a multiple of [`VehicleSim::frame_every`], and the truth at t_k.
+    /// Time of the next IMU sample: k·Δt, plus the jitter of `[vehicle.imu] timestamp_jitter_s`.
+    pub fn next_time(&self) -> f64 {
+        self.next_time
+    }
+
+    /// Advances one IMU sample: the IMU sample of (t_{k−1}, t_k] (t_k = k·Δt, jittered when
+    /// configured, the measurement over the actual interval), a sensor frame when one falls in
+    /// that interval — at its own time n/rate + offset, seen from the truth at that time, so it
+    /// may lie *between* t_{k−1} and t_k as a real camera's does — and the truth at t_k. Without
+    /// jitter or offset and with the IMU rate a multiple of the frame rate, frames fall on the
+    /// samples t_k with k a multiple of [`VehicleSim::frame_every`].
     pub fn step(&mut self) -> StepOutput {
         let prev = self.truth.nav();
         self.step += 1;
-        // Times are k·Δt (no accumulated rounding).
-        let time = self.step as f64 * self.dt;
+        let time = self.next_time;
+        self.next_time = sample_time(self.step + 1, self.dt, self.jitter, &mut self.jitter_rng);
+        let dt = time - prev.time;
         let state = self.trajectory.state(time);
         let nav = self.world.nav_truth(time, &state);
         let motion = self.world.body_motion(time, &state);
         let ideal = self.synthesise(self.synthesis, &self.motion, &prev, &motion, &nav);
         self.motion = motion;
-        let measured = self.imu.corrupt(&ideal);
+        let measured = if self.jitter > 0.0 {
+            self.imu.corrupt_over(&ideal, dt)
+        } else {
+            self.imu.corrupt(&ideal)
+        };
         self.truth = truth_sample(&self.world, &state, &nav, &self.imu);
-        let frame = self.step.is_multiple_of(self.frame_every).then(|| {
-            let nav = self.truth.nav();
+        let frame_time = self.next_frame as f64 * self.frame_period + self.frame_offset;
+        // A frame at (or within 1 ns of: rates are decimals, their products round) this sample
+        // time is taken at the sample; one before it, inside the interval, at its own time.
+        let frame = (frame_time <= time + FRAME_SNAP_S).then(|| {
+            self.next_frame += 1;
+            let at = if frame_time >= time - FRAME_SNAP_S {
+                self.truth
+            } else {
+                truth_at(&self.world, &self.trajectory, &self.imu, frame_time)
+            };
+            let nav = at.nav();
             let world_from_body = self.world.world_from_body(&nav);
             let frame = self.world.frame();
             self.sensor.observe(
-                time,
+                at.time,
                 &world_from_body,
                 &nav.position,
                 self.world.features(),
@@ -334,7 +383,7 @@ impl VehicleSim {
         });
         let sample = |m: &ImuIdeal| ImuSample {
             time,
-            dt: self.dt,
+            dt,
             specific_force: m.specific_force,
             angular_rate: m.angular_rate,
         };
@@ -344,6 +393,85 @@ impl VehicleSim {
             frame,
             truth: self.truth,
         }
+    }
+
+    /// The estimator's stream: [`VehicleSim::step`] with a sample that straddles a frame split
+    /// at the frame time exactly as a replay splits it ([`crate::replay::split_at_frames`]: the
+    /// same measured f̂ and ω̂ over both parts), the frame after the first part, the truth at the
+    /// end of each part. Returns one part per call.
+    pub fn stream_step(&mut self) -> StepOutput {
+        if let Some((imu, truth)) = self.pending.take() {
+            self.stream_truth = truth;
+            return StepOutput {
+                imu,
+                imu_ideal: imu,
+                frame: None,
+                truth,
+            };
+        }
+        let mut out = self.step();
+        self.stream_truth = out.truth;
+        let Some(tf) = out.frame.as_ref().map(|f| f.frame.time) else {
+            return out;
+        };
+        if tf >= out.imu.time {
+            return out;
+        }
+        let t_prev = out.imu.time - out.imu.dt;
+        let rest = ImuSample {
+            dt: out.imu.time - tf,
+            ..out.imu
+        };
+        self.pending = Some((rest, out.truth));
+        out.imu = ImuSample {
+            time: tf,
+            dt: tf - t_prev,
+            ..out.imu
+        };
+        out.imu_ideal = out.imu;
+        out.truth = truth_at(&self.world, &self.trajectory, &self.imu, tf);
+        self.stream_truth = out.truth;
+        out
+    }
+
+    /// Truth at the end of the last part [`VehicleSim::stream_step`] returned.
+    pub fn stream_truth(&self) -> &TruthSample {
+        &self.stream_truth
+    }
+
+    /// Time of the next part [`VehicleSim::stream_step`] returns.
+    pub fn stream_next_time(&self) -> f64 {
+        match &self.pending {
+            Some((imu, _)) => imu.time,
+            None => {
+                let tf = self.next_frame as f64 * self.frame_period + self.frame_offset;
+                if tf < self.next_time - FRAME_SNAP_S {
+                    tf
+                } else {
+                    self.next_time
+                }
+            }
+        }
+    }
+
+    /// Time of the last part [`VehicleSim::stream_step`] returned.
+    pub fn stream_time(&self) -> f64 {
+        self.stream_truth.time
+    }
+}
+
+/// Frames within this of a sample time are taken at the sample [s]: products of decimal rates
+/// round by ulps (1e-15 s); no camera is synchronised better than a microsecond.
+const FRAME_SNAP_S: f64 = 1e-9;
+
+/// Time of IMU sample k: k·Δt (no accumulated rounding), plus U(−j, j) when j > 0 (the stream
+/// is drawn only then, so scenarios without jitter keep their draws).
+fn sample_time(k: u64, dt: f64, jitter: f64, rng: &mut rand_chacha::ChaCha8Rng) -> f64 {
+    let t = k as f64 * dt;
+    if jitter > 0.0 {
+        t + rng.random_range(-jitter..jitter)
+    } else {
+        t
     }
 }
 
