@@ -26,10 +26,20 @@ const DURATION: &str = "30";
 /// single-host run of this scenario took 7.6 s wall on a loaded 2-core machine; 40× that).
 const HANG: Duration = Duration::from_secs(300);
 
-/// `n` consecutive free TCP ports on `addr` from a random base (checked by binding each).
+/// Calls of [`free_ports`] in this test process (two tests must not pick the same base).
+static PICKS: std::sync::atomic::AtomicU32 = std::sync::atomic::AtomicU32::new(0);
+
+/// `n` consecutive free TCP ports on `addr` from a pseudo-random base (checked by binding
+/// each), different for every call in this process.
 fn free_ports(addr: &str, n: u16) -> u16 {
-    for attempt in 0..200u32 {
-        let seed = std::process::id().wrapping_mul(2_654_435_761) ^ attempt.wrapping_mul(40_503);
+    for _ in 0..200u32 {
+        let pick = PICKS.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+        let nanos = std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .map_or(0, |d| d.subsec_nanos());
+        let seed = std::process::id().wrapping_mul(2_654_435_761)
+            ^ pick.wrapping_mul(40_503)
+            ^ nanos;
         let base = 20_000 + (seed % 30_000) as u16;
         let ok = (0..n).all(|k| std::net::TcpListener::bind((addr, base + k)).is_ok());
         if ok {
@@ -49,7 +59,11 @@ fn loopback_copy(dir: &Path) -> PathBuf {
     let text = text
         .replace(
             "monitor = \"tcp/10.0.0.1:7450\"",
-            &format!("monitor = \"tcp/127.0.0.1:{monitor}\""),
+            // A key prefix of its own: no other run's session can match this run's keys.
+            &format!(
+                "monitor = \"tcp/127.0.0.1:{monitor}\"\nkey_prefix = \"canopy/test-{}-{monitor}\"",
+                std::process::id()
+            ),
         )
         .replace(
             "address = \"10.0.0.1\"",
@@ -331,6 +345,7 @@ fn two_hosts_and_a_monitor_run_the_team() {
 /// (`--monitor-wait 2`), exits non-zero and starts no process.
 #[test]
 fn a_host_without_its_monitor_fails_fast_and_clearly() {
+    let _g = serial();
     let tmp = tempfile::tempdir().expect("temporary directory");
     let scenario = loopback_copy(tmp.path());
     let text = std::fs::read_to_string(&scenario).unwrap();
