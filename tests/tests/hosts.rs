@@ -455,6 +455,7 @@ fn assert_converged(r: &procs::Run, label: &str) {
 fn assert_rmse_close(r: &procs::Run, single: &Path, duration: &str, tol: f64) {
     let one = run(single, &["--quiet", "--duration", duration]);
     assert_sound(&one);
+    one.print_standing("one host");
     let (multi_rmse, one_rmse) = (r.summary.team.map_rmse_m, one.summary.team.map_rmse_m);
     let reference = r
         .summary
@@ -553,6 +554,110 @@ fn two_hosts_on_machines_with_private_shm() {
     assert_links_carried_traffic(&r);
     assert_converged(&r, "two machines");
     assert_rmse_close(&r, &scenario, DURATION, 0.05);
+}
+
+/// Simulated seconds of the tree-8 run: 60 fusion rounds over a tree of diameter 5, so the
+/// features seen in the first half have crossed it (`procs::MATURE_S` judges the rest).
+const TREE8_DURATION: &str = "60";
+
+/// `topologies/tree-8.toml` laid out over three machines as in `deploy.rs`'s unit tests: its
+/// `shm` pairs kept inside a host (alpha: uav1–uav2; beta: uav3, uav4, uav7; gamma: uav5,
+/// uav6, uav8), its three `net` links crossing hosts, their endpoints derived (the explicit
+/// loopback `listen` of uav2–uav3 removed).
+fn tree8_on_three_hosts(dir: &Path) -> PathBuf {
+    let text = std::fs::read_to_string(topology("tree-8.toml")).expect("tree-8.toml");
+    let listen = "listen = \"tcp/127.0.0.1:7461\"";
+    assert!(
+        text.contains(listen),
+        "tree-8.toml changed: update this test"
+    );
+    let mut text: String = text
+        .lines()
+        .filter(|l| !l.starts_with(listen))
+        .collect::<Vec<_>>()
+        .join("\n");
+    text.push_str(
+        r#"
+
+[zenoh]
+mode = "peer"
+monitor = "tcp/10.0.0.1:7450"
+
+[[host]]
+name = "alpha"
+address = "10.0.0.1"
+vehicles = [1, 2]
+
+[[host]]
+name = "beta"
+address = "10.0.0.2"
+vehicles = [3, 4, 7]
+
+[[host]]
+name = "gamma"
+address = "10.0.0.3"
+vehicles = [5, 6, 8]
+"#,
+    );
+    let path = dir.join("tree-8-three-hosts.toml");
+    std::fs::write(&path, text).expect("write the scenario");
+    path
+}
+
+/// tree-8 across three emulated machines (own netns, private /dev/shm and /tmp): sound, every
+/// link (three `net` across machines, four `shm` inside them) carried traffic both ways, each
+/// machine ran its own world and its vehicles only, and the team's map RMSE is within 2 % of
+/// tree-8 on one host (the acceptance figure of issue #14; measured on this machine:
+/// docs/arch/deploy.md). Fails where namespaces cannot be created unless
+/// `CANOPY_TEST_NO_NAMESPACES=1`.
+#[test]
+fn tree8_on_three_machines_with_private_shm() {
+    if opted_out() {
+        return;
+    }
+    let _g = serial();
+    let machines = Machines::new(3).unwrap_or_else(|e| {
+        panic!(
+            "cannot emulate three machines: {e}. Run as root with iproute2 and util-linux \
+             (unshare), or set {NO_NAMESPACES}=1 to opt out on a machine without namespaces"
+        )
+    });
+    let work = tempfile::tempdir_in(env!("CARGO_TARGET_TMPDIR")).expect("work directory");
+    let scenario = tree8_on_three_hosts(work.path());
+    let r = run_hosts(
+        Some(&machines),
+        &scenario,
+        &["alpha", "beta", "gamma"],
+        TREE8_DURATION,
+        work.path(),
+    );
+    let all = [
+        "uav1", "uav2", "uav3", "uav4", "uav5", "uav6", "uav7", "uav8",
+    ];
+    assert_hosts_ran_their_share(
+        work.path(),
+        &[
+            ("alpha", &["uav1", "uav2"]),
+            ("beta", &["uav3", "uav4", "uav7"]),
+            ("gamma", &["uav5", "uav6", "uav8"]),
+        ],
+        &all,
+    );
+    let worlds = r
+        .checks
+        .processes
+        .iter()
+        .filter(|p| p.name == "world")
+        .count();
+    assert_eq!(worlds, 3, "one world per machine");
+    assert_links_carried_traffic(&r);
+    // Coverage only: over 60 s on a tree of diameter 5 the information share of the vehicles
+    // far from a feature's observers is still ~0.8 on one host too (measured 0.79–0.98 single
+    // host, 0.77–0.99 across machines), and which vehicles lag depends on scheduling.
+    for (name, s) in r.print_standing("tree-8 on three machines") {
+        assert!(s.coverage >= 0.8, "{name}: coverage {:.2}", s.coverage);
+    }
+    assert_rmse_close(&r, &topology("tree-8.toml"), TREE8_DURATION, 0.02);
 }
 
 /// A host launcher whose monitor never appears says so, naming the endpoint, within seconds
