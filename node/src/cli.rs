@@ -510,8 +510,13 @@ fn cmd_check(path: &Path) -> Result<()> {
     }
     if !s.hosts.is_empty() {
         println!(
-            "  hosts: the per-host launch is not implemented yet; `canopy run` runs every \
-             host's share on this machine (docs/arch/deploy.md)"
+            "  hosts: `canopy run SCENARIO --monitor` on the monitor's machine ({}), then \
+             `canopy run SCENARIO --host NAME` on each host; plain `canopy run` runs every \
+             host's share on this machine (docs/arch/deploy.md)",
+            s.zenoh
+                .monitor
+                .as_deref()
+                .unwrap_or("through the zenoh routers of [zenoh].connect")
         );
     }
     for e in &s.events {

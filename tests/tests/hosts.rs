@@ -556,6 +556,74 @@ fn two_hosts_on_machines_with_private_shm() {
     assert_rmse_close(&r, &scenario, DURATION, 0.05);
 }
 
+/// `topologies/central-4.toml` over two hosts on loopback addresses: alpha (127.0.0.1) runs the
+/// hub, uav1 and uav2 (their star links stay `shm`), beta (127.0.0.2) runs uav3 and uav4, whose
+/// links to the hub become `net`. Free ports as in [`loopback_copy`].
+fn central_on_two_hosts(dir: &Path) -> PathBuf {
+    let text = std::fs::read_to_string(topology("central-4.toml")).expect("central-4.toml");
+    let mut parts = text.split("[[link]]");
+    let mut out = parts.next().expect("head").to_string();
+    for p in parts {
+        let crosses = p.contains("b = 3\n") || p.contains("b = 4\n");
+        out.push_str("[[link]]");
+        out.push_str(&if crosses {
+            p.replace("transport = \"shm\"", "transport = \"net\"")
+        } else {
+            p.to_string()
+        });
+    }
+    let alpha = free_ports("127.0.0.1", 5);
+    let beta = free_ports("127.0.0.2", 5);
+    let monitor = free_ports("127.0.0.1", 1);
+    out.push_str(&format!(
+        r#"
+[zenoh]
+mode = "peer"
+monitor = "tcp/127.0.0.1:{monitor}"
+key_prefix = "canopy/test-{pid}-{monitor}"
+
+[[host]]
+name = "alpha"
+address = "127.0.0.1"
+port_base = {alpha}
+vehicles = [1, 2]
+hub = true
+
+[[host]]
+name = "beta"
+address = "127.0.0.2"
+port_base = {beta}
+vehicles = [3, 4]
+"#,
+        pid = std::process::id()
+    ));
+    let path = dir.join("central-two-hosts.toml");
+    std::fs::write(&path, out).expect("write the scenario");
+    path
+}
+
+/// Central mode across two hosts (loopback addresses): the hub runs on alpha and its host's
+/// world paces it; uav3 and uav4 reach it over zenoh from beta. Sound, every star link carried
+/// traffic both ways, the hub is among alpha's processes, and the team's map RMSE within 5 %
+/// of central-4 on one host (the reason of [`two_hosts_and_a_monitor_run_the_team`]'s 5 %).
+#[test]
+fn central_mode_across_two_hosts() {
+    let _g = serial();
+    let tmp = tempfile::tempdir().expect("temporary directory");
+    let scenario = central_on_two_hosts(tmp.path());
+    let r = run_hosts(None, &scenario, &["alpha", "beta"], DURATION, tmp.path());
+    assert!(
+        tmp.path().join("alpha/logs/hub.log").is_file(),
+        "the hub runs on alpha"
+    );
+    assert!(!tmp.path().join("beta/logs/hub.log").exists());
+    assert!(r.checks.processes.iter().any(|p| p.name == "hub"));
+    assert_eq!(r.checks.hub_rejected, 0);
+    assert_links_carried_traffic(&r);
+    assert_converged(&r, "central, two hosts");
+    assert_rmse_close(&r, &topology("central-4.toml"), DURATION, 0.05);
+}
+
 /// Simulated seconds of the tree-8 run: 60 fusion rounds over a tree of diameter 5, so the
 /// features seen in the first half have crossed it (`procs::MATURE_S` judges the rest).
 const TREE8_DURATION: &str = "60";
@@ -695,6 +763,66 @@ fn a_host_without_its_monitor_fails_fast_and_clearly() {
         !tmp.path().join("alpha/logs").exists(),
         "no process may start without the monitor"
     );
+    let left = processes_mentioning(&tmp.path().display().to_string());
+    assert!(left.is_empty(), "processes left behind: {left:?}");
+}
+
+/// The monitor killed (SIGKILL) mid-run: every host launcher notices that its monitor's zenoh
+/// session went away, stops its processes, exits non-zero saying so, and leaves no process
+/// behind.
+#[test]
+fn hosts_end_cleanly_when_the_monitor_dies() {
+    let _g = serial();
+    let tmp = tempfile::tempdir().expect("temporary directory");
+    let scenario = loopback_copy(tmp.path());
+    let logs = tmp.path().join("launchers");
+    std::fs::create_dir_all(&logs).unwrap();
+    let mon = tmp.path().join("monitor").display().to_string();
+    // Long enough (simulated) that the run is still going when the monitor is killed.
+    let long = "600";
+    let mut monitor = start(
+        &scenario,
+        &["--monitor", "--quiet", "--duration", long, "--out", &mon],
+        &logs,
+        "monitor",
+    );
+    let mut hosts = Vec::new();
+    for h in ["alpha", "beta"] {
+        let out = tmp.path().join(h).display().to_string();
+        hosts.push((
+            h.to_string(),
+            start(
+                &scenario,
+                &["--host", h, "--duration", long, "--out", &out],
+                &logs,
+                h,
+            ),
+        ));
+    }
+    // Both hosts connected and stepping (their progress lines), then the monitor dies.
+    let started = Instant::now();
+    while !["alpha", "beta"]
+        .iter()
+        .all(|h| read_log(&logs, h).contains(" s of 600.0 s"))
+    {
+        assert!(
+            started.elapsed() < HANG,
+            "the hosts never got going:\n{}",
+            read_log(&logs, "alpha")
+        );
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    monitor.kill().expect("SIGKILL the monitor");
+    let _ = monitor.wait();
+    let outputs = wait_all(hosts, &logs);
+    for (h, o) in &outputs {
+        let text = read_log(&logs, h);
+        assert!(!o.status.success(), "{h} must fail:\n{text}");
+        assert!(
+            text.contains("lost the monitor at tcp/127.0.0.1:"),
+            "{text}"
+        );
+    }
     let left = processes_mentioning(&tmp.path().display().to_string());
     assert!(left.is_empty(), "processes left behind: {left:?}");
 }
