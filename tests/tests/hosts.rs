@@ -1,14 +1,19 @@
-//! A team across hosts (issue #14): `topologies/two-hosts.toml` run as two `canopy run --host`
-//! launchers and one `canopy run --monitor`, each its own OS process tree, on one machine with
-//! loopback addresses standing in for the machines (alpha 127.0.0.1, beta 127.0.0.2, the
-//! monitor on 127.0.0.1). Each host runs its own world (its vehicles' sensor input simulated
-//! from the scenario's seed), its vehicles and their `shm` links; the links between the hosts
-//! are zenoh on the endpoints `deploy::resolve_endpoints` derives, and every report reaches the
-//! monitor over zenoh (the host launchers relay them).
+//! A team across hosts (issue #14): scenarios run as `canopy run --host NAME` launchers (one
+//! per host) and one `canopy run --monitor`, each its own OS process tree, on this machine:
 //!
-//! The scenario is a copy of the shipped file with the addresses replaced and the port bases
-//! moved to free ports (other runs may hold 7450–7462 on a shared machine); nothing else
-//! changes.
+//! - on loopback addresses standing in for the machines (alpha 127.0.0.1, beta 127.0.0.2, the
+//!   monitor on 127.0.0.1), with a copy of the scenario whose addresses are replaced and whose
+//!   port bases are moved to free ports (other runs may hold 7450–7462 on a shared machine):
+//!   two-hosts, central mode, a monitor killed mid-run, a host without its monitor;
+//! - on emulated machines ([`Machines`]: a network namespace each, joined by a bridge, every
+//!   process with its own tmpfs on /dev/shm and /tmp, so nothing passes through shared memory
+//!   between hosts): `two-hosts.toml` unchanged, and tree-8 over three machines. These FAIL
+//!   where namespaces cannot be created, unless `CANOPY_TEST_NO_NAMESPACES=1` (README).
+//!
+//! Each host runs its own world (its vehicles' sensor input simulated from the scenario's
+//! seed), its vehicles and their `shm` links; the links between hosts are zenoh on the
+//! endpoints `deploy::resolve_endpoints` derives, and every report reaches the monitor over
+//! zenoh (the host launchers relay them).
 
 mod procs;
 
