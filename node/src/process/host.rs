@@ -308,6 +308,7 @@ pub fn run_host(s: Scenario, name: &str, opts: &HostOptions) -> Result<HostOutco
     let mut next_plain = 10.0;
     let mut interrupted = false;
     let mut shutdown_asked = false;
+    let mut monitor_down: Option<Instant> = None;
     while failure.is_none() {
         if opts.stop.load(Ordering::Relaxed) {
             interrupted = true;
@@ -337,11 +338,23 @@ pub fn run_host(s: Scenario, name: &str, opts: &HostOptions) -> Result<HostOutco
         if shutdown_asked {
             break;
         }
-        if relay.link.peer_state() != PeerState::Up {
-            failure = Some(format!(
-                "lost the monitor at {endpoint} (its zenoh session went away)"
-            ));
-            break;
+        // The monitor out of reach: a network cut heals (zenoh reconnects; meanwhile the team's
+        // pace holds every world), a dead monitor does not.
+        if relay.link.peer_state() == PeerState::Up {
+            monitor_down = None;
+        } else {
+            let since = *monitor_down.get_or_insert_with(|| {
+                eprintln!("host {name}: the monitor at {endpoint} is out of reach");
+                Instant::now()
+            });
+            if since.elapsed() > super::monitor::LOST_GRACE {
+                failure = Some(format!(
+                    "lost the monitor at {endpoint} (its zenoh session went away and did not \
+                     come back within {} s)",
+                    super::monitor::LOST_GRACE.as_secs()
+                ));
+                break;
+            }
         }
         // Reap: every end goes to the monitor at once.
         sent_records.resize(procs.len(), false);

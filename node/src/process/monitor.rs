@@ -834,9 +834,18 @@ struct RemoteHost {
     announced: bool,
     /// It said it is done (all its processes ended).
     done: bool,
-    /// Its session went away before it was done.
+    /// Its session went away before it was done and did not come back within [`LOST_GRACE`].
     lost: bool,
+    /// Since when its session is away.
+    down_since: Option<Instant>,
 }
+
+/// How long the monitor and a host launcher wait for each other's zenoh session to come back
+/// before giving up: a network cut that heals within it costs a pause of the team (every
+/// world is held by the team's pace meanwhile), not the run. zenoh declares a silent peer lost
+/// after its 3 s lease and reconnects within ~1–5 s of the network's return
+/// (docs/arch/system.md).
+pub(crate) const LOST_GRACE: Duration = Duration::from_secs(20);
 
 /// The monitor's side of the control plane of a multi-host run.
 struct Remote {
@@ -864,6 +873,7 @@ impl Remote {
                     announced: false,
                     done: false,
                     lost: false,
+                    down_since: None,
                 })
             })
             .collect::<Result<Vec<_>>>()?;
@@ -990,7 +1000,13 @@ impl Monitor {
             }
             let rh = &mut remote.hosts[h];
             if rh.welcomed && !rh.done && rh.link.peer_state() != PeerState::Up {
-                rh.lost = true;
+                let since = *rh.down_since.get_or_insert_with(|| {
+                    eprintln!("host {} is out of reach", rh.name);
+                    Instant::now()
+                });
+                rh.lost |= since.elapsed() > LOST_GRACE;
+            } else {
+                rh.down_since = None;
             }
         }
         self.remote = Some(remote);
@@ -1345,8 +1361,9 @@ pub fn launch(mut s: Scenario, opts: &LaunchOptions) -> Result<LaunchOutcome> {
             if let Some(h) = r.hosts.iter().find(|h| h.lost) {
                 m.failure.get_or_insert(format!(
                     "lost the host launcher `{}`: its zenoh session to the monitor went away \
-                     before its share of the run ended",
-                    h.name
+                     before its share of the run ended and did not come back within {} s",
+                    h.name,
+                    LOST_GRACE.as_secs()
                 ));
                 break;
             }
