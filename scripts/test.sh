@@ -4,8 +4,9 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
-# iproute2 provides `ip netns` / veth for the across-hosts suite (it skips with a message where
-# namespaces are not permitted, but the tool itself should be present).
+# iproute2 provides `ip netns` / veth for the across-hosts suites (tests/tests/netns.rs skips with
+# a message where namespaces are not permitted; tests/tests/hosts.rs FAILS there unless
+# CANOPY_TEST_NO_NAMESPACES=1, see the README).
 if ! command -v ip >/dev/null 2>&1; then
   if command -v apt-get >/dev/null 2>&1; then
     (apt-get install -y iproute2 || (apt-get update && apt-get install -y iproute2)) >/dev/null

@@ -74,6 +74,20 @@ pub struct LaunchArgs {
     /// name; the process is started with `ip netns exec NAMESPACE`). Repeatable.
     #[arg(long, value_name = "VEHICLE=NS")]
     pub netns: Vec<String>,
+    /// Multi-host run: start only the share of `[[host]]` NAME (its world, vehicles and, with
+    /// `hub = true`, the hub), reporting to the monitor over zenoh at `[zenoh].monitor`.
+    #[arg(long, value_name = "NAME", conflicts_with_all = ["monitor", "netns"])]
+    pub host: Option<String>,
+    /// Multi-host run: be the monitor only (no local vehicles): gather every host's reports over
+    /// zenoh (listening on `[zenoh].monitor`) and write the outputs.
+    #[arg(long, conflicts_with = "netns")]
+    pub monitor: bool,
+    /// `--host`: seconds to wait for the monitor to answer before giving up.
+    #[arg(long, value_name = "SECONDS", default_value_t = 10.0)]
+    pub monitor_wait: f64,
+    /// `--monitor`: seconds to wait for every host to connect before giving up.
+    #[arg(long, value_name = "SECONDS", default_value_t = 300.0)]
+    pub wait_hosts: f64,
 }
 
 /// Arguments of `run` and `sim`.
@@ -249,8 +263,56 @@ fn cmd_sim(args: &RunArgs) -> Result<()> {
     Ok(())
 }
 
+/// Seconds from the command line as a duration (finite, ≥ 0).
+fn seconds(flag: &str, v: f64) -> Result<std::time::Duration> {
+    std::time::Duration::try_from_secs_f64(v)
+        .map_err(|_| anyhow::anyhow!("{flag} {v}: expected a number of seconds ≥ 0"))
+}
+
+/// `canopy run SCENARIO --host NAME`: this host's share of a multi-host run.
+fn cmd_run_host(args: &LaunchArgs, s: Scenario, name: &str) -> Result<()> {
+    let out = args
+        .run
+        .out
+        .clone()
+        .unwrap_or_else(|| out_dir(&args.run, &s).join(format!("host-{}", dir_name(name))));
+    let opts = crate::process::host::HostOptions {
+        out: out.clone(),
+        duration: args.run.duration,
+        quiet: args.run.quiet,
+        exe: None,
+        stop: ctrl_c_flag(),
+        monitor_wait: seconds("--monitor-wait", args.monitor_wait)?,
+    };
+    let outcome = crate::process::host::run_host(s, name, &opts)
+        .with_context(|| format!("canopy run --host {name} failed"))?;
+    for p in &outcome.processes {
+        if !p.clean_exit() && !p.killed_by_monitor {
+            println!(
+                "process {} did not exit cleanly (code {:?}, signal {:?}); log {}",
+                p.name,
+                p.exit_code,
+                p.signal,
+                p.log.display()
+            );
+        }
+    }
+    println!(
+        "host {name}: {} process(es) ended; logs in {}",
+        outcome.processes.len(),
+        out.join("logs").display()
+    );
+    if let Some(f) = &outcome.failure {
+        anyhow::bail!("host {name}: {f}");
+    }
+    Ok(())
+}
+
 fn cmd_run(args: &LaunchArgs) -> Result<()> {
     let s = load_scenario(args.run.scenario.as_deref())?;
+    if let Some(name) = &args.host {
+        return cmd_run_host(args, s, name);
+    }
     let out = out_dir(&args.run, &s);
     record_logs(&args.run, &s)?;
     let mut netns = std::collections::BTreeMap::new();
@@ -273,6 +335,11 @@ fn cmd_run(args: &LaunchArgs) -> Result<()> {
         netns,
         exe: None,
         stop: ctrl_c_flag(),
+        monitor_only: if args.monitor {
+            Some(seconds("--wait-hosts", args.wait_hosts)?)
+        } else {
+            None
+        },
     };
     let outcome = crate::process::monitor::launch(s.clone(), &opts).context("canopy run failed")?;
     if outcome.checks.interrupted {
@@ -443,8 +510,13 @@ fn cmd_check(path: &Path) -> Result<()> {
     }
     if !s.hosts.is_empty() {
         println!(
-            "  hosts: the per-host launch is not implemented yet; `canopy run` runs every \
-             host's share on this machine (docs/arch/deploy.md)"
+            "  hosts: `canopy run SCENARIO --monitor` on the monitor's machine ({}), then \
+             `canopy run SCENARIO --host NAME` on each host; plain `canopy run` runs every \
+             host's share on this machine (docs/arch/deploy.md)",
+            s.zenoh
+                .monitor
+                .as_deref()
+                .unwrap_or("through the zenoh routers of [zenoh].connect")
         );
     }
     for e in &s.events {

@@ -39,7 +39,7 @@ pub fn run(c: &RoleCommon) -> Result<()> {
     .context("building the hub")?;
     let mut wl = control_link(&c.prefix, me, WORLD_ID, 64)?;
     let mut monitor = control_link(&c.prefix, me, MONITOR_ID, 64)?;
-    let mut links = FusionLinks::open(&s, &c.prefix, me, 0)?;
+    let mut links = FusionLinks::open(&s, c, me, 0)?;
     if !super::wait_peer_up(&mut monitor, Duration::from_secs(120), &stop) {
         bail!("the monitor did not come up");
     }

@@ -12,6 +12,8 @@
 //! - `fusion_thread`: the vehicle's [`crate::agent::VehicleFusion`] on its own thread, fusing
 //!   rounds on lent copies of the filter, so that fusion never holds up IMU processing.
 //! - [`hub`]: the hub of central mode — a [`crate::agent::HubAgent`] on world time.
+//! - [`host`]: `canopy run --host NAME` — one host's share of a multi-host run, relaying its
+//!   processes' reports to the monitor over zenoh.
 //! - [`monitor`]: the launcher — spawns, paces events (crash, restart, hub loss), reaps, gathers
 //!   reports into a [`crate::record::RunRecord`], runs the centralized reference, writes outputs.
 //!
@@ -38,6 +40,7 @@ fn parse_vm_hwm(status: &str) -> Option<u64> {
     let kb: u64 = parts.next()?.parse().ok()?;
     (parts.next()? == "kB").then_some(kb * 1024)
 }
+pub mod host;
 pub mod hub;
 pub mod monitor;
 pub mod protocol;
@@ -89,9 +92,27 @@ pub struct RoleCommon {
     /// The run's resolved scenario file.
     #[arg(long)]
     pub scenario: PathBuf,
-    /// The run's iceoryx2 prefix (also the zenoh key prefix).
+    /// The run's iceoryx2 prefix (also the zenoh key prefix of the fusion links unless
+    /// `--net-prefix` is given).
     #[arg(long)]
     pub prefix: String,
+    /// The zenoh key prefix of the fusion links (multi-host runs: the same on every host,
+    /// whose iceoryx2 prefixes differ).
+    #[arg(long)]
+    pub net_prefix: Option<String>,
+    /// Multi-host runs: this process belongs to `[[host]]` NAME (the world streams to that
+    /// host's vehicles only).
+    #[arg(long)]
+    pub host: Option<String>,
+}
+
+impl RoleCommon {
+    /// The zenoh key prefix of this run's fusion links.
+    pub fn zenoh_prefix(&self) -> String {
+        self.net_prefix
+            .clone()
+            .unwrap_or_else(|| zenoh_prefix(&self.prefix))
+    }
 }
 
 /// The roles.
@@ -235,7 +256,8 @@ pub(crate) fn zenoh_prefix(prefix: &str) -> String {
 impl FusionLinks {
     /// Opens the links of node `me` as configured in `s` (listen endpoints already resolved by
     /// the launcher). Fault schedules are in simulated seconds on `clock`.
-    pub fn open(s: &Scenario, prefix: &str, me: NodeId, incarnation: u32) -> Result<Self> {
+    pub fn open(s: &Scenario, c: &RoleCommon, me: NodeId, incarnation: u32) -> Result<Self> {
+        let prefix = c.prefix.as_str();
         let clock = Arc::new(ManualClock::new(0.0));
         let dyn_clock: Arc<dyn Clock> = clock.clone();
         let mine: Vec<(usize, crate::network::LinkSpec)> = effective_links(s)
@@ -261,7 +283,7 @@ impl FusionLinks {
         let zenoh = if listen.is_empty() && connect.is_empty() {
             None
         } else {
-            let mut cfg = ZenohConfig::new(zenoh_prefix(prefix), listen, connect);
+            let mut cfg = ZenohConfig::new(c.zenoh_prefix(), listen, connect);
             if let (Some(u), Some(p)) = (&s.secrets.zenoh_user, &s.secrets.zenoh_password) {
                 cfg.auth = Some(ZenohAuth {
                     user: u.clone(),

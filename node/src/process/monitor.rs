@@ -29,14 +29,14 @@ use anyhow::{Context, Result};
 use canopy_fusion::ins::{VehicleCovariance, VehicleState, VehicleVector};
 use canopy_fusion::sensor::FeatureId;
 use canopy_transport::iceoryx::{IceoryxLink, remove_run_leftovers, unique_run_prefix};
-use canopy_transport::link::Link;
+use canopy_transport::link::{Link, PeerState};
 use canopy_transport::{MessageKind, NodeId};
 use nalgebra::{Matrix3, Vector3};
 use serde::{Deserialize, Serialize};
 
 use super::protocol::{
-    Control, EstimateReport, FeatureReport, FrameAssociations, LinkReport, MONITOR_ID, Report,
-    TruthReport, VehicleCounters, WORLD_ID,
+    Control, EstimateReport, FeatureReport, FrameAssociations, HostMsg, LinkReport, MONITOR_ID,
+    Report, TruthReport, VehicleCounters, WORLD_ID,
 };
 use super::{ENV_ZENOH_PASSWORD, ENV_ZENOH_USER, control_link, decode_body, send_body};
 use crate::baseline::{BaselineRun, run_reference};
@@ -66,6 +66,9 @@ pub struct LaunchOptions {
     pub exe: Option<PathBuf>,
     /// Set to stop the run early (Ctrl-C); outputs are still written.
     pub stop: Arc<AtomicBool>,
+    /// `canopy run --monitor`: start no process here; gather every `[[host]]` launcher's
+    /// reports over zenoh (`[zenoh].monitor`), waiting this long for all of them to connect.
+    pub monitor_only: Option<Duration>,
 }
 
 /// How a process of the run ended.
@@ -202,15 +205,117 @@ fn ms(t: f64) -> i64 {
     (t * 1000.0).round() as i64
 }
 
-struct Proc {
-    name: String,
-    vehicle: Option<u32>,
-    incarnation: u32,
-    child: Child,
-    planned_kill: bool,
-    status: Option<ExitStatus>,
-    ended_at: f64,
-    log: PathBuf,
+pub(crate) struct Proc {
+    pub(crate) name: String,
+    pub(crate) vehicle: Option<u32>,
+    pub(crate) incarnation: u32,
+    pub(crate) child: Child,
+    pub(crate) planned_kill: bool,
+    pub(crate) status: Option<ExitStatus>,
+    pub(crate) ended_at: f64,
+    pub(crate) log: PathBuf,
+}
+
+impl Proc {
+    /// How it ended, for `checks.json` (its log is read for a panic message).
+    pub(crate) fn record(&self) -> ProcessRecord {
+        use std::os::unix::process::ExitStatusExt;
+        let log = std::fs::read_to_string(&self.log).unwrap_or_default();
+        ProcessRecord {
+            name: self.name.clone(),
+            incarnation: self.incarnation,
+            pid: self.child.id(),
+            exit_code: self.status.and_then(|s| s.code()),
+            signal: self.status.and_then(|s| s.signal()),
+            killed_by_monitor: self.planned_kill,
+            panicked: log.contains("panicked at"),
+            ended_at: self.ended_at,
+            log: self.log.clone(),
+        }
+    }
+}
+
+/// Where and how the processes of a run are started.
+pub(crate) struct Spawner<'a> {
+    /// Output directory (its `scenario.toml`, `logs/`).
+    pub out: &'a Path,
+    /// iceoryx2 prefix.
+    pub prefix: &'a str,
+    /// The canopy executable.
+    pub exe: &'a Path,
+    /// Network namespace per vehicle.
+    pub netns: &'a BTreeMap<u32, String>,
+    /// Extra `canopy role` options (`--net-prefix`, `--host` of a multi-host run).
+    pub extra: &'a [String],
+}
+
+impl Spawner<'_> {
+    /// Starts `canopy role …` for `name` (`world`, `hub` or a vehicle) in its own process
+    /// group, its output to `OUT/logs/NAME[.INCARNATION].log`.
+    pub(crate) fn spawn(
+        &self,
+        name: &str,
+        vehicle: Option<u32>,
+        incarnation: u32,
+        secrets: &Option<(String, String)>,
+    ) -> Result<Proc> {
+        let logs = self.out.join("logs");
+        std::fs::create_dir_all(&logs)?;
+        let log = logs.join(if incarnation == 0 {
+            format!("{name}.log")
+        } else {
+            format!("{name}.{incarnation}.log")
+        });
+        let file =
+            std::fs::File::create(&log).with_context(|| format!("creating {}", log.display()))?;
+        let scenario = self.out.join("scenario.toml");
+        let mut args: Vec<String> = vec!["role".into()];
+        match (name, vehicle) {
+            ("world", _) => args.push("world".into()),
+            ("hub", _) => args.push("hub".into()),
+            (_, Some(id)) => {
+                args.extend(["vehicle".into(), "--id".into(), id.to_string()]);
+                args.extend(["--incarnation".into(), incarnation.to_string()]);
+            }
+            _ => unreachable!("a role without vehicle id is the world or the hub"),
+        }
+        args.extend([
+            "--scenario".into(),
+            scenario.display().to_string(),
+            "--prefix".into(),
+            self.prefix.to_string(),
+        ]);
+        args.extend(self.extra.iter().cloned());
+        let mut cmd = match vehicle.and_then(|id| self.netns.get(&id)) {
+            Some(ns) => {
+                let mut c = Command::new("ip");
+                c.args(["netns", "exec", ns]).arg(self.exe);
+                c
+            }
+            None => Command::new(self.exe),
+        };
+        cmd.args(&args)
+            .stdin(Stdio::null())
+            .stdout(file.try_clone()?)
+            .stderr(file)
+            .process_group(0);
+        if let Some((u, p)) = secrets {
+            cmd.env(ENV_ZENOH_USER, u).env(ENV_ZENOH_PASSWORD, p);
+        }
+        let child = cmd
+            .spawn()
+            .with_context(|| format!("spawning the {name} process ({})", self.exe.display()))?;
+        Ok(Proc {
+            name: name.to_string(),
+            vehicle,
+            incarnation,
+            child,
+            planned_kill: false,
+            status: None,
+            ended_at: 0.0,
+            log,
+        })
+    }
 }
 
 #[derive(Default)]
@@ -290,6 +395,17 @@ struct Monitor {
     events: Vec<EventRecord>,
     world_t: f64,
     world_finished: bool,
+    /// Per world (one per host in a multi-host run, by host index): its time and whether it
+    /// reached the end. `world_t` is the earliest, `world_finished` all of them.
+    worlds: BTreeMap<usize, (f64, bool)>,
+    /// Names of the hosts whose worlds make the run (`["local"]` for a single-host run).
+    world_hosts: Vec<String>,
+    /// The host whose reports are being handled.
+    current_host: usize,
+    /// `--monitor`: the control plane to the host launchers.
+    remote: Option<Remote>,
+    /// How the host launchers' processes ended (`--monitor`).
+    remote_procs: Vec<ProcessRecord>,
     hub_rejected: u64,
     hub_alive: bool,
     /// Vehicles the world holds its streams for (a scheduled restart).
@@ -343,61 +459,15 @@ impl Monitor {
         incarnation: u32,
         secrets: &Option<(String, String)>,
     ) -> Result<()> {
-        let logs = self.out.join("logs");
-        std::fs::create_dir_all(&logs)?;
-        let log = logs.join(if incarnation == 0 {
-            format!("{name}.log")
-        } else {
-            format!("{name}.{incarnation}.log")
-        });
-        let file =
-            std::fs::File::create(&log).with_context(|| format!("creating {}", log.display()))?;
-        let scenario = self.out.join("scenario.toml");
-        let mut args: Vec<String> = vec!["role".into()];
-        match (name, vehicle) {
-            ("world", _) => args.push("world".into()),
-            ("hub", _) => args.push("hub".into()),
-            (_, Some(id)) => {
-                args.extend(["vehicle".into(), "--id".into(), id.to_string()]);
-                args.extend(["--incarnation".into(), incarnation.to_string()]);
-            }
-            _ => unreachable!("a role without vehicle id is the world or the hub"),
+        let p = Spawner {
+            out: &self.out,
+            prefix: &self.prefix,
+            exe: &self.exe,
+            netns: &self.netns,
+            extra: &[],
         }
-        args.extend([
-            "--scenario".into(),
-            scenario.display().to_string(),
-            "--prefix".into(),
-            self.prefix.clone(),
-        ]);
-        let mut cmd = match vehicle.and_then(|id| self.netns.get(&id)) {
-            Some(ns) => {
-                let mut c = Command::new("ip");
-                c.args(["netns", "exec", ns]).arg(&self.exe);
-                c
-            }
-            None => Command::new(&self.exe),
-        };
-        cmd.args(&args)
-            .stdin(Stdio::null())
-            .stdout(file.try_clone()?)
-            .stderr(file)
-            .process_group(0);
-        if let Some((u, p)) = secrets {
-            cmd.env(ENV_ZENOH_USER, u).env(ENV_ZENOH_PASSWORD, p);
-        }
-        let child = cmd
-            .spawn()
-            .with_context(|| format!("spawning the {name} process ({})", self.exe.display()))?;
-        self.procs.push(Proc {
-            name: name.to_string(),
-            vehicle,
-            incarnation,
-            child,
-            planned_kill: false,
-            status: None,
-            ended_at: 0.0,
-            log,
-        });
+        .spawn(name, vehicle, incarnation, secrets)?;
+        self.procs.push(p);
         Ok(())
     }
 
@@ -415,6 +485,28 @@ impl Monitor {
         }
     }
 
+    /// The world whose reports are being handled: `world`, or `world@HOST` in a multi-host run.
+    fn world_name(&self) -> String {
+        if self.remote.is_some() {
+            let host = self.world_hosts.get(self.current_host);
+            format!("world@{}", host.map_or("?", String::as_str))
+        } else {
+            "world".into()
+        }
+    }
+
+    /// The current host's world reached `t` (and the end, if `finished`).
+    fn world_at(&mut self, t: f64, finished: bool) {
+        let w = self.worlds.entry(self.current_host).or_insert((0.0, false));
+        w.0 = w.0.max(t);
+        w.1 |= finished;
+        let n = self.world_hosts.len().max(1);
+        self.world_t = (0..n)
+            .map(|h| self.worlds.get(&h).map_or(0.0, |w| w.0))
+            .fold(f64::INFINITY, f64::min);
+        self.world_finished = (0..n).all(|h| self.worlds.get(&h).is_some_and(|w| w.1));
+    }
+
     fn on_report(&mut self, from: NodeId, r: Report) {
         if let Report::Status {
             t,
@@ -423,7 +515,7 @@ impl Monitor {
         } = &r
         {
             let name = if from == WORLD_ID {
-                "world".to_string()
+                self.world_name()
             } else if let Some(v) = self.vehicles.get_mut(&from) {
                 v.last_t = v.last_t.max(*t);
                 v.name.clone()
@@ -434,7 +526,7 @@ impl Monitor {
                     .unwrap_or_else(|| from.to_string())
             };
             if from == WORLD_ID {
-                self.world_t = self.world_t.max(*t);
+                self.world_at(*t, false);
             }
             self.statuses
                 .insert(name, (Instant::now(), *t, state.clone(), *bounded_wait));
@@ -445,7 +537,7 @@ impl Monitor {
                 Report::Truth {
                     t, samples, frames, ..
                 } => {
-                    self.world_t = self.world_t.max(t);
+                    self.world_at(t, false);
                     for s in samples {
                         self.truth.insert((s.vehicle, ms(s.t)), s);
                     }
@@ -465,15 +557,15 @@ impl Monitor {
                     }
                 }
                 Report::Finished { t } => {
-                    self.world_t = self.world_t.max(t);
-                    self.world_finished = true;
+                    self.world_at(t, true);
                 }
                 Report::Waiting { vehicle, t, .. } => {
-                    self.world_t = self.world_t.max(t);
+                    self.world_at(t, false);
                     self.restart_requests.insert(vehicle, t);
                 }
                 Report::Failed { reason } => {
-                    self.failure.get_or_insert(format!("world: {reason}"));
+                    let who = self.world_name();
+                    self.failure.get_or_insert(format!("{who}: {reason}"));
                 }
                 _ => {}
             }
@@ -560,6 +652,7 @@ impl Monitor {
                 self.on_report(id, r);
             }
         }
+        any |= self.poll_remote();
         any
     }
 
@@ -635,6 +728,10 @@ impl Monitor {
 
     /// Shuts everything down: Shutdown, then SIGTERM, then SIGKILL.
     fn shutdown(&mut self) {
+        if self.remote.is_some() {
+            self.shutdown_remote();
+            return;
+        }
         let ids: Vec<NodeId> = self.links.keys().copied().collect();
         // Vehicles and hub first (they send final reports), then the world.
         for id in ids.iter().filter(|&&i| i != WORLD_ID) {
@@ -680,6 +777,320 @@ impl Monitor {
         self.poll_links();
     }
 }
+
+/// Refuses what a multi-host run (`--host`, `--monitor`) does not support.
+pub(crate) fn check_multi_host(s: &Scenario, flag: &str) -> Result<()> {
+    if s.hosts.is_empty() {
+        anyhow::bail!(
+            "{flag} needs [[host]] tables in the scenario (which host runs which vehicles; \
+             see docs/arch/deploy.md)"
+        );
+    }
+    if !s.events.is_empty() {
+        anyhow::bail!(
+            "{flag}: scheduled [[event]]s (crash, restart, hub loss) are not supported in a \
+             multi-host run yet"
+        );
+    }
+    Ok(())
+}
+
+/// The zenoh session of the control plane of a multi-host run (host launchers ↔ monitor):
+/// under `deploy::control_prefix`, the monitor node [`MONITOR_ID`] and host `i` as node `i`.
+/// `listen`: the monitor's side in peer mode.
+pub(crate) fn control_session(
+    s: &Scenario,
+    local: NodeId,
+    secrets: &Option<(String, String)>,
+) -> Result<canopy_transport::net::ZenohTransport> {
+    use crate::deploy::ZenohModeConfig;
+    use canopy_transport::net::{ZenohAuth, ZenohConfig, ZenohMode, ZenohTransport};
+    let monitor = s.zenoh.monitor.clone();
+    let (mode, listen, connect) = match (s.zenoh.mode, local == MONITOR_ID) {
+        (ZenohModeConfig::Client, _) => (ZenohMode::Client, vec![], s.zenoh.connect.clone()),
+        (ZenohModeConfig::Peer, true) => (ZenohMode::Peer, monitor.into_iter().collect(), vec![]),
+        (ZenohModeConfig::Peer, false) => (ZenohMode::Peer, vec![], monitor.into_iter().collect()),
+    };
+    let mut cfg = ZenohConfig::new(crate::deploy::control_prefix(s), listen, connect);
+    cfg.mode = mode;
+    cfg.multicast_scouting = s.zenoh.multicast_scouting;
+    if let Some((u, p)) = secrets {
+        cfg.auth = Some(ZenohAuth {
+            user: u.clone(),
+            password: p.clone(),
+            accept: vec![(u.clone(), p.clone())],
+        });
+    }
+    ZenohTransport::open(local, cfg).context("opening the control plane's zenoh session")
+}
+
+/// One host launcher as the monitor sees it.
+struct RemoteHost {
+    name: String,
+    link: canopy_transport::net::ZenohLink,
+    /// Its `Hello` was accepted.
+    welcomed: bool,
+    /// Its connection was printed.
+    announced: bool,
+    /// It said it is done (all its processes ended).
+    done: bool,
+    /// Its session went away before it was done and did not come back within [`LOST_GRACE`].
+    lost: bool,
+    /// Since when its session is away.
+    down_since: Option<Instant>,
+}
+
+/// How long the monitor and a host launcher wait for each other's zenoh session to come back
+/// before giving up: a network cut that heals within it costs a pause of the team (every
+/// world is held by the team's pace meanwhile), not the run. zenoh declares a silent peer lost
+/// after its 3 s lease and reconnects within ~1–5 s of the network's return
+/// (docs/arch/system.md).
+pub(crate) const LOST_GRACE: Duration = Duration::from_secs(20);
+
+/// The monitor's side of the control plane of a multi-host run.
+struct Remote {
+    endpoint: String,
+    hosts: Vec<RemoteHost>,
+    since: Instant,
+    wait: Duration,
+    _session: canopy_transport::net::ZenohTransport,
+}
+
+impl Remote {
+    fn open(s: &Scenario, secrets: &Option<(String, String)>, wait: Duration) -> Result<Self> {
+        let session = control_session(s, MONITOR_ID, secrets)?;
+        let hosts = s
+            .hosts
+            .iter()
+            .enumerate()
+            .map(|(i, h)| {
+                Ok(RemoteHost {
+                    name: h.name.clone(),
+                    link: session
+                        .link(i as NodeId, super::CONTROL_MAX_BODY)
+                        .with_context(|| format!("opening the control link to host {}", h.name))?,
+                    welcomed: false,
+                    announced: false,
+                    done: false,
+                    lost: false,
+                    down_since: None,
+                })
+            })
+            .collect::<Result<Vec<_>>>()?;
+        Ok(Self {
+            endpoint: s
+                .zenoh
+                .monitor
+                .clone()
+                .unwrap_or_else(|| s.zenoh.connect.join(", ")),
+            hosts,
+            since: Instant::now(),
+            wait,
+            _session: session,
+        })
+    }
+
+    /// Why the run cannot start: hosts that did not connect in time.
+    fn startup_failure(&self) -> Option<String> {
+        let missing: Vec<&str> = self
+            .hosts
+            .iter()
+            .filter(|h| !h.welcomed)
+            .map(|h| h.name.as_str())
+            .collect();
+        (!missing.is_empty() && self.since.elapsed() > self.wait).then(|| {
+            format!(
+                "host(s) [{}] did not connect to the monitor at {} within {:.0} s (is `canopy \
+                 run SCENARIO --host NAME` running there, and can it reach this address?)",
+                missing.join(", "),
+                self.endpoint,
+                self.wait.as_secs_f64()
+            )
+        })
+    }
+}
+
+impl Monitor {
+    /// Gathers what the host launchers sent (`--monitor`).
+    fn poll_remote(&mut self) -> bool {
+        let Some(mut remote) = self.remote.take() else {
+            return false;
+        };
+        let mut any = false;
+        for h in 0..remote.hosts.len() {
+            let mut got = Vec::new();
+            {
+                let rh = &mut remote.hosts[h];
+                while rh.link.poll_event().is_some() {}
+                for _ in 0..1024 {
+                    match rh.link.try_recv() {
+                        Ok(Some(m)) => {
+                            if let Some(x) = decode_body::<HostMsg>(&m) {
+                                got.push(x);
+                            }
+                        }
+                        _ => break,
+                    }
+                }
+            }
+            any |= !got.is_empty();
+            for msg in got {
+                match msg {
+                    HostMsg::Hello {
+                        host,
+                        duration_s,
+                        seed,
+                    } => {
+                        let rh = &mut remote.hosts[h];
+                        let (d, sd) = (self.s.run.duration_s, self.s.world.seed);
+                        if host != rh.name {
+                            self.failure.get_or_insert(format!(
+                                "the launcher of host {} says it is `{host}`",
+                                rh.name
+                            ));
+                        } else if (duration_s - d).abs() > 1e-9 || seed != sd {
+                            self.failure.get_or_insert(format!(
+                                "host {host} runs duration {duration_s} s, seed {seed}; the \
+                                 monitor runs duration {d} s, seed {sd} (give every host and \
+                                 the monitor the same scenario and --duration)"
+                            ));
+                        } else {
+                            rh.welcomed = true;
+                            let _ = send_body(
+                                &mut rh.link,
+                                MessageKind::CONTROL,
+                                0,
+                                0.0,
+                                &Control::Welcome,
+                            );
+                        }
+                    }
+                    HostMsg::Report { from, report } => {
+                        self.current_host = h;
+                        self.on_report(from, report);
+                    }
+                    HostMsg::Process(p) => {
+                        let expected = p.killed_by_monitor
+                            || (p.clean_exit() && (self.world_finished || self.failure.is_some()));
+                        if !expected {
+                            eprintln!(
+                                "host {}: process {} (pid {}) ended unexpectedly (code {:?}, \
+                                 signal {:?}); see {} on that host",
+                                remote.hosts[h].name,
+                                p.name,
+                                p.pid,
+                                p.exit_code,
+                                p.signal,
+                                p.log.display()
+                            );
+                            if let Some(v) = self.vehicles.values_mut().find(|v| v.name == p.name) {
+                                v.alive = false;
+                            }
+                        }
+                        self.remote_procs.push(p);
+                    }
+                    HostMsg::Done { failure } => {
+                        remote.hosts[h].done = true;
+                        if let Some(f) = failure {
+                            let name = &remote.hosts[h].name;
+                            self.failure.get_or_insert(format!("host {name}: {f}"));
+                        }
+                    }
+                }
+            }
+            let rh = &mut remote.hosts[h];
+            if rh.welcomed && !rh.done && rh.link.peer_state() != PeerState::Up {
+                let since = *rh.down_since.get_or_insert_with(|| {
+                    eprintln!("host {} is out of reach", rh.name);
+                    Instant::now()
+                });
+                rh.lost |= since.elapsed() > LOST_GRACE;
+            } else {
+                rh.down_since = None;
+            }
+        }
+        self.remote = Some(remote);
+        any
+    }
+
+    /// Sends the team's pace to every host (`Control::Pace`): the slowest live vehicle of the
+    /// whole team plus `[run].max_lead_s`, once every vehicle has been initialised (before
+    /// that, nothing: a host started early waits for the others). Sent when it moves by a
+    /// batch, and at least twice a wall second (a host that connects late, a lost message).
+    fn send_pace(&mut self, last: &mut (f64, Option<Instant>)) {
+        if self.vehicles.values().any(|v| v.initialisations == 0) {
+            return;
+        }
+        let until = (self.team_time() + self.s.run.max_lead_s).min(self.s.run.duration_s);
+        let moved = until >= last.0 + super::world::BATCH_S;
+        let stale = last
+            .1
+            .is_none_or(|t| t.elapsed() > Duration::from_millis(500));
+        if !(moved || stale) {
+            return;
+        }
+        if let Some(r) = self.remote.as_mut() {
+            for h in r.hosts.iter_mut() {
+                let _ = send_body(
+                    &mut h.link,
+                    MessageKind::CONTROL,
+                    0,
+                    until,
+                    &Control::Pace { until },
+                );
+            }
+        }
+        *last = (until, Some(Instant::now()));
+    }
+
+    /// Asks every host launcher to end its share and waits for them to say they are done.
+    fn shutdown_remote(&mut self) {
+        let deadline = Instant::now() + REMOTE_SHUTDOWN;
+        let mut last_sent: Option<Instant> = None;
+        loop {
+            if last_sent.is_none_or(|t| t.elapsed() > Duration::from_secs(1)) {
+                if let Some(r) = self.remote.as_mut() {
+                    for h in r.hosts.iter_mut().filter(|h| !h.done) {
+                        let _ = send_body(
+                            &mut h.link,
+                            MessageKind::CONTROL,
+                            0,
+                            0.0,
+                            &Control::Shutdown,
+                        );
+                    }
+                }
+                last_sent = Some(Instant::now());
+            }
+            self.poll_links();
+            let Some(r) = self.remote.as_ref() else {
+                return;
+            };
+            let open: Vec<&str> = r
+                .hosts
+                .iter()
+                .filter(|h| !h.done && !h.lost && h.link.peer_state() == PeerState::Up)
+                .map(|h| h.name.as_str())
+                .collect();
+            if open.is_empty() {
+                return;
+            }
+            if Instant::now() > deadline {
+                eprintln!(
+                    "host(s) [{}] did not confirm the end of their share within {} s",
+                    open.join(", "),
+                    REMOTE_SHUTDOWN.as_secs()
+                );
+                return;
+            }
+            std::thread::sleep(Duration::from_millis(5));
+        }
+    }
+}
+
+/// How long the monitor waits for the host launchers to end their shares: their own shutdown
+/// (10 s for the processes' final reports, then 3 s per signal) and some slack.
+const REMOTE_SHUTDOWN: Duration = Duration::from_secs(30);
 
 /// No progress for this long: the monitor says who holds the run up and why.
 const STALL_WARN: Duration = Duration::from_secs(5);
@@ -748,7 +1159,11 @@ impl Watchdog {
 
 /// Who holds a stalled run up: every process's last status and its age.
 fn stall_diagnosis(m: &Monitor, t: f64) -> String {
-    let mut names: Vec<String> = vec!["world".into()];
+    let mut names: Vec<String> = if m.remote.is_some() {
+        m.world_hosts.iter().map(|h| format!("world@{h}")).collect()
+    } else {
+        vec!["world".into()]
+    };
     names.extend(
         m.vehicles
             .values()
@@ -767,7 +1182,7 @@ fn stall_diagnosis(m: &Monitor, t: f64) -> String {
     format!("stuck at t = {t}; {}", parts.join("; "))
 }
 
-fn describe(st: &ExitStatus) -> String {
+pub(crate) fn describe(st: &ExitStatus) -> String {
     use std::os::unix::process::ExitStatusExt;
     match (st.code(), st.signal()) {
         (Some(c), _) => format!("exit status {c}"),
@@ -781,10 +1196,14 @@ fn describe(st: &ExitStatus) -> String {
 }
 
 /// Runs a scenario as real processes and gathers the run. The scenario must be valid.
-pub fn launch(s: Scenario, opts: &LaunchOptions) -> Result<LaunchOutcome> {
+pub fn launch(mut s: Scenario, opts: &LaunchOptions) -> Result<LaunchOutcome> {
     let started = Instant::now();
     std::fs::create_dir_all(&opts.out)
         .with_context(|| format!("creating {}", opts.out.display()))?;
+    if opts.monitor_only.is_some() {
+        check_multi_host(&s, "--monitor")?;
+        crate::deploy::resolve_endpoints(&mut s).context("deriving the net links' endpoints")?;
+    }
     let (s, secrets) = resolve(s, opts)?;
     // Every check `canopy check` makes, here in the launcher: a bad input fails the run before
     // any process starts, with the file, line and reason.
@@ -830,20 +1249,33 @@ pub fn launch(s: Scenario, opts: &LaunchOptions) -> Result<LaunchOutcome> {
         events: Vec::new(),
         world_t: 0.0,
         world_finished: false,
+        worlds: BTreeMap::new(),
+        world_hosts: if opts.monitor_only.is_some() {
+            s.hosts.iter().map(|h| h.name.clone()).collect()
+        } else {
+            vec!["local".into()]
+        },
+        current_host: 0,
+        remote: None,
+        remote_procs: Vec::new(),
         hub_rejected: 0,
         hub_alive: s.fusion.mode == FusionMode::Central,
         restart_requests: Default::default(),
         failure: None,
         statuses: BTreeMap::new(),
     };
-    // Links first, so the children find the monitor.
-    m.links
-        .insert(WORLD_ID, control_link(&prefix, MONITOR_ID, WORLD_ID, 256)?);
-    for v in &s.vehicles {
+    if let Some(wait) = opts.monitor_only {
+        m.remote = Some(Remote::open(&s, &secrets, wait)?);
+    } else {
+        // Links first, so the children find the monitor.
         m.links
-            .insert(v.id, control_link(&prefix, MONITOR_ID, v.id, 256)?);
+            .insert(WORLD_ID, control_link(&prefix, MONITOR_ID, WORLD_ID, 256)?);
+        for v in &s.vehicles {
+            m.links
+                .insert(v.id, control_link(&prefix, MONITOR_ID, v.id, 256)?);
+        }
     }
-    if s.fusion.mode == FusionMode::Central {
+    if s.fusion.mode == FusionMode::Central && opts.monitor_only.is_none() {
         m.links.insert(
             s.fusion.hub_id,
             control_link(&prefix, MONITOR_ID, s.fusion.hub_id, 256)?,
@@ -873,7 +1305,11 @@ pub fn launch(s: Scenario, opts: &LaunchOptions) -> Result<LaunchOutcome> {
         }
         Ok(())
     };
-    let spawned = spawn_all(&mut m);
+    let spawned = if opts.monitor_only.is_some() {
+        Ok(())
+    } else {
+        spawn_all(&mut m)
+    };
     if let Err(e) = &spawned {
         m.failure = Some(format!("{e:#}"));
     }
@@ -908,6 +1344,7 @@ pub fn launch(s: Scenario, opts: &LaunchOptions) -> Result<LaunchOutcome> {
     let mut next_plain = 10.0;
     let mut interrupted = false;
     let mut watchdog = Watchdog::new();
+    let mut last_pace: (f64, Option<Instant>) = (f64::NEG_INFINITY, None);
 
     while m.failure.is_none() {
         if opts.stop.load(Ordering::Relaxed) {
@@ -916,6 +1353,37 @@ pub fn launch(s: Scenario, opts: &LaunchOptions) -> Result<LaunchOutcome> {
         }
         let busy = m.poll_links();
         m.reap();
+        if let Some(r) = &m.remote {
+            if let Some(reason) = r.startup_failure() {
+                m.failure = Some(reason);
+                break;
+            }
+            if let Some(h) = r.hosts.iter().find(|h| h.lost) {
+                m.failure.get_or_insert(format!(
+                    "lost the host launcher `{}`: its zenoh session to the monitor went away \
+                     before its share of the run ended and did not come back within {} s",
+                    h.name,
+                    LOST_GRACE.as_secs()
+                ));
+                break;
+            }
+            for h in r.hosts.iter().filter(|h| h.welcomed && !h.announced) {
+                say(&pb, format!("host {} connected", h.name));
+            }
+            let all = r.hosts.iter().all(|h| h.welcomed);
+            if let Some(r) = m.remote.as_mut() {
+                for h in r.hosts.iter_mut() {
+                    h.announced |= h.welcomed;
+                }
+            }
+            if !all {
+                // Waiting for the hosts has its own deadline: not a stall.
+                watchdog = Watchdog::new();
+                std::thread::sleep(Duration::from_millis(5));
+                continue;
+            }
+            m.send_pace(&mut last_pace);
+        }
         let team = m.team_time();
         pb.set_position(team.max(0.0) as u64);
         if plain_progress && team >= next_plain {
@@ -1300,21 +1768,8 @@ fn assemble(
     let processes = m
         .procs
         .iter()
-        .map(|p| {
-            use std::os::unix::process::ExitStatusExt;
-            let log = std::fs::read_to_string(&p.log).unwrap_or_default();
-            ProcessRecord {
-                name: p.name.clone(),
-                incarnation: p.incarnation,
-                pid: p.child.id(),
-                exit_code: p.status.and_then(|s| s.code()),
-                signal: p.status.and_then(|s| s.signal()),
-                killed_by_monitor: p.planned_kill,
-                panicked: log.contains("panicked at"),
-                ended_at: p.ended_at,
-                log: p.log.clone(),
-            }
-        })
+        .map(Proc::record)
+        .chain(m.remote_procs.iter().cloned())
         .collect();
     let max_confidence_ratio = confidence.iter().map(|c| c.ratio).reduce(f64::max);
     let link_ends = m

@@ -10,6 +10,8 @@
 //! | vehicle → world | [`Progress`] | `HEARTBEAT` |
 //! | every process → monitor | [`Report`] | `ESTIMATE_REPORT` / `MAP_REPORT` |
 //! | monitor → every process | [`Control`] | `CONTROL` |
+//! | host launcher → monitor (zenoh, multi-host runs) | [`HostMsg`] | `ESTIMATE_REPORT` |
+//! | monitor → host launcher (zenoh) | [`Control`] | `CONTROL` |
 
 use canopy_fusion::ddf::ChannelStats;
 use canopy_fusion::sensor::{FeatureId, ImuSample, Measurement, ObservationFrame};
@@ -159,15 +161,28 @@ impl Validate for Progress {
 }
 
 /// Monitor → process.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub enum Control {
     /// Finish: send final reports if not done yet, close links, exit 0.
     Shutdown,
+    /// Monitor → host launcher (multi-host runs): the monitor has accepted the host's `Hello`.
+    Welcome,
+    /// Monitor → host launcher → the host's world (multi-host runs): the team's pace — the
+    /// world may step up to `until` (the slowest live vehicle of the whole team, as the monitor
+    /// last heard, plus `[run].max_lead_s`), so no host runs ahead of the others by more than
+    /// the flow-control lead on simulation time. Hosts need no shared wall clock.
+    Pace {
+        /// Simulation time [s].
+        until: f64,
+    },
 }
 
 impl Validate for Control {
     fn validate(&self) -> Result<(), ValidationError> {
-        Ok(())
+        match self {
+            Control::Pace { until } => finite("pace.until", [*until]),
+            _ => Ok(()),
+        }
     }
 }
 
@@ -502,6 +517,48 @@ impl Validate for Report {
             | Report::Waiting { t, .. }
             | Report::Finished { t }
             | Report::Status { t, .. } => finite("t", [*t]),
+        }
+    }
+}
+
+/// Host launcher → monitor over the control plane of a multi-host run (zenoh, under
+/// `deploy::control_prefix`): the host's local processes' reports, relayed as they came, and
+/// how its processes ended. The monitor → host direction carries [`Control`].
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub enum HostMsg {
+    /// The host launcher is up and runs this share of the run (sent until the monitor answers
+    /// with [`Control::Welcome`]).
+    Hello {
+        /// `[[host]].name`.
+        host: String,
+        /// Its resolved `[run].duration_s` (every host and the monitor must agree).
+        duration_s: f64,
+        /// `[world].seed` (the same check).
+        seed: u64,
+    },
+    /// A report of one of the host's processes (`from`: vehicle id, hub id or [`WORLD_ID`]).
+    Report {
+        /// Sender on the host.
+        from: NodeId,
+        /// Its report.
+        report: Report,
+    },
+    /// One of the host's processes ended.
+    Process(super::monitor::ProcessRecord),
+    /// The host launcher is done (all its processes ended); `failure` says why it failed.
+    Done {
+        /// Why the host's share failed, if it did.
+        failure: Option<String>,
+    },
+}
+
+impl Validate for HostMsg {
+    fn validate(&self) -> Result<(), ValidationError> {
+        match self {
+            HostMsg::Hello { duration_s, .. } => finite("hello.duration_s", [*duration_s]),
+            HostMsg::Report { report, .. } => report.validate(),
+            HostMsg::Process(p) => finite("process.ended_at", [p.ended_at]),
+            HostMsg::Done { .. } => Ok(()),
         }
     }
 }

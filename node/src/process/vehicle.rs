@@ -503,7 +503,7 @@ pub fn run(c: &RoleCommon, id: WireId, incarnation: u32) -> Result<()> {
     let world = Arc::new(World::new(&s.world, s.world.seed).context("building the world frame")?);
     let mut wl = control_link(&c.prefix, id, WORLD_ID, stream_buffer(s.run.max_lead_s))?;
     let mut monitor = control_link(&c.prefix, id, MONITOR_ID, 64)?;
-    let links = FusionLinks::open(&s, &c.prefix, id, incarnation)?;
+    let links = FusionLinks::open(&s, c, id, incarnation)?;
     let epoch = fresh_epoch();
     if !super::wait_peer_up(&mut monitor, INIT_TIMEOUT, &stop) {
         bail!("the monitor did not come up");

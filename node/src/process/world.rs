@@ -106,8 +106,32 @@ fn truth_report(vehicle: NodeId, t: &TruthSample) -> TruthReport {
 pub fn run(c: &RoleCommon) -> Result<()> {
     let stop = stop_flag();
     let s = load_resolved(c)?;
-    let (_world, mut sources) =
+    let (_world, all_sources) =
         SensorSource::for_scenario(&s).context("building the world and its sensor sources")?;
+    // A host's world (multi-host run): only that host's vehicles, and the hub if the host runs
+    // it. Every vehicle's source is seeded by its own id (`world::vehicle_seed`), so a vehicle's
+    // sensor stream is the same whichever host simulates it.
+    let host = match &c.host {
+        None => None,
+        Some(name) => Some(
+            crate::deploy::host_named(&s, name)
+                .map(|(_, h)| h.clone())
+                .with_context(|| format!("--host {name}: no such [[host]] in the scenario"))?,
+        ),
+    };
+    let local = |id: NodeId| host.as_ref().is_none_or(|h| h.vehicles.contains(&id));
+    let local_vehicles: Vec<&crate::scenario::VehicleConfig> =
+        s.vehicles.iter().filter(|v| local(v.id)).collect();
+    let mut sources: Vec<SensorSource> = s
+        .vehicles
+        .iter()
+        .zip(all_sources)
+        .filter(|(v, _)| local(v.id))
+        .map(|(_, src)| src)
+        .collect();
+    if host.is_some() && !s.events.is_empty() {
+        bail!("scheduled [[event]]s are not supported in a multi-host run (yet)");
+    }
     let duration = s.run.duration_s;
     let record_dt = s.run.record_interval_s;
     let eps = 1e-9;
@@ -115,7 +139,7 @@ pub fn run(c: &RoleCommon) -> Result<()> {
 
     let mut monitor = control_link(&c.prefix, WORLD_ID, MONITOR_ID, 64)?;
     let mut slots: Vec<Slot> = Vec::new();
-    for v in &s.vehicles {
+    for v in &local_vehicles {
         slots.push(Slot {
             id: v.id,
             link: control_link(&c.prefix, WORLD_ID, v.id, buffer)?,
@@ -128,8 +152,11 @@ pub fn run(c: &RoleCommon) -> Result<()> {
             ended: false,
         });
     }
+    let hub_here = host.as_ref().is_none_or(|h| h.hub);
     let mut hub = match s.fusion.mode {
-        FusionMode::Central => Some(control_link(&c.prefix, WORLD_ID, s.fusion.hub_id, 64)?),
+        FusionMode::Central if hub_here => {
+            Some(control_link(&c.prefix, WORLD_ID, s.fusion.hub_id, 64)?)
+        }
         _ => None,
     };
     let report = |monitor: &mut dyn Link, r: &Report, t: f64| {
@@ -179,12 +206,17 @@ pub fn run(c: &RoleCommon) -> Result<()> {
     let mut stuck_since: Option<Instant> = None;
     let mut last_status = Instant::now();
 
+    // A host's world (multi-host run) also steps no further than the team's pace, which the
+    // monitor sends through the host launcher (`Control::Pace`): nothing before the first.
+    let mut pace = if host.is_some() { 0.0 } else { f64::INFINITY };
     while !stop.load(Ordering::Relaxed) && !shutdown {
         let mut busy = false;
         // Monitor control.
         while let Ok(Some(m)) = monitor.try_recv() {
-            if let Some(Control::Shutdown) = decode_body::<Control>(&m) {
-                shutdown = true;
+            match decode_body::<Control>(&m) {
+                Some(Control::Shutdown) => shutdown = true,
+                Some(Control::Pace { until }) => pace = pace.max(until),
+                _ => {}
             }
         }
         if monitor.drain_gone() {
@@ -319,6 +351,8 @@ pub fn run(c: &RoleCommon) -> Result<()> {
             let slowest = active.iter().copied().fold(f64::INFINITY, f64::min);
             limit = limit.min(slowest + s.run.max_lead_s);
         }
+        let paced_by_team = pace < limit;
+        limit = limit.min(pace);
         if let Some(r) = s.run.real_time_factor.filter(|r| *r > 0.0) {
             // Quantized to whole batches: a limit that stops the world flushes a partial batch,
             // and the wall-clock limit moves every pass, so unquantized it sent one tiny batch
@@ -459,17 +493,24 @@ pub fn run(c: &RoleCommon) -> Result<()> {
             }
         }
         if last_status.elapsed() >= super::vehicle::STATUS_INTERVAL {
-            let state = world_state(
-                &s,
-                &slots,
-                hub_acked,
-                hub.as_ref()
-                    .is_some_and(|h| h.peer_state() == PeerState::Up),
-                limit,
-                blocked,
-                end_reached,
-                waiting_since.is_some(),
-            );
+            let state = if blocked && paced_by_team && limit <= pace {
+                format!(
+                    "held by the team's pace at t = {pace} (the monitor's slowest vehicle on \
+                     any host + max_lead_s)"
+                )
+            } else {
+                world_state(
+                    &s,
+                    &slots,
+                    hub_acked,
+                    hub.as_ref()
+                        .is_some_and(|h| h.peer_state() == PeerState::Up),
+                    limit,
+                    blocked,
+                    end_reached,
+                    waiting_since.is_some(),
+                )
+            };
             report(
                 &mut monitor,
                 &Report::Status {
