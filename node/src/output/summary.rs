@@ -466,15 +466,27 @@ pub fn table(summaries: &[(&str, &Summary)]) -> String {
         format!("{:.3}", s.team.position_rmse_m)
     });
     push("ATE SE(3) / 4-DOF [m]", &|s| {
-        let a: Vec<String> = s
-            .vehicles
-            .iter()
-            .filter_map(|v| v.ate.map(|a| format!("{:.3}/{:.3}", a.se3_m, a.posyaw_m)))
-            .collect();
-        if a.is_empty() {
-            "-".into()
-        } else {
-            a.join(" ")
+        let a: Vec<_> = s.vehicles.iter().filter_map(|v| v.ate).collect();
+        match a.len() {
+            0 => "-".into(),
+            // One column per vehicle while it stays readable; a large team's range instead.
+            1..=4 => a
+                .iter()
+                .map(|a| format!("{:.3}/{:.3}", a.se3_m, a.posyaw_m))
+                .collect::<Vec<_>>()
+                .join(" "),
+            n => {
+                let range = |f: &dyn Fn(&AteSummary) -> f64| {
+                    let lo = a.iter().map(f).fold(f64::INFINITY, f64::min);
+                    let hi = a.iter().map(f).fold(f64::NEG_INFINITY, f64::max);
+                    format!("{lo:.3}–{hi:.3}")
+                };
+                format!(
+                    "{} / {} ({n} vehicles)",
+                    range(&|a| a.se3_m),
+                    range(&|a| a.posyaw_m)
+                )
+            }
         }
     });
     push("map RMSE [m]", &|s| format!("{:.3}", s.team.map_rmse_m));
