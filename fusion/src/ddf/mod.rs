@@ -116,6 +116,11 @@ pub enum LinkMode {
     Exact,
     /// Covariance intersection of budgeted submaps (one-way switch).
     Ci,
+    /// Channel filter whose delta, when it does not fit the link's budget, is conservatively
+    /// sparsified: the marginal information of the delta on the features that fit
+    /// ([`crate::sparse`]) is sent and booked, the rest stays in Y_i − C_ik for later rounds.
+    /// Exact whenever the whole delta fits. Set per link ([`DdfNode::use_sparse`]).
+    Sparse,
 }
 
 /// The estimator refused to fuse information.
