@@ -41,7 +41,7 @@ use crate::sensor::FeatureId;
 use crate::state::FEATURE_DIM;
 use faer::linalg::solvers::Solve;
 use faer::{Col, Mat, Side};
-use nalgebra::Matrix3;
+use nalgebra::{Matrix3, Vector3};
 use std::collections::HashMap;
 
 /// Regularisation always added to D_RR, relative to max diag D_RR: bounds the amplification
@@ -95,11 +95,12 @@ pub struct Marginal {
 }
 
 /// How many features' dense delta fits `budget` bytes
-/// ([`MapInformation::dense_block_wire_bytes`]; 0 if not even one).
-pub fn max_features(budget: usize) -> usize {
-    // n(n+1)/2 · 82 bytes dominates: √(2 · budget / 82) + 1 bounds the answer from above.
-    let mut n = ((2.0 * budget as f64 / 82.0).sqrt() as usize) + 2;
-    while n > 0 && MapInformation::dense_block_wire_bytes(n) > budget {
+/// ([`MapInformation::dense_block_wire_bytes_as`], blocks f32 when `f32_blocks`; 0 if not even
+/// one).
+pub fn max_features(budget: usize, f32_blocks: bool) -> usize {
+    // n(n+1)/2 · (46 or 82) bytes dominates: √(2 · budget / 46) + 2 bounds the answer.
+    let mut n = ((2.0 * budget as f64 / 46.0).sqrt() as usize) + 2;
+    while n > 0 && MapInformation::dense_block_wire_bytes_as(n, f32_blocks) > budget {
         n -= 1;
     }
     n
@@ -140,17 +141,18 @@ pub fn priorities(
 }
 
 /// The features to send: the highest [`priorities`] first (ties: the smaller id), as many as
-/// fit `budget` bytes as a dense delta ([`max_features`]). Features whose gain is 0 (nothing
+/// fit `budget` bytes as a dense delta ([`max_features`], f32 blocks when `f32_blocks`). Features whose gain is 0 (nothing
 /// gained on their diagonal block) come last but are still eligible: their cross terms may
 /// matter.
 pub fn select(
     delta: &MapInformation,
     covariances: &HashMap<FeatureId, Matrix3<f64>>,
     budget: usize,
+    f32_blocks: bool,
 ) -> Vec<FeatureId> {
     let mut p = priorities(delta, covariances);
     p.sort_by(|a, b| b.1.total_cmp(&a.1).then(a.0.cmp(&b.0)));
-    p.truncate(max_features(budget));
+    p.truncate(max_features(budget, f32_blocks));
     p.into_iter().map(|(id, _)| id).collect()
 }
 
@@ -162,6 +164,28 @@ pub fn schur_marginal(
     delta: &MapInformation,
     keep: &[FeatureId],
 ) -> Result<Marginal, SparsifyError> {
+    schur_marginal_about(delta, keep, &HashMap::new())
+}
+
+/// [`schur_marginal`] evaluated about a reference map `about` (feature positions relative to
+/// the origin, normally the sender's current estimate; features without one use 0): with
+/// d̃ = d − D x̄, d'_S = d̃_S − D_SR D̃_RR⁻¹ d̃_R + D' x̄_S. Identical to [`schur_marginal`]
+/// in exact arithmetic without regularisation; with δ > 0 the term d' picks up from x_R
+/// shrinks from δ D_SR D̃_RR⁻¹ x_R (positions ~1e3 m from the origin) to
+/// δ D_SR D̃_RR⁻¹ (x_R − x̄_R) (the sender's error, metres). Measured on radio-8k: without it
+/// the team's maps diverged (module docs).
+pub fn schur_marginal_about(
+    delta: &MapInformation,
+    keep: &[FeatureId],
+    about: &HashMap<FeatureId, Vector3<f64>>,
+) -> Result<Marginal, SparsifyError> {
+    let xbar = Col::from_fn(delta.vector.nrows(), |r| {
+        about
+            .get(&delta.ids[r / FEATURE_DIM])
+            .map_or(0.0, |x| x[r % FEATURE_DIM])
+    });
+    // d̃ = d − D x̄.
+    let shifted = &delta.vector - &delta.matrix * &xbar;
     let index: HashMap<FeatureId, usize> =
         delta.ids.iter().enumerate().map(|(k, &id)| (id, k)).collect();
     let mut in_s = vec![false; delta.ids.len()];
@@ -194,7 +218,7 @@ pub fn schur_marginal(
     let (ns, nr) = (sr.len(), rr.len());
     let m = &delta.matrix;
     let mut d_ss = Mat::from_fn(ns, ns, |i, j| m[(sr[i], sr[j])]);
-    let mut d_s = Col::from_fn(ns, |i| delta.vector[sr[i]]);
+    let mut d_s = Col::from_fn(ns, |i| shifted[sr[i]]);
     let mut regularisation = 0.0;
     let mut escalated = false;
     if nr > 0 {
@@ -204,7 +228,7 @@ pub fn schur_marginal(
             if j < ns {
                 m[(rr[i], sr[j])]
             } else {
-                delta.vector[rr[i]]
+                shifted[rr[i]]
             }
         });
         let max_diag = (0..nr).map(|i| d_rr[(i, i)].abs()).fold(0.0_f64, f64::max);
@@ -241,6 +265,9 @@ pub fn schur_marginal(
         }
         crate::info::symmetrize(&mut d_ss);
     }
+    // Back from d̃: d'_S += D' x̄_S.
+    let xbar_s = Col::from_fn(ns, |i| xbar[sr[i]]);
+    let d_s = &d_s + &d_ss * &xbar_s;
     let finite = (0..ns).all(|j| d_s[j].is_finite() && d_ss.col_as_slice(j).iter().all(|v| v.is_finite()));
     if !finite {
         return Err(SparsifyError::NonFinite);
@@ -262,7 +289,6 @@ pub fn schur_marginal(
 mod tests {
     use super::*;
     use faer::linalg::solvers::DenseSolveCore;
-    use nalgebra::Vector3;
     use rand::{Rng, SeedableRng};
     use rand_chacha::ChaCha8Rng;
 
@@ -403,8 +429,11 @@ mod tests {
     fn selection_by_gain_within_budget() {
         for n in [1usize, 2, 5, 26, 100] {
             let b = MapInformation::dense_block_wire_bytes(n);
-            assert_eq!(max_features(b), n);
-            assert_eq!(max_features(b - 1), n - 1);
+            assert_eq!(max_features(b, false), n);
+            assert_eq!(max_features(b - 1, false), n - 1);
+            let b = MapInformation::dense_block_wire_bytes_as(n, true);
+            assert_eq!(max_features(b, true), n);
+            assert_eq!(max_features(b - 1, true), n - 1);
         }
         let ids = [7u64, 3, 9, 5];
         let n = 12;
@@ -416,12 +445,12 @@ mod tests {
         let delta = info(&ids, d, &mut rng);
         let none = HashMap::new();
         let budget = MapInformation::dense_block_wire_bytes(3);
-        let got = select(&delta, &none, budget);
+        let got = select(&delta, &none, budget, false);
         assert_eq!(got, vec![9, 3, 5]);
         // The sender's covariance scales the gain: feature 7 with P = 100 I comes first.
         let mut cov = HashMap::new();
         cov.insert(7, Matrix3::identity() * 100.0);
-        let got = select(&delta, &cov, budget);
+        let got = select(&delta, &cov, budget, false);
         assert_eq!(got, vec![7, 9, 3]);
         // Bytes of the selected marginal stay within the budget.
         let m = schur_marginal(&delta, &got).expect("PD");
