@@ -133,7 +133,13 @@ pub fn priorities(
             let gain: f64 = m
                 .symmetric_eigenvalues()
                 .iter()
-                .map(|&mu| if mu.is_finite() { mu.max(0.0).ln_1p() } else { 0.0 })
+                .map(|&mu| {
+                    if mu.is_finite() {
+                        mu.max(0.0).ln_1p()
+                    } else {
+                        0.0
+                    }
+                })
                 .sum();
             (id, gain)
         })
@@ -186,8 +192,12 @@ pub fn schur_marginal_about(
     });
     // d̃ = d − D x̄.
     let shifted = &delta.vector - &delta.matrix * &xbar;
-    let index: HashMap<FeatureId, usize> =
-        delta.ids.iter().enumerate().map(|(k, &id)| (id, k)).collect();
+    let index: HashMap<FeatureId, usize> = delta
+        .ids
+        .iter()
+        .enumerate()
+        .map(|(k, &id)| (id, k))
+        .collect();
     let mut in_s = vec![false; delta.ids.len()];
     let s_blocks: Vec<usize> = keep
         .iter()
@@ -197,13 +207,9 @@ pub fn schur_marginal_about(
     let nonzero = |k: usize| {
         let rows = FEATURE_DIM * k..FEATURE_DIM * (k + 1);
         rows.clone().any(|r| delta.vector[r] != 0.0)
-            || rows.into_iter().any(|c| {
-                delta
-                    .matrix
-                    .col_as_slice(c)
-                    .iter()
-                    .any(|&v| v != 0.0)
-            })
+            || rows
+                .into_iter()
+                .any(|c| delta.matrix.col_as_slice(c).iter().any(|&v| v != 0.0))
     };
     let r_blocks: Vec<usize> = (0..delta.ids.len())
         .filter(|&k| !in_s[k] && nonzero(k))
@@ -268,7 +274,8 @@ pub fn schur_marginal_about(
     // Back from d̃: d'_S += D' x̄_S.
     let xbar_s = Col::from_fn(ns, |i| xbar[sr[i]]);
     let d_s = &d_s + &d_ss * &xbar_s;
-    let finite = (0..ns).all(|j| d_s[j].is_finite() && d_ss.col_as_slice(j).iter().all(|v| v.is_finite()));
+    let finite =
+        (0..ns).all(|j| d_s[j].is_finite() && d_ss.col_as_slice(j).iter().all(|v| v.is_finite()));
     if !finite {
         return Err(SparsifyError::NonFinite);
     }
@@ -317,7 +324,8 @@ mod tests {
         let mut rng = ChaCha8Rng::seed_from_u64(13);
         for trial in 0..20 {
             let nf = 6;
-            let d = &random_psd(3 * nf, 3 * nf + 4, &mut rng) + &Mat::<f64>::identity(3 * nf, 3 * nf);
+            let d =
+                &random_psd(3 * nf, 3 * nf + 4, &mut rng) + &Mat::<f64>::identity(3 * nf, 3 * nf);
             let delta = info(&[10, 11, 12, 13, 14, 15], d, &mut rng);
             let keep = [13, 10];
             let got = schur_marginal(&delta, &keep).expect("PD");
@@ -343,7 +351,10 @@ mod tests {
                     assert!(e <= 1e-6 * scale, "trial {trial} ({i},{j}): {e}");
                 }
                 let e = (got.info.vector[i] - want_vec[i]).abs();
-                assert!(e <= 1e-6 * (1.0 + want_vec[i].abs()) * scale.max(1.0), "trial {trial} y[{i}]: {e}");
+                assert!(
+                    e <= 1e-6 * (1.0 + want_vec[i].abs()) * scale.max(1.0),
+                    "trial {trial} y[{i}]: {e}"
+                );
             }
         }
     }

@@ -8,12 +8,12 @@ use crate::ci::{self, Submap, SubmapTracker};
 use crate::info::{InfoError, MapInformation};
 use crate::keys::{KeyMap, Merge};
 use crate::sensor::FeatureId;
-use crate::topology::NodeId;
-use nalgebra::Vector3;
-use serde::{Deserialize, Serialize};
 use crate::sparse;
 use crate::state::FEATURE_DIM;
+use crate::topology::NodeId;
 use nalgebra::Matrix3;
+use nalgebra::Vector3;
+use serde::{Deserialize, Serialize};
 use std::collections::{BTreeMap, HashMap, HashSet, VecDeque};
 
 /// Counters of one channel (one neighbour), for metrics and tests.
