@@ -61,7 +61,7 @@ pub const REGULARISATION_FLOOR_REL: f64 = 1e-9;
 /// Why this value: 1 % of the largest diagonal entry bounds the over-claim on the unsent
 /// features to 1 % of the largest information change on any of them; a D_RR more indefinite
 /// than that is not round-off, and sending nothing that round is the safe answer.
-pub const MAX_REGULARISATION_REL: f64 = 1e-2;
+pub const MAX_REGULARISATION_REL: f64 = 1e-9;
 
 /// Largest information removal accepted from a marginal whose D_RR needed regularisation
 /// beyond the floor: λ_min(D') ≥ −`MAX_NEGATIVE_REL` · λ_max(D_SS), else refused.
