@@ -85,6 +85,9 @@ pub enum SparsifyError {
     Indefinite {
         /// [`MAX_REGULARISATION_REL`].
         max_rel: f64,
+        /// The held-back feature of the first non-positive pivot (moving it into S is the
+        /// caller's next attempt).
+        feature: Option<FeatureId>,
     },
     /// The marginal came out non-finite (overflow in a near-singular solve).
     #[error("marginal information not finite")]
@@ -265,7 +268,10 @@ pub fn schur_marginal_about(
             });
             match a.as_ref().llt(Side::Lower) {
                 Ok(llt) => break llt,
-                Err(_) => {
+                Err(faer::linalg::solvers::LltError::NonPositivePivot { index }) => {
+                    let feature = r_blocks
+                        .get(index.min(nr.saturating_sub(1)) / FEATURE_DIM)
+                        .map(|&k| delta.ids[k]);
                     regularisation *= REGULARISATION_STEP;
                     escalated = true;
                     // `!(≤)` also refuses a zero or NaN max diag.
@@ -274,6 +280,7 @@ pub fn schur_marginal_about(
                     {
                         return Err(SparsifyError::Indefinite {
                             max_rel: MAX_REGULARISATION_REL,
+                            feature,
                         });
                     }
                 }

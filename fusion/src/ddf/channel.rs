@@ -16,6 +16,11 @@ use nalgebra::Vector3;
 use serde::{Deserialize, Serialize};
 use std::collections::{BTreeMap, HashMap, HashSet, VecDeque};
 
+/// How many times a sparsified round moves the feature of a failing pivot of D_RR into S
+/// before it is refused. Why 8: each attempt is one Cholesky of D_RR (the round's main cost);
+/// 8 bounds a round at 9 of them.
+const MAX_PIVOT_SWAPS: usize = 8;
+
 /// Counters of one channel (one neighbour), for metrics and tests.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
 pub struct ChannelStats {
@@ -958,6 +963,9 @@ impl Channel {
             })
             .collect();
         let mut keep = sparse::select(d, &covariances, budget, f32_blocks);
+        // D_RR not positive definite: the feature of the failing pivot joins S in place of the
+        // lowest-priority one, a few times, before the round is refused.
+        let mut swaps = 0;
         loop {
             if keep.is_empty() {
                 self.stats.budget_starved += 1;
@@ -965,6 +973,14 @@ impl Channel {
             }
             let m = match sparse::schur_marginal_about(d, &keep, &about) {
                 Ok(m) => m,
+                Err(sparse::SparsifyError::Indefinite {
+                    feature: Some(f), ..
+                }) if swaps < MAX_PIVOT_SWAPS && !keep.contains(&f) => {
+                    swaps += 1;
+                    keep.pop();
+                    keep.insert(0, f);
+                    continue;
+                }
                 Err(_) => {
                     self.stats.sparse_refused += 1;
                     return None;
