@@ -24,17 +24,21 @@
 //!
 //! Regularisation. The Cholesky is of D_RR + δI with δ = 1e-9 · max diag D_RR
 //! ([`REGULARISATION_FLOOR_REL`]: a singular D_RR — a residual of low rank, common after a few
-//! sparsified rounds — would otherwise amplify round-off without bound), raised tenfold up to
-//! 1e-2 · max diag while D_RR + δI is not positive definite (D_RR indefinite beyond round-off:
-//! relinearisation or a removed feature made Y_i − C slightly indefinite). With δ > 0,
+//! sparsified rounds — would otherwise amplify round-off without bound). With δ > 0,
 //! D − pad(D') = Gᵀ(D_RR + δI)⁻¹G − pad_R(δI) with G = [D_RS, D_RR + δI], so
-//! pad(D') ⪯ D + δ·pad_R(I): the claim can exceed D by at most δ along directions of the
-//! *unsent* features, and d' picks up δ D_SR (D_RR + δI)⁻¹ x_R. At the floor this is 1e-9 of
-//! the largest information change; a δ raised above it is counted ([`Marginal::escalated`],
-//! the channel's `sparse_regularised`); beyond 1e-2 the sparsification is refused
-//! ([`SparsifyError`]) and the round sends nothing on that link (the whole delta stays
-//! pending). Whether the scheme as a whole stays consistent is checked by NEES in the Monte
-//! Carlo of `fusion/tests/ddf_sparse.rs`.
+//! pad(D') ⪯ D + δ·pad_R(I): the claim can exceed D by at most δ (1e-9 of the largest
+//! information change) along directions of the *unsent* features. The marginal is evaluated
+//! about the sender's estimate ([`schur_marginal_about`]) so that the term δ D_SR (D_RR + δI)⁻¹ x
+//! that d' picks up is in the sender's error, not in positions ~1e3 m from the origin.
+//!
+//! A D_RR that is not positive definite at the floor (indefinite beyond round-off:
+//! relinearisation or a removed feature made Y_i − C indefinite) is refused
+//! ([`SparsifyError::Indefinite`], naming the feature of the failing pivot): no D' supported on
+//! S alone can be ⪯ D then (take x = (0, v), v a negative direction of D_RR), and the Schur
+//! complement is no marginalisation. The channel first retries with that feature moved into S
+//! (a few times); then the round sends nothing on that link, counted, and the whole delta stays
+//! pending ([`MAX_REGULARISATION_REL`] records what larger δ did). The consistency of the
+//! scheme as a whole is checked by NEES in the Monte Carlo of `fusion/tests/ddf_sparse.rs`.
 
 use crate::info::MapInformation;
 use crate::sensor::FeatureId;
@@ -56,23 +60,18 @@ use std::collections::HashMap;
 /// information change.
 pub const REGULARISATION_FLOOR_REL: f64 = 1e-9;
 
-/// Largest regularisation accepted, relative to max diag D_RR (beyond it: refused).
-///
-/// Why this value: 1 % of the largest diagonal entry bounds the over-claim on the unsent
-/// features to 1 % of the largest information change on any of them; a D_RR more indefinite
-/// than that is not round-off, and sending nothing that round is the safe answer.
-pub const MAX_REGULARISATION_REL: f64 = 1e-9;
-
-/// Largest information removal accepted from a marginal whose D_RR needed regularisation
-/// beyond the floor: λ_min(D') ≥ −`MAX_NEGATIVE_REL` · λ_max(D_SS), else refused.
+/// Largest regularisation accepted, relative to max diag D_RR (beyond it: refused): the floor
+/// itself, so a D_RR that is not positive definite at the floor is refused.
 ///
 /// Why: with D_RR indefinite the Schur complement is no marginalisation (the quadratic form is
-/// unbounded below in x_R) and (D_RR + δI)⁻¹ can be large, so D' can remove far more than the
-/// receiver holds; its estimator then refuses the batch while both channel filters booked it,
-/// and the compensation the sender sends later is counted twice. Seen in `canopy sim`
-/// radio-8k: uav2 6.5× more confident than the centralized reference (median over features)
-/// without this check. 1e-3 admits round-off-level removals.
-pub const MAX_NEGATIVE_REL: f64 = 1e-3;
+/// unbounded below in x_R), and a regularised one over-claims without a useful bound. Measured
+/// with 1e-2 (escalating tenfold from the floor): `canopy sim` radio-8k had uav2 6.5× more
+/// confident than the centralized reference (median over its features) — a very negative D'
+/// the receiver's estimator refused after both ends booked it, whose compensation then came
+/// twice; refusing D' with λ_min(D') < −1e-3 λ_max(D_SS) fixed that in `canopy sim`, but the
+/// multi-process radio-32k run still had uav4 9.5× over-confident (43 of its 48 sparsified
+/// deltas regularised). At the floor both were sound.
+pub const MAX_REGULARISATION_REL: f64 = 1e-9;
 
 /// Factor between successive regularisation attempts (floor, 1e-8, …, 1e-2).
 const REGULARISATION_STEP: f64 = 10.0;
@@ -92,15 +91,6 @@ pub enum SparsifyError {
     /// The marginal came out non-finite (overflow in a near-singular solve).
     #[error("marginal information not finite")]
     NonFinite,
-    /// With D_RR regularised beyond the floor, the marginal removes more information than
-    /// [`MAX_NEGATIVE_REL`] of the S block's largest eigenvalue.
-    #[error("regularised marginal too negative: λ_min {min:.3e} against λ_max(D_SS) {max:.3e}")]
-    TooNegative {
-        /// λ_min(D').
-        min: f64,
-        /// λ_max(D_SS).
-        max: f64,
-    },
 }
 
 /// The marginal information of a delta on the selected features.
@@ -305,19 +295,6 @@ pub fn schur_marginal_about(
         (0..ns).all(|j| d_s[j].is_finite() && d_ss.col_as_slice(j).iter().all(|v| v.is_finite()));
     if !finite {
         return Err(SparsifyError::NonFinite);
-    }
-    if escalated && ns > 0 {
-        let eig = |m: &Mat<f64>| -> Result<Vec<f64>, SparsifyError> {
-            m.as_ref()
-                .self_adjoint_eigenvalues(Side::Lower)
-                .map_err(|_| SparsifyError::NonFinite)
-        };
-        let block = Mat::from_fn(ns, ns, |i, j| m[(sr[i], sr[j])]);
-        let max = eig(&block)?.last().copied().unwrap_or(0.0).max(0.0);
-        let min = eig(&d_ss)?.first().copied().unwrap_or(0.0);
-        if min < -MAX_NEGATIVE_REL * max {
-            return Err(SparsifyError::TooNegative { min, max });
-        }
     }
     Ok(Marginal {
         info: MapInformation {
