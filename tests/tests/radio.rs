@@ -24,13 +24,14 @@ use procs::{assert_sound, run, serial, topology};
 const CAPACITY: f64 = 32_000.0;
 /// Queue of each direction [bytes] (the scenario's `queue_bytes`).
 const QUEUE: f64 = 32_000.0;
-/// Largest team map RMSE / reference accepted (pooled final maps). Not the 1.15: four
-/// multi-process runs of the committed code (`canopy run topologies/radio-32k.toml`) gave
-/// 0.95, 1.01, 1.29 and 1.04 (`canopy sim`: 1.51). The spread comes from rounds whose residual
-/// block D_RR is not positive definite: they are refused (nothing sent, counted in
-/// `sparse_refused`), and which link stalls for how long depends on process scheduling. 1.5
-/// is above every run seen with a margin of 0.2 for that spread; CI on these links measured
-/// 2.90 (`canopy sim`) and 3.20–5.63 (multi-process), isolated vehicles 2.15.
+/// Largest team map RMSE / reference accepted (pooled final maps). Not the 1.15: eight
+/// multi-process runs of the sparsified links (`canopy run topologies/radio-32k.toml` and this
+/// test) gave 0.95, 0.97, 1.01, 1.04, 1.15, 1.29, 1.29 and 1.34 (`canopy sim`: 1.51). The
+/// spread comes from rounds whose residual block D_RR is not positive definite: they are
+/// refused (nothing sent, counted in `sparse_refused`; uav2 → uav3 about 51 of 90 rounds in
+/// every run), and which link stalls for how long depends on process scheduling. 1.5 is above
+/// every run seen with a margin of 0.16 for that spread; CI on these links measured 2.90
+/// (`canopy sim`) and 3.20–5.63 (multi-process), isolated vehicles 2.15.
 const MAX_MAP_RATIO: f64 = 1.5;
 /// Window over which links.csv's sent bytes are compared with the capacity [s]: ten rounds.
 const WINDOW_S: f64 = 10.0;
