@@ -123,7 +123,7 @@ pub fn max_features(budget: usize, f32_blocks: bool) -> usize {
 /// ln det(I + P_ff D_ff) = Σ ln(1 + max(μ, 0)) over the eigenvalues μ of Lᵀ D_ff L (P_ff = L Lᵀ,
 /// the sender's covariance of the feature; negative μ — information removed — count 0). A
 /// feature without a covariance in `covariances` (or a non-positive-definite one) uses
-/// P_ff = I [m²]. Returned in the order of `delta.ids`.
+/// P_ff = I (m²). Returned in the order of `delta.ids`.
 pub fn priorities(
     delta: &MapInformation,
     covariances: &HashMap<FeatureId, Matrix3<f64>>,
