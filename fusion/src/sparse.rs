@@ -73,6 +73,16 @@ pub const REGULARISATION_FLOOR_REL: f64 = 1e-9;
 /// deltas regularised). At the floor both were sound.
 pub const MAX_REGULARISATION_REL: f64 = 1e-9;
 
+/// Largest information removal accepted from a marginal: λ_min(D') ≥ −`MAX_NEGATIVE_REL` ·
+/// λ_max(D_SS), else refused.
+///
+/// Why: for positive semi-definite D the marginal is positive semi-definite, so a clearly
+/// negative D' means D is indefinite along a (near-)null direction of D_RR that passed the
+/// Cholesky at the floor; (D_RR + δI)⁻¹ ~ 1/δ there makes D' and d' garbage. Seen in a
+/// multi-process radio-32k run without this check: uav1's map RMSE 816 m (team 198× the
+/// reference) while never more confident than the reference. 1e-3 admits round-off.
+pub const MAX_NEGATIVE_REL: f64 = 1e-3;
+
 /// Factor between successive regularisation attempts (floor, 1e-8, …, 1e-2).
 const REGULARISATION_STEP: f64 = 10.0;
 
@@ -91,6 +101,15 @@ pub enum SparsifyError {
     /// The marginal came out non-finite (overflow in a near-singular solve).
     #[error("marginal information not finite")]
     NonFinite,
+    /// The marginal removes more information than [`MAX_NEGATIVE_REL`] of the S block's
+    /// largest eigenvalue: D is indefinite along a (near-)null direction of D_RR.
+    #[error("marginal too negative: λ_min {min:.3e} against λ_max(D_SS) {max:.3e}")]
+    TooNegative {
+        /// λ_min(D').
+        min: f64,
+        /// λ_max(D_SS).
+        max: f64,
+    },
 }
 
 /// The marginal information of a delta on the selected features.
@@ -296,6 +315,19 @@ pub fn schur_marginal_about(
     if !finite {
         return Err(SparsifyError::NonFinite);
     }
+    if nr > 0 && ns > 0 {
+        let eig = |m: &Mat<f64>| -> Result<Vec<f64>, SparsifyError> {
+            m.as_ref()
+                .self_adjoint_eigenvalues(Side::Lower)
+                .map_err(|_| SparsifyError::NonFinite)
+        };
+        let block = Mat::from_fn(ns, ns, |i, j| m[(sr[i], sr[j])]);
+        let max = eig(&block)?.last().copied().unwrap_or(0.0).max(0.0);
+        let min = eig(&d_ss)?.first().copied().unwrap_or(0.0);
+        if min < -MAX_NEGATIVE_REL * max {
+            return Err(SparsifyError::TooNegative { min, max });
+        }
+    }
     Ok(Marginal {
         info: MapInformation {
             ids: s_blocks.iter().map(|&k| delta.ids[k]).collect(),
@@ -376,11 +408,13 @@ mod tests {
         }
     }
 
-    /// pad(D') ⪯ D for PSD D of low rank (singular D_RR handled by regularisation; the excess is
-    /// bounded by δ) and for indefinite D whose R block is PD (exactly ⪯ then).
+    /// pad(D') ⪯ D for PSD D of low rank (singular D_RR handled by the floor; the excess is
+    /// bounded by δ); a D whose S block is clearly indefinite gives a negative marginal, which
+    /// is refused.
     #[test]
     fn marginal_never_exceeds_the_delta() {
         let mut rng = ChaCha8Rng::seed_from_u64(7);
+        let mut refused = 0;
         for trial in 0..30 {
             let nf = 5;
             let n = 3 * nf;
@@ -394,8 +428,15 @@ mod tests {
             }
             let delta = info(&[1, 2, 3, 4, 5], d, &mut rng);
             let keep = [1, 2];
-            let Ok(got) = schur_marginal(&delta, &keep) else {
-                panic!("trial {trial} refused")
+            let got = match schur_marginal(&delta, &keep) {
+                Ok(got) => got,
+                // An S block made indefinite by −3 on its diagonal may give a clearly negative
+                // marginal: refused by design (MAX_NEGATIVE_REL), never for PSD D.
+                Err(SparsifyError::TooNegative { .. }) if indefinite => {
+                    refused += 1;
+                    continue;
+                }
+                Err(e) => panic!("trial {trial} refused: {e}"),
             };
             let excess = got.info.psd_excess_over(&delta).expect("eig");
             // Exact Schur: round-off only (1e-9 of the largest entry); regularised: ≤ δ (plus the
@@ -411,6 +452,9 @@ mod tests {
                 assert!(!got.escalated, "trial {trial}");
             }
         }
+        // −3 on the S diagonal of these matrices (eigenvalues ~0.1–30) makes every marginal
+        // clearly negative: all refused, none sent.
+        assert_eq!(refused, 15, "indefinite trials refused");
     }
 
     /// Keeping every feature returns the delta itself; all-zero features are not held back.

@@ -24,15 +24,16 @@ use procs::{assert_sound, run, serial, topology};
 const CAPACITY: f64 = 32_000.0;
 /// Queue of each direction [bytes] (the scenario's `queue_bytes`).
 const QUEUE: f64 = 32_000.0;
-/// Largest team map RMSE / reference accepted (pooled final maps). Not the 1.15: eight
-/// multi-process runs of the sparsified links (`canopy run topologies/radio-32k.toml` and this
-/// test) gave 0.95, 0.97, 1.01, 1.04, 1.15, 1.29, 1.29 and 1.34 (`canopy sim`: 1.51). The
-/// spread comes from rounds whose residual block D_RR is not positive definite: they are
-/// refused (nothing sent, counted in `sparse_refused`; uav2 → uav3 about 51 of 90 rounds in
-/// every run), and which link stalls for how long depends on process scheduling. 1.5 is above
-/// every run seen with a margin of 0.16 for that spread; CI on these links measured 2.90
-/// (`canopy sim`) and 3.20–5.63 (multi-process), isolated vehicles 2.15.
-const MAX_MAP_RATIO: f64 = 1.5;
+/// Largest team map RMSE / reference accepted (pooled final maps). Not the 1.15:
+/// multi-process runs of the committed code (`canopy run topologies/radio-32k.toml` and this
+/// test) gave 1.05, 1.05, 1.13 and 1.48 (`canopy sim`: 1.28). The spread comes from rounds
+/// whose residual block is not positive definite or whose marginal comes out negative: they
+/// are refused (nothing sent, counted in `sparse_refused`), and which link stalls for how long
+/// depends on process scheduling. 2.0 keeps the guard below isolated vehicles (2.15 in
+/// `canopy sim`) and CI on these links (2.90 in `canopy sim`, 3.20–5.63 multi-process), with a
+/// margin of 0.5 over the largest run seen; it also catches a diverged map (a run before the
+/// negative-marginal refusal had uav1's map RMSE at 816 m, 198×).
+const MAX_MAP_RATIO: f64 = 2.0;
 /// Window over which links.csv's sent bytes are compared with the capacity [s]: ten rounds.
 const WINDOW_S: f64 = 10.0;
 
