@@ -1006,6 +1006,25 @@ impl MapInformation {
             + f32_blocks * (2 * BLOCK_INDEX_BYTES + F32_BYTES * FEATURE_DIM * FEATURE_DIM)
     }
 
+    /// The bound of [`block_sparse_wire_bytes`](Self::block_sparse_wire_bytes) for information
+    /// over `n` features whose every upper-triangle block is non-zero and f64 (the largest a
+    /// delta over `n` features can be): what a sparsified delta's feature count is sized by.
+    pub fn dense_block_wire_bytes(n: usize) -> usize {
+        Self::dense_block_wire_bytes_as(n, false)
+    }
+
+    /// [`dense_block_wire_bytes`](Self::dense_block_wire_bytes) with every block f32 when
+    /// `f32_blocks` (as after [`quantized_f32_conservative`](Self::quantized_f32_conservative);
+    /// y stays f64).
+    pub fn dense_block_wire_bytes_as(n: usize, f32_blocks: bool) -> usize {
+        let dim = FEATURE_DIM * n;
+        let entry = if f32_blocks { F32_BYTES } else { F64_BYTES };
+        4 * LEN_BYTES
+            + ID_BYTES * n
+            + F64_BYTES * (3 + dim)
+            + n * (n + 1) / 2 * (2 * BLOCK_INDEX_BYTES + entry * FEATURE_DIM * FEATURE_DIM)
+    }
+
     /// Whether every entry of the 3 × 3 block (br, bc) of Y is exactly representable as f32
     /// (the wire form then carries it in 4 bytes per entry, losslessly).
     fn block_is_f32(&self, br: usize, bc: usize) -> bool {

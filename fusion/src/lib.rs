@@ -39,5 +39,6 @@ pub mod rotation;
 pub mod runtime;
 pub mod sensor;
 pub mod slam;
+pub mod sparse;
 pub mod state;
 pub mod topology;

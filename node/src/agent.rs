@@ -369,6 +369,16 @@ impl VehicleFusion {
         Ok(())
     }
 
+    /// Makes the link to `peer` a sparsified channel filter (a capacity-limited link: exact
+    /// deltas while they fit, their conservative marginal on the features that fit otherwise;
+    /// [`canopy_fusion::sparse`]).
+    pub fn use_sparse(&mut self, peer: NodeId) -> Result<(), AgentError> {
+        if let Some(d) = self.ddf.as_mut() {
+            d.use_sparse(peer)?;
+        }
+        Ok(())
+    }
+
     /// Sets the submap byte budgets of the next round, per link (capacity-limited links: the
     /// driver derives them from each link's capacity and outbound queue, [`crate::radio`]).
     pub fn set_link_budgets(&mut self, budgets: &[(NodeId, usize)]) -> Result<(), AgentError> {
@@ -731,7 +741,12 @@ impl VehicleAgent {
         self.fusion.use_ci(peer)
     }
 
-    /// Sets the submap byte budgets of the next round, per link.
+    /// Makes the link to `peer` a sparsified channel filter from the start.
+    pub fn use_sparse(&mut self, peer: NodeId) -> Result<(), AgentError> {
+        self.fusion.use_sparse(peer)
+    }
+
+    /// Sets the byte budgets (delta or submap) of the next round, per link.
     pub fn set_link_budgets(&mut self, budgets: &[(NodeId, usize)]) -> Result<(), AgentError> {
         self.fusion.set_link_budgets(budgets)
     }

@@ -470,8 +470,12 @@ fn cmd_check(path: &Path) -> Result<()> {
         };
         let radio = match &l.radio {
             Some(r) => format!(
-                ", radio {} B/s (CI submaps of ≤ {} bytes per round), queue {} B, latency {} s{}",
+                ", radio {} B/s ({} of ≤ {} bytes per round), queue {} B, latency {} s{}",
                 r.bytes_per_s,
+                match r.fusion {
+                    crate::radio::RadioFusion::Sparse => "sparsified deltas",
+                    crate::radio::RadioFusion::Ci => "CI submaps",
+                },
                 crate::radio::round_budget(r.bytes_per_s, s.fusion.rate_hz, 0.0),
                 r.queue_bytes(),
                 r.latency_s,

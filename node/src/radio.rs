@@ -14,6 +14,10 @@
 //! b = 4
 //! radio = { bytes_per_s = 32000.0, latency_s = 0.02, range_m = 2500.0, edge_fraction = 0.2, edge_loss = 0.5 }
 //! ```
+//!
+//! `fusion = "sparse"` (default) runs the channel filter with conservative sparsification
+//! under the round's budget ([`canopy_fusion::sparse`]); `fusion = "ci"` sends covariance-
+//! intersection submaps from the first round instead.
 
 use std::sync::Arc;
 
@@ -54,6 +58,29 @@ pub struct RadioSpec {
     /// Loss probability at the range (with `range_m` only; default [`DEFAULT_EDGE_LOSS`]).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub edge_loss: Option<f64>,
+    /// How the link fuses under its capacity (default `"sparse"`).
+    #[serde(default, skip_serializing_if = "RadioFusion::is_default")]
+    pub fusion: RadioFusion,
+}
+
+/// Fusion on a capacity-limited link.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum RadioFusion {
+    /// Channel filter with conservative sparsification booked in the channel filter: exact
+    /// deltas while they fit the round's budget, otherwise the marginal information of the
+    /// delta on the features that fit; the rest goes out in later rounds
+    /// ([`canopy_fusion::sparse`]).
+    #[default]
+    Sparse,
+    /// Covariance intersection of budgeted submaps from the first round (one-way).
+    Ci,
+}
+
+impl RadioFusion {
+    fn is_default(&self) -> bool {
+        *self == Self::default()
+    }
 }
 
 impl RadioSpec {
@@ -302,6 +329,7 @@ mod tests {
                 range_m: Some(1000.0),
                 edge_fraction: None,
                 edge_loss: Some(0.3),
+                fusion: RadioFusion::Ci,
             }),
         };
         let cfg = link.fault_config(&s, 7).expect("maps");
@@ -331,6 +359,7 @@ mod tests {
             range_m: None,
             edge_fraction: None,
             edge_loss: None,
+            fusion: RadioFusion::Sparse,
         });
         assert!(crate::network::validate(&s).is_ok());
         s.fusion.mode = FusionMode::Central;

@@ -199,13 +199,15 @@ pub fn vehicle_agent(
             Some((NodeId(peer), budget))
         })
         .collect();
-    let radio_peers: Vec<NodeId> = effective_links(s)
+    let radio_peers: Vec<(NodeId, crate::radio::RadioFusion)> = effective_links(s)
         .iter()
-        .filter(|l| l.radio.is_some())
-        .filter_map(|l| match (l.a == cfg.id, l.b == cfg.id) {
-            (true, _) => Some(NodeId(l.b)),
-            (_, true) => Some(NodeId(l.a)),
-            _ => None,
+        .filter_map(|l| {
+            let fusion = l.radio.as_ref()?.fusion;
+            match (l.a == cfg.id, l.b == cfg.id) {
+                (true, _) => Some((NodeId(l.b), fusion)),
+                (_, true) => Some((NodeId(l.a), fusion)),
+                _ => None,
+            }
         })
         .collect();
     let slam = SlamConfig {
@@ -236,9 +238,14 @@ pub fn vehicle_agent(
             cfg.replay.as_ref().and_then(|r| r.zero_velocity),
         )
         .map_err(agent_error)?;
-    // Capacity-limited links never carry exact deltas: CI submaps from the first round.
-    for &peer in &radio_peers {
-        agent.use_ci(peer).map_err(agent_error)?;
+    // Capacity-limited links: sparsified channel filters (default) or CI submaps from the
+    // first round (`fusion = "ci"`).
+    for &(peer, fusion) in &radio_peers {
+        match fusion {
+            crate::radio::RadioFusion::Sparse => agent.use_sparse(peer),
+            crate::radio::RadioFusion::Ci => agent.use_ci(peer),
+        }
+        .map_err(agent_error)?;
     }
     Ok(agent)
 }
@@ -432,11 +439,11 @@ impl<'s> Sim<'s> {
                 Some(Agent::Vehicle(v)) => v
                     .ddf()
                     .and_then(|d| d.channel(y))
-                    .is_some_and(|c| c.mode != canopy_fusion::ddf::LinkMode::Exact),
+                    .is_some_and(|c| c.mode == canopy_fusion::ddf::LinkMode::Ci),
                 Some(Agent::Hub(h)) => h
                     .ddf()
                     .channel(y)
-                    .is_some_and(|c| c.mode != canopy_fusion::ddf::LinkMode::Exact),
+                    .is_some_and(|c| c.mode == canopy_fusion::ddf::LinkMode::Ci),
                 None => false,
             };
             rec.ci |= ci(*a, *b) || ci(*b, *a);

@@ -1,16 +1,17 @@
 //! Radio-link suite (issue #13): the shipped `topologies/radio-32k.toml` — the tree-4 team with
 //! every link a 32 kB/s radio (one-second drop-tail queue, 20 ms latency) — runs as real
 //! processes (world, one process per vehicle, over iceoryx2 with the transport's radio model
-//! in each end's fault layer, on the vehicles' simulation clocks). Every link fuses by
-//! covariance-intersection submaps from the first round, each round within a budget derived
+//! in each end's fault layer, on the vehicles' simulation clocks). Every link runs the
+//! sparsified channel filter (the default `fusion = "sparse"`): exact deltas while they fit,
+//! otherwise the delta's marginal on the features that fit, each round within a budget derived
 //! from the capacity and the link's outbound queue.
 //!
 //! It proves: the run is sound ([`procs::assert_sound`]: no vehicle ever more confident about a
-//! feature than the centralized all-data reference, clean processes, no lost input); every
-//! link was CI from the start and carried no exact delta; the bytes each end sent stay within
-//! the capacity (mean over the run, and every 10 s window of links.csv); the drop-tail queue
-//! dropped few messages. Per-link bytes/s and the team's map RMSE against the reference are
-//! printed (the map ratio is not asserted: see the comment at its print).
+//! feature than the centralized all-data reference, clean processes, no lost input); no link
+//! switched to CI, every end sent deltas and the links sparsified; the bytes each end sent stay
+//! within the capacity (mean over the run, and every 10 s window of links.csv); the drop-tail
+//! queue dropped few messages; and the team's map RMSE is within the guard below of the
+//! reference's.
 
 mod procs;
 
@@ -23,6 +24,16 @@ use procs::{assert_sound, run, serial, topology};
 const CAPACITY: f64 = 32_000.0;
 /// Queue of each direction [bytes] (the scenario's `queue_bytes`).
 const QUEUE: f64 = 32_000.0;
+/// Largest team map RMSE / reference accepted (pooled final maps). Not the issue's 1.15:
+/// multi-process runs of the committed code (`canopy run topologies/radio-32k.toml` and this
+/// test) gave 1.05, 1.05, 1.13 and 1.48 (`canopy sim`: 1.28). The spread comes from rounds
+/// whose residual block is not positive definite or whose marginal comes out negative: they
+/// are refused (nothing sent, counted in `sparse_refused`), and which link stalls for how long
+/// depends on process scheduling. 2.0 keeps the guard below isolated vehicles (2.15 in
+/// `canopy sim`) and CI on these links (2.90 in `canopy sim`, 3.20–5.63 multi-process), with a
+/// margin of 0.5 over the largest run seen; it also catches a diverged map (a run before the
+/// negative-marginal refusal had uav1's map RMSE at 816 m, 198×).
+const MAX_MAP_RATIO: f64 = 2.0;
 /// Window over which links.csv's sent bytes are compared with the capacity [s]: ten rounds.
 const WINDOW_S: f64 = 10.0;
 
@@ -49,28 +60,34 @@ fn radio_32k() {
     r.print_standing("radio-32k");
     assert_sound(&r);
 
-    // CI from the first round, on every link, both directions: submaps sent and fused, no
-    // exact delta ever.
+    // Sparsified channel filters on every link, both directions: deltas flow, never CI, and
+    // the capacity forced sparsified rounds.
+    let mut sparsified = 0;
     for l in &r.summary.links {
-        assert!(l.ci, "{} is not CI", l.link);
+        assert!(!l.ci, "{} switched to CI", l.link);
     }
     for e in &r.checks.link_ends {
         let c = &e.report.channel;
-        assert!(e.report.ci, "{}->{}: not CI", e.node, e.peer);
-        assert_eq!(
-            c.deltas_sent, 0,
-            "{}->{}: exact deltas sent",
-            e.node, e.peer
-        );
-        assert!(
-            c.submaps_sent > 0 && c.submaps_fused > 0,
-            "{}->{}: no submaps sent {} / fused {}",
+        assert!(!e.report.ci, "{}->{}: CI", e.node, e.peer);
+        assert!(c.deltas_sent > 0, "{}->{}: no delta sent", e.node, e.peer);
+        assert_eq!(c.submaps_sent, 0, "{}->{}: submaps sent", e.node, e.peer);
+        eprintln!(
+            "radio-32k {}->{}: {} deltas sent, {} of them sparsified ({} regularised beyond the \
+             floor), {} rounds refused, {} starved",
             e.node,
             e.peer,
-            c.submaps_sent,
-            c.submaps_fused
+            c.deltas_sent,
+            c.sparse_deltas,
+            c.sparse_regularised,
+            c.sparse_refused,
+            c.budget_starved
         );
+        sparsified += c.sparse_deltas;
     }
+    assert!(
+        sparsified > 0,
+        "the capacity never forced a sparsified delta"
+    );
 
     // Bytes per second each end offered: the mean over the run within the capacity.
     let duration = r.summary.duration_s;
@@ -143,14 +160,10 @@ fn radio_32k() {
             .map(|(_, m)| m),
     );
     let ratio = team / base;
-    // Printed, not asserted: the issue's goal (≤ 1.15×) is not met and the figure is not
-    // stable enough to guard. Partial-state CI on every link from the first round inflates the
-    // whole EKF joint (the pose too) by 1/ω at each fusion, so the vehicles' own pose
-    // uncertainty grows (uav1's σ_north 2 → 25 m by 54 s in `canopy sim`) and their maps degrade
-    // — worse than isolated SLAM (2.15× in `canopy sim`). Measured (pooled final maps): 2.90×
-    // in `canopy sim`; 3.20×, 3.38×, 3.81× and 5.63× in multi-process runs, where process
-    // scheduling decides which submaps cross first (a 5× guard failed in CI). What this test
-    // holds the radio path to is above: sound (never more confident than the reference),
-    // capacity respected, no drop-tail losses.
+    // Guard: MAX_MAP_RATIO (see its comment for the measured figures and the margin).
     eprintln!("radio-32k: team map RMSE {team:.2} m, reference {base:.2} m, ratio {ratio:.2}");
+    assert!(
+        ratio <= MAX_MAP_RATIO,
+        "team map RMSE {team:.2} m is {ratio:.2}× the reference's {base:.2} m"
+    );
 }

@@ -8,10 +8,18 @@ use crate::ci::{self, Submap, SubmapTracker};
 use crate::info::{InfoError, MapInformation};
 use crate::keys::{KeyMap, Merge};
 use crate::sensor::FeatureId;
+use crate::sparse;
+use crate::state::FEATURE_DIM;
 use crate::topology::NodeId;
+use nalgebra::Matrix3;
 use nalgebra::Vector3;
 use serde::{Deserialize, Serialize};
-use std::collections::{BTreeMap, HashSet, VecDeque};
+use std::collections::{BTreeMap, HashMap, HashSet, VecDeque};
+
+/// How many times a sparsified round moves the feature of a failing pivot of D_RR into S
+/// before it is refused. Why 8: each attempt is one Cholesky of D_RR (the round's main cost);
+/// 8 bounds a round at 9 of them.
+const MAX_PIVOT_SWAPS: usize = 8;
 
 /// Counters of one channel (one neighbour), for metrics and tests.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
@@ -65,8 +73,20 @@ pub struct ChannelStats {
     /// Submaps that could not be fused (CI error, e.g. a receiver map that is not positive
     /// definite) or not built (the sender's map not positive definite).
     pub ci_failures: u64,
-    /// Rounds in which a CI link had no room for even one feature.
+    /// Rounds in which a CI link had no room for even one feature, or a sparsified link no
+    /// room for one feature's delta.
     pub budget_starved: u64,
+    /// Deltas sent sparsified (the marginal on the features that fit; [`crate::sparse`]).
+    #[serde(default)]
+    pub sparse_deltas: u64,
+    /// Of those, the ones whose residual block needed regularisation (not strictly ⪯ the
+    /// delta: the claim may exceed it by δ on held-back features, module docs).
+    #[serde(default)]
+    pub sparse_regularised: u64,
+    /// Rounds a sparsified link sent no delta because the residual block was too indefinite
+    /// (or the marginal not finite); the delta stays pending.
+    #[serde(default)]
+    pub sparse_refused: u64,
 }
 
 /// Where the current epoch pair is.
@@ -441,6 +461,12 @@ impl Channel {
         }
     }
 
+    pub(crate) fn use_sparse(&mut self) {
+        if self.mode == LinkMode::Exact {
+            self.mode = LinkMode::Sparse;
+        }
+    }
+
     pub(crate) fn switch_to_ci(&mut self, origin: Vector3<f64>) {
         if self.mode == LinkMode::Ci {
             return;
@@ -782,7 +808,7 @@ impl Channel {
             }
         }
         self.decide(now, ctx, &mut out);
-        if !self.link_up || self.mode != LinkMode::Exact {
+        if !self.link_up || self.mode == LinkMode::Ci {
             return Ok(out);
         }
         let cfg = ctx.config;
@@ -874,12 +900,21 @@ impl Channel {
             super::DeltaPrecision::F64 => d,
             super::DeltaPrecision::F32 => d.quantized_f32_conservative(),
         };
-        if self.budget.is_some_and(|b| d.block_sparse_wire_bytes() > b) {
-            // The full delta does not fit: fall back to CI for good (both directions: the
-            // peer switches on our first submap or Hello).
-            self.switch_to_ci(ctx.origin);
-            return Ok(());
-        }
+        let d = match self.budget {
+            Some(b) if d.block_sparse_wire_bytes() > b => {
+                if self.mode != LinkMode::Sparse {
+                    // The full delta does not fit: fall back to CI for good (both directions:
+                    // the peer switches on our first submap or Hello).
+                    self.switch_to_ci(ctx.origin);
+                    return Ok(());
+                }
+                match self.sparsify(&d, b, lazy.source(), ctx) {
+                    Some(d) => d,
+                    None => return Ok(()),
+                }
+            }
+            _ => d,
+        };
         self.sent.add_assign(&d).map_err(DdfError::Internal)?;
         if let Some(describe) = self.describe_new(&d.ids, lazy.source(), ctx) {
             out.push(describe);
@@ -895,6 +930,82 @@ impl Channel {
         );
         out.push(msg);
         Ok(())
+    }
+
+    /// The marginal of `d` on the features that fit `budget` (module [`crate::sparse`]);
+    /// `None` (counted) when not even one feature fits or the residual block is refused.
+    /// Booked like any delta by the caller: the residual d − d' stays in Y_i − C_ik.
+    fn sparsify(
+        &mut self,
+        d: &MapInformation,
+        budget: usize,
+        source: &dyn MapSource,
+        ctx: &NodeCtx<'_>,
+    ) -> Option<MapInformation> {
+        let covariances: HashMap<FeatureId, Matrix3<f64>> =
+            source.feature_covariances().into_iter().collect();
+        // Blocks in f32 only when the node sends f32 deltas anyway (`delta_precision`): in the
+        // SLAM radio runs, always-f32 sparsified deltas made the maps diverge (team map RMSE
+        // 107× the reference at 32 kB/s): a Schur complement's large, cancelling entries lose
+        // the 2⁻²² relative the conservative rounding holds back, and y (kept in f64) then
+        // implies a far-off mean.
+        let f32_blocks = ctx.config.delta_precision == super::DeltaPrecision::F32;
+        // The sender's estimate of the delta's features (origin-relative): the Schur
+        // complement is evaluated about it ([`sparse::schur_marginal_about`]).
+        let marginal = source.marginal(&d.ids);
+        let about: HashMap<FeatureId, Vector3<f64>> = marginal
+            .ids
+            .iter()
+            .enumerate()
+            .map(|(b, &id)| {
+                let x = Vector3::from_fn(|a, _| marginal.mean[FEATURE_DIM * b + a]);
+                (id, x - ctx.origin)
+            })
+            .collect();
+        let mut keep = sparse::select(d, &covariances, budget, f32_blocks);
+        // D_RR not positive definite: the feature of the failing pivot joins S in place of the
+        // lowest-priority one, a few times, before the round is refused.
+        let mut swaps = 0;
+        loop {
+            if keep.is_empty() {
+                self.stats.budget_starved += 1;
+                return None;
+            }
+            let m = match sparse::schur_marginal_about(d, &keep, &about) {
+                Ok(m) => m,
+                Err(sparse::SparsifyError::Indefinite {
+                    feature: Some(f), ..
+                }) if swaps < MAX_PIVOT_SWAPS && !keep.contains(&f) => {
+                    swaps += 1;
+                    keep.pop();
+                    keep.insert(0, f);
+                    continue;
+                }
+                Err(_) => {
+                    self.stats.sparse_refused += 1;
+                    return None;
+                }
+            };
+            let mut info = m.info;
+            let rel = ctx.config.block_threshold_rel;
+            info = info.sparsified_with(rel * d.matrix_norm_max(), rel * d.vector_norm_max());
+            if f32_blocks {
+                info = info.quantized_f32_conservative();
+            }
+            // The dense bound sized the selection, so this holds; kept as a guard.
+            if info.block_sparse_wire_bytes() > budget {
+                keep.pop();
+                continue;
+            }
+            if info.is_empty() {
+                return None;
+            }
+            self.stats.sparse_deltas += 1;
+            if m.escalated {
+                self.stats.sparse_regularised += 1;
+            }
+            return Some(info);
+        }
     }
 
     fn send_submap(

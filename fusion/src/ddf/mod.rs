@@ -60,6 +60,12 @@
 //! (it needs no Y_i when the restart is detected, so the Sync can be answered inside
 //! `on_message`), at the cost of one more round for J to reach i.
 //!
+//! # Sparsified links
+//! A link made [`LinkMode::Sparse`] ([`DdfNode::use_sparse`]) sends the delta as is while it
+//! fits its budget, and otherwise its marginal information on the features that fit
+//! ([`crate::sparse`]); both ends book what was sent, the rest stays in Y_i − C_ik. A round
+//! whose residual block is not positive definite is refused (nothing sent, counted).
+//!
 //! # Covariance intersection fallback
 //! When a link's byte budget cannot carry the delta — or from the start, for a
 //! capacity-limited link ([`DdfNode::use_ci`]) — the link switches to CI for good, in both
@@ -116,6 +122,11 @@ pub enum LinkMode {
     Exact,
     /// Covariance intersection of budgeted submaps (one-way switch).
     Ci,
+    /// Channel filter whose delta, when it does not fit the link's budget, is conservatively
+    /// sparsified: the marginal information of the delta on the features that fit
+    /// ([`crate::sparse`]) is sent and booked, the rest stays in Y_i − C_ik for later rounds.
+    /// Exact whenever the whole delta fits. Set per link ([`DdfNode::use_sparse`]).
+    Sparse,
 }
 
 /// The estimator refused to fuse information.

@@ -299,6 +299,19 @@ impl DdfNode {
         Ok(())
     }
 
+    /// Makes the link to `peer` a sparsified channel filter ([`LinkMode::Sparse`]): exact
+    /// deltas while they fit the link's budget, the marginal information of the delta on the
+    /// features that fit otherwise (conservative, booked in the channel filter; module
+    /// [`crate::sparse`]). For a capacity-limited link. No protocol change: the peer receives
+    /// ordinary deltas. A link already switched to CI stays CI.
+    pub fn use_sparse(&mut self, peer: NodeId) -> Result<(), DdfError> {
+        self.channels
+            .get_mut(&peer)
+            .ok_or(DdfError::UnknownNeighbour(peer))?
+            .use_sparse();
+        Ok(())
+    }
+
     fn check_time(now: f64) -> Result<(), DdfError> {
         if now.is_finite() {
             Ok(())

@@ -380,7 +380,7 @@ pub(crate) fn link_report(
         rejected_transport: st.rejected.total(),
         rejected_channel: channel.map_or(0, |c| c.stats.rejected),
         up: link.peer_state() == PeerState::Up,
-        ci: channel.is_some_and(|c| c.mode != canopy_fusion::ddf::LinkMode::Exact),
+        ci: channel.is_some_and(|c| c.mode == canopy_fusion::ddf::LinkMode::Ci),
         channel: channel.map(|c| c.stats).unwrap_or_default(),
         naive_bytes,
     }

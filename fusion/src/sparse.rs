@@ -1,0 +1,531 @@
+//! Conservative sparsification of a channel-filter delta under a byte budget (issue #13).
+//!
+//! A capacity-limited link cannot carry the whole channel delta D = Y_i − C_ik once the map is
+//! large: it is dense over every feature whose information changed. The sender picks a feature
+//! set S that fits the round's budget ([`select`]) and sends the *marginal* information of D on
+//! S ([`schur_marginal`], Schur complement over the rest R):
+//!
+//! D'_SS = D_SS − D_SR D_RR⁻¹ D_RS,   d'_S = d_S − D_SR D_RR⁻¹ d_R.
+//!
+//! Both ends book D' in the channel filter (C_ik += D'), so the residual D − D' stays in
+//! Y_i − C_ik and goes out in later rounds: nothing is lost, nothing counted twice, and the link
+//! is exact again as soon as a whole delta fits (S then covers every feature of D and D' = D).
+//!
+//! Why D' never claims more than D. With T = [I, −D_SR D_RR⁻¹] (rows of S):
+//!
+//! D − pad(D') = [[D_SR D_RR⁻¹ D_RS, D_SR], [D_RS, D_RR]] = Gᵀ D_RR⁻¹ G with G = [D_RS, D_RR],
+//!
+//! which is positive semi-definite whenever D_RR is positive definite — for *any* symmetric D,
+//! indefinite S block included. So pad(D') ⪯ D in the PSD order. For D the information of
+//! independent linear-Gaussian data (d = D x + w, cov w = D), d' = T d = D' x_S + T w exactly
+//! (T D = [D', 0]: no dependence on x_R), cov(T w) = T D Tᵀ = D', and the residual
+//! d − pad(d') is uncorrelated with d' (pad(T) D (I − pad(T))ᵀ = pad(D') − pad(D') = 0): the
+//! sent part and the residual are two independent pieces of information that add up to D.
+//!
+//! Regularisation. The Cholesky is of D_RR + δI with δ = 1e-9 · max diag D_RR
+//! ([`REGULARISATION_FLOOR_REL`]: a singular D_RR — a residual of low rank, common after a few
+//! sparsified rounds — would otherwise amplify round-off without bound). With δ > 0,
+//! D − pad(D') = Gᵀ(D_RR + δI)⁻¹G − pad_R(δI) with G = [D_RS, D_RR + δI], so
+//! pad(D') ⪯ D + δ·pad_R(I): the claim can exceed D by at most δ (1e-9 of the largest
+//! information change) along directions of the *unsent* features. The marginal is evaluated
+//! about the sender's estimate ([`schur_marginal_about`]) so that the term δ D_SR (D_RR + δI)⁻¹ x
+//! that d' picks up is in the sender's error, not in positions ~1e3 m from the origin.
+//!
+//! A D_RR that is not positive definite at the floor (indefinite beyond round-off:
+//! relinearisation or a removed feature made Y_i − C indefinite) is refused
+//! ([`SparsifyError::Indefinite`], naming the feature of the failing pivot): no D' supported on
+//! S alone can be ⪯ D then (take x = (0, v), v a negative direction of D_RR), and the Schur
+//! complement is no marginalisation. The channel first retries with that feature moved into S
+//! (a few times); then the round sends nothing on that link, counted, and the whole delta stays
+//! pending ([`MAX_REGULARISATION_REL`] records what larger δ did). The consistency of the
+//! scheme as a whole is checked by NEES in the Monte Carlo of `fusion/tests/ddf_sparse.rs`.
+
+use crate::info::MapInformation;
+use crate::sensor::FeatureId;
+use crate::state::FEATURE_DIM;
+use faer::linalg::solvers::Solve;
+use faer::{Col, Mat, Side};
+use nalgebra::{Matrix3, Vector3};
+use std::collections::HashMap;
+
+/// Regularisation always added to D_RR, relative to max diag D_RR: bounds the amplification
+/// of round-off along (near-)null directions of D_RR.
+///
+/// Why this value: a singular D_RR (a residual of low rank, common after a few sparsified
+/// rounds) can still pass a Cholesky with pivots at round-off size (~1e-16 · max diag); its
+/// inverse then multiplies the round-off of d_R (~1e-16 · |D| · |x − o| with |x − o| up to
+/// ~1e3 m) by ~1e16 / |D| — an error of the size of the signal. With δ ≥ 1e-9 · max diag the
+/// amplification is at most 1e9 / max diag, leaving ~1e-4 m of mean error; the claim
+/// exceeds D by at most δ on unsent-feature directions (module docs), i.e. 1e-9 of the largest
+/// information change.
+pub const REGULARISATION_FLOOR_REL: f64 = 1e-9;
+
+/// Largest regularisation accepted, relative to max diag D_RR (beyond it: refused): the floor
+/// itself, so a D_RR that is not positive definite at the floor is refused.
+///
+/// Why: with D_RR indefinite the Schur complement is no marginalisation (the quadratic form is
+/// unbounded below in x_R), and a regularised one over-claims without a useful bound. Measured
+/// with 1e-2 (escalating tenfold from the floor): `canopy sim` radio-8k had uav2 6.5× more
+/// confident than the centralized reference (median over its features) — a very negative D'
+/// the receiver's estimator refused after both ends booked it, whose compensation then came
+/// twice; refusing D' with λ_min(D') < −1e-3 λ_max(D_SS) fixed that in `canopy sim`, but the
+/// multi-process radio-32k run still had uav4 9.5× over-confident (43 of its 48 sparsified
+/// deltas regularised). At the floor both were sound.
+pub const MAX_REGULARISATION_REL: f64 = 1e-9;
+
+/// Largest information removal accepted from a marginal: λ_min(D') ≥ −`MAX_NEGATIVE_REL` ·
+/// λ_max(D_SS), else refused.
+///
+/// Why: for positive semi-definite D the marginal is positive semi-definite, so a clearly
+/// negative D' means D is indefinite along a (near-)null direction of D_RR that passed the
+/// Cholesky at the floor; (D_RR + δI)⁻¹ ~ 1/δ there makes D' and d' garbage. Seen in a
+/// multi-process radio-32k run without this check: uav1's map RMSE 816 m (team 198× the
+/// reference) while never more confident than the reference. 1e-3 admits round-off.
+pub const MAX_NEGATIVE_REL: f64 = 1e-3;
+
+/// Factor between successive regularisation attempts (floor, 1e-8, …, 1e-2).
+const REGULARISATION_STEP: f64 = 10.0;
+
+/// Why a delta could not be sparsified (the round sends nothing on that link; counted).
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum SparsifyError {
+    /// D_RR + δI was not positive definite even with the largest δ accepted.
+    #[error("residual block not positive definite up to regularisation {max_rel} × max diag")]
+    Indefinite {
+        /// [`MAX_REGULARISATION_REL`].
+        max_rel: f64,
+        /// The held-back feature of the first non-positive pivot (moving it into S is the
+        /// caller's next attempt).
+        feature: Option<FeatureId>,
+    },
+    /// The marginal came out non-finite (overflow in a near-singular solve).
+    #[error("marginal information not finite")]
+    NonFinite,
+    /// The marginal removes more information than [`MAX_NEGATIVE_REL`] of the S block's
+    /// largest eigenvalue: D is indefinite along a (near-)null direction of D_RR.
+    #[error("marginal too negative: λ_min {min:.3e} against λ_max(D_SS) {max:.3e}")]
+    TooNegative {
+        /// λ_min(D').
+        min: f64,
+        /// λ_max(D_SS).
+        max: f64,
+    },
+}
+
+/// The marginal information of a delta on the selected features.
+#[derive(Clone, Debug)]
+pub struct Marginal {
+    /// (D', d') over the selected features present in the delta, in the order they were given.
+    pub info: MapInformation,
+    /// δ added to D_RR (0 only when nothing was held back).
+    pub regularisation: f64,
+    /// δ had to exceed the floor [`REGULARISATION_FLOOR_REL`] (D_RR not positive definite
+    /// beyond round-off: the delta is indefinite on held-back features).
+    pub escalated: bool,
+    /// Features of the delta left out (R, those with any non-zero entry).
+    pub held_back: usize,
+}
+
+/// How many features' dense delta fits `budget` bytes
+/// ([`MapInformation::dense_block_wire_bytes_as`], blocks f32 when `f32_blocks`; 0 if not even
+/// one).
+pub fn max_features(budget: usize, f32_blocks: bool) -> usize {
+    // n(n+1)/2 · (46 or 82) bytes dominates: √(2 · budget / 46) + 2 bounds the answer.
+    let mut n = ((2.0 * budget as f64 / 46.0).sqrt() as usize) + 2;
+    while n > 0 && MapInformation::dense_block_wire_bytes_as(n, f32_blocks) > budget {
+        n -= 1;
+    }
+    n
+}
+
+/// Priority of each feature of `delta`: the information gain of its diagonal block,
+/// ln det(I + P_ff D_ff) = Σ ln(1 + max(μ, 0)) over the eigenvalues μ of Lᵀ D_ff L (P_ff = L Lᵀ,
+/// the sender's covariance of the feature; negative μ — information removed — count 0). A
+/// feature without a covariance in `covariances` (or a non-positive-definite one) uses
+/// P_ff = I (m²). Returned in the order of `delta.ids`.
+pub fn priorities(
+    delta: &MapInformation,
+    covariances: &HashMap<FeatureId, Matrix3<f64>>,
+) -> Vec<(FeatureId, f64)> {
+    delta
+        .ids
+        .iter()
+        .enumerate()
+        .map(|(k, &id)| {
+            let b = FEATURE_DIM * k;
+            let d = Matrix3::from_fn(|r, c| {
+                0.5 * (delta.matrix[(b + r, b + c)] + delta.matrix[(b + c, b + r)])
+            });
+            let l = covariances
+                .get(&id)
+                .and_then(|p| p.cholesky())
+                .map_or_else(Matrix3::identity, |c| c.l());
+            let m = l.transpose() * d * l;
+            let m = 0.5 * (m + m.transpose());
+            let gain: f64 = m
+                .symmetric_eigenvalues()
+                .iter()
+                .map(|&mu| {
+                    if mu.is_finite() {
+                        mu.max(0.0).ln_1p()
+                    } else {
+                        0.0
+                    }
+                })
+                .sum();
+            (id, gain)
+        })
+        .collect()
+}
+
+/// The features to send: the highest [`priorities`] first (ties: the smaller id), as many as
+/// fit `budget` bytes as a dense delta ([`max_features`], f32 blocks when `f32_blocks`). Features whose gain is 0 (nothing
+/// gained on their diagonal block) come last but are still eligible: their cross terms may
+/// matter.
+pub fn select(
+    delta: &MapInformation,
+    covariances: &HashMap<FeatureId, Matrix3<f64>>,
+    budget: usize,
+    f32_blocks: bool,
+) -> Vec<FeatureId> {
+    let mut p = priorities(delta, covariances);
+    p.sort_by(|a, b| b.1.total_cmp(&a.1).then(a.0.cmp(&b.0)));
+    p.truncate(max_features(budget, f32_blocks));
+    p.into_iter().map(|(id, _)| id).collect()
+}
+
+/// The marginal information of `delta` on the features `keep` (module docs): the Schur
+/// complement over the features of `delta` not in `keep` that carry any non-zero entry
+/// (all-zero ones contribute nothing and are skipped). Ids of `keep` absent from `delta` are
+/// ignored. With nothing held back the result is `delta` restricted to `keep`, unchanged.
+pub fn schur_marginal(
+    delta: &MapInformation,
+    keep: &[FeatureId],
+) -> Result<Marginal, SparsifyError> {
+    schur_marginal_about(delta, keep, &HashMap::new())
+}
+
+/// [`schur_marginal`] evaluated about a reference map `about` (feature positions relative to
+/// the origin, normally the sender's current estimate; features without one use 0): with
+/// d̃ = d − D x̄, d'_S = d̃_S − D_SR D̃_RR⁻¹ d̃_R + D' x̄_S. Identical to [`schur_marginal`]
+/// in exact arithmetic without regularisation; with δ > 0 the term d' picks up from x_R
+/// shrinks from δ D_SR D̃_RR⁻¹ x_R (positions ~1e3 m from the origin) to
+/// δ D_SR D̃_RR⁻¹ (x_R − x̄_R) (the sender's error, metres). Measured on radio-8k: without it
+/// the team's maps diverged (module docs).
+pub fn schur_marginal_about(
+    delta: &MapInformation,
+    keep: &[FeatureId],
+    about: &HashMap<FeatureId, Vector3<f64>>,
+) -> Result<Marginal, SparsifyError> {
+    let xbar = Col::from_fn(delta.vector.nrows(), |r| {
+        about
+            .get(&delta.ids[r / FEATURE_DIM])
+            .map_or(0.0, |x| x[r % FEATURE_DIM])
+    });
+    // d̃ = d − D x̄.
+    let shifted = &delta.vector - &delta.matrix * &xbar;
+    let index: HashMap<FeatureId, usize> = delta
+        .ids
+        .iter()
+        .enumerate()
+        .map(|(k, &id)| (id, k))
+        .collect();
+    let mut in_s = vec![false; delta.ids.len()];
+    let s_blocks: Vec<usize> = keep
+        .iter()
+        .filter_map(|id| index.get(id).copied())
+        .filter(|&k| !std::mem::replace(&mut in_s[k], true))
+        .collect();
+    let nonzero = |k: usize| {
+        let rows = FEATURE_DIM * k..FEATURE_DIM * (k + 1);
+        rows.clone().any(|r| delta.vector[r] != 0.0)
+            || rows
+                .into_iter()
+                .any(|c| delta.matrix.col_as_slice(c).iter().any(|&v| v != 0.0))
+    };
+    let r_blocks: Vec<usize> = (0..delta.ids.len())
+        .filter(|&k| !in_s[k] && nonzero(k))
+        .collect();
+    let rows = |blocks: &[usize]| -> Vec<usize> {
+        blocks
+            .iter()
+            .flat_map(|&k| (0..FEATURE_DIM).map(move |a| FEATURE_DIM * k + a))
+            .collect()
+    };
+    let (sr, rr) = (rows(&s_blocks), rows(&r_blocks));
+    let (ns, nr) = (sr.len(), rr.len());
+    let m = &delta.matrix;
+    let mut d_ss = Mat::from_fn(ns, ns, |i, j| m[(sr[i], sr[j])]);
+    let mut d_s = Col::from_fn(ns, |i| shifted[sr[i]]);
+    let mut regularisation = 0.0;
+    let mut escalated = false;
+    if nr > 0 {
+        let d_rr = Mat::from_fn(nr, nr, |i, j| m[(rr[i], rr[j])]);
+        // Right-hand sides [D_RS | d_R].
+        let mut rhs = Mat::from_fn(nr, ns + 1, |i, j| {
+            if j < ns {
+                m[(rr[i], sr[j])]
+            } else {
+                shifted[rr[i]]
+            }
+        });
+        let max_diag = (0..nr).map(|i| d_rr[(i, i)].abs()).fold(0.0_f64, f64::max);
+        regularisation = REGULARISATION_FLOOR_REL * max_diag;
+        let llt = loop {
+            let a = Mat::from_fn(nr, nr, |i, j| {
+                d_rr[(i, j)] + if i == j { regularisation } else { 0.0 }
+            });
+            match a.as_ref().llt(Side::Lower) {
+                Ok(llt) => break llt,
+                Err(faer::linalg::solvers::LltError::NonPositivePivot { index }) => {
+                    let feature = r_blocks
+                        .get(index.min(nr.saturating_sub(1)) / FEATURE_DIM)
+                        .map(|&k| delta.ids[k]);
+                    regularisation *= REGULARISATION_STEP;
+                    escalated = true;
+                    // `!(≤)` also refuses a zero or NaN max diag.
+                    if !(regularisation > 0.0
+                        && regularisation <= MAX_REGULARISATION_REL * max_diag * (1.0 + 1e-9))
+                    {
+                        return Err(SparsifyError::Indefinite {
+                            max_rel: MAX_REGULARISATION_REL,
+                            feature,
+                        });
+                    }
+                }
+            }
+        };
+        llt.solve_in_place(rhs.as_mut());
+        // D_SR (D_RR⁻¹ [D_RS | d_R]).
+        let d_sr = Mat::from_fn(ns, nr, |i, j| m[(sr[i], rr[j])]);
+        let prod = &d_sr * &rhs;
+        for j in 0..ns {
+            for i in 0..ns {
+                d_ss[(i, j)] -= prod[(i, j)];
+            }
+            d_s[j] -= prod[(j, ns)];
+        }
+        crate::info::symmetrize(&mut d_ss);
+    }
+    // Back from d̃: d'_S += D' x̄_S.
+    let xbar_s = Col::from_fn(ns, |i| xbar[sr[i]]);
+    let d_s = &d_s + &d_ss * &xbar_s;
+    let finite =
+        (0..ns).all(|j| d_s[j].is_finite() && d_ss.col_as_slice(j).iter().all(|v| v.is_finite()));
+    if !finite {
+        return Err(SparsifyError::NonFinite);
+    }
+    if nr > 0 && ns > 0 {
+        let eig = |m: &Mat<f64>| -> Result<Vec<f64>, SparsifyError> {
+            m.as_ref()
+                .self_adjoint_eigenvalues(Side::Lower)
+                .map_err(|_| SparsifyError::NonFinite)
+        };
+        let block = Mat::from_fn(ns, ns, |i, j| m[(sr[i], sr[j])]);
+        let max = eig(&block)?.last().copied().unwrap_or(0.0).max(0.0);
+        let min = eig(&d_ss)?.first().copied().unwrap_or(0.0);
+        if min < -MAX_NEGATIVE_REL * max {
+            return Err(SparsifyError::TooNegative { min, max });
+        }
+    }
+    Ok(Marginal {
+        info: MapInformation {
+            ids: s_blocks.iter().map(|&k| delta.ids[k]).collect(),
+            origin: delta.origin,
+            matrix: d_ss,
+            vector: d_s,
+        },
+        regularisation,
+        escalated,
+        held_back: r_blocks.len(),
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use faer::linalg::solvers::DenseSolveCore;
+    use rand::{Rng, SeedableRng};
+    use rand_chacha::ChaCha8Rng;
+
+    fn random_psd(n: usize, rank: usize, rng: &mut ChaCha8Rng) -> Mat<f64> {
+        let g = Mat::from_fn(n, rank, |_, _| rng.random_range(-1.0..1.0));
+        &g * g.transpose()
+    }
+
+    fn info(ids: &[u64], matrix: Mat<f64>, rng: &mut ChaCha8Rng) -> MapInformation {
+        let n = matrix.nrows();
+        MapInformation {
+            ids: ids.to_vec(),
+            origin: Vector3::zeros(),
+            matrix,
+            vector: Col::from_fn(n, |_| rng.random_range(-5.0..5.0)),
+        }
+    }
+
+    /// The Schur marginal equals an independent computation: the inverse of the S block of the
+    /// covariance D⁻¹ (marginal covariance of the features kept) and its mean mapped back
+    /// (d'_S = (P_SS)⁻¹ (P d)_S). Tolerance 1e-6 relative: the regularisation floor perturbs
+    /// D_RR by 1e-9 of its largest diagonal entry, amplified by the condition of D_RR (≲ 1e2
+    /// for these I + GGᵀ matrices) and of the result; round-off of two inverses is far below.
+    #[test]
+    fn schur_marginal_matches_inverse_of_marginal_covariance() {
+        let mut rng = ChaCha8Rng::seed_from_u64(13);
+        for trial in 0..20 {
+            let nf = 6;
+            let d =
+                &random_psd(3 * nf, 3 * nf + 4, &mut rng) + &Mat::<f64>::identity(3 * nf, 3 * nf);
+            let delta = info(&[10, 11, 12, 13, 14, 15], d, &mut rng);
+            let keep = [13, 10];
+            let got = schur_marginal(&delta, &keep).expect("PD");
+            assert!(!got.escalated);
+            assert_eq!(got.held_back, 4);
+            assert_eq!(got.info.ids, keep.to_vec());
+            let llt = delta.matrix.as_ref().llt(Side::Lower).expect("PD");
+            let p = llt.inverse();
+            let mean = llt.solve(delta.vector.as_ref());
+            let rows: Vec<usize> = [13usize - 10, 0]
+                .iter()
+                .flat_map(|&k| (0..3).map(move |a| 3 * k + a))
+                .collect();
+            let p_ss = Mat::from_fn(6, 6, |i, j| p[(rows[i], rows[j])]);
+            let llt_s = p_ss.as_ref().llt(Side::Lower).expect("PD");
+            let want = llt_s.inverse();
+            let mean_s = Col::from_fn(6, |i| mean[rows[i]]);
+            let want_vec = &want * &mean_s;
+            let scale = (0..6).map(|i| want[(i, i)].abs()).fold(0.0, f64::max);
+            for i in 0..6 {
+                for j in 0..6 {
+                    let e = (got.info.matrix[(i, j)] - want[(i, j)]).abs();
+                    assert!(e <= 1e-6 * scale, "trial {trial} ({i},{j}): {e}");
+                }
+                let e = (got.info.vector[i] - want_vec[i]).abs();
+                assert!(
+                    e <= 1e-6 * (1.0 + want_vec[i].abs()) * scale.max(1.0),
+                    "trial {trial} y[{i}]: {e}"
+                );
+            }
+        }
+    }
+
+    /// pad(D') ⪯ D for PSD D of low rank (singular D_RR handled by the floor; the excess is
+    /// bounded by δ); a D whose S block is clearly indefinite gives a negative marginal, which
+    /// is refused.
+    #[test]
+    fn marginal_never_exceeds_the_delta() {
+        let mut rng = ChaCha8Rng::seed_from_u64(7);
+        let mut refused = 0;
+        for trial in 0..30 {
+            let nf = 5;
+            let n = 3 * nf;
+            let indefinite = trial % 2 == 1;
+            let mut d = random_psd(n, if indefinite { n + 2 } else { 8 }, &mut rng);
+            if indefinite {
+                // Indefinite only inside the S block (features 0 and 1).
+                for i in 0..6 {
+                    d[(i, i)] -= 3.0;
+                }
+            }
+            let delta = info(&[1, 2, 3, 4, 5], d, &mut rng);
+            let keep = [1, 2];
+            let got = match schur_marginal(&delta, &keep) {
+                Ok(got) => got,
+                // An S block made indefinite by −3 on its diagonal may give a clearly negative
+                // marginal: refused by design (MAX_NEGATIVE_REL), never for PSD D.
+                Err(SparsifyError::TooNegative { .. }) if indefinite => {
+                    refused += 1;
+                    continue;
+                }
+                Err(e) => panic!("trial {trial} refused: {e}"),
+            };
+            let excess = got.info.psd_excess_over(&delta).expect("eig");
+            // Exact Schur: round-off only (1e-9 of the largest entry); regularised: ≤ δ (plus the
+            // same round-off).
+            let scale = delta.matrix_norm_max();
+            assert!(
+                excess <= got.regularisation + 1e-9 * scale,
+                "trial {trial}: excess {excess}, δ {}",
+                got.regularisation
+            );
+            if indefinite {
+                // D_RR is positive definite here: the floor suffices.
+                assert!(!got.escalated, "trial {trial}");
+            }
+        }
+        // −3 on the S diagonal of these matrices (eigenvalues ~0.1–30) makes every marginal
+        // clearly negative: all refused, none sent.
+        assert_eq!(refused, 15, "indefinite trials refused");
+    }
+
+    /// Keeping every feature returns the delta itself; all-zero features are not held back.
+    #[test]
+    fn keeping_everything_is_exact() {
+        let mut rng = ChaCha8Rng::seed_from_u64(3);
+        let mut d = random_psd(9, 9, &mut rng);
+        for i in 6..9 {
+            for j in 0..9 {
+                d[(i, j)] = 0.0;
+                d[(j, i)] = 0.0;
+            }
+        }
+        let mut delta = info(&[4, 5, 6], d, &mut rng);
+        for r in 6..9 {
+            delta.vector[r] = 0.0;
+        }
+        let got = schur_marginal(&delta, &[4, 5]).expect("PD");
+        assert_eq!(got.held_back, 0);
+        assert_eq!(got.regularisation, 0.0);
+        assert!(!got.escalated);
+        let want = delta.restrict(&[4, 5]);
+        assert_eq!(got.info.relative_difference(&want).expect("same ids"), 0.0);
+    }
+
+    /// A strongly indefinite R block is refused, not sent.
+    #[test]
+    fn indefinite_residual_block_is_refused() {
+        let mut rng = ChaCha8Rng::seed_from_u64(5);
+        let mut d = random_psd(6, 6, &mut rng);
+        for i in 3..6 {
+            d[(i, i)] -= 50.0;
+        }
+        let delta = info(&[1, 2], d, &mut rng);
+        assert!(matches!(
+            schur_marginal(&delta, &[1]),
+            Err(SparsifyError::Indefinite { .. })
+        ));
+    }
+
+    /// Selection: the feature count is the largest whose dense delta fits; the order is by gain
+    /// (a feature with a tenfold diagonal first), ties by id; the budget bound is tight.
+    #[test]
+    fn selection_by_gain_within_budget() {
+        for n in [1usize, 2, 5, 26, 100] {
+            let b = MapInformation::dense_block_wire_bytes(n);
+            assert_eq!(max_features(b, false), n);
+            assert_eq!(max_features(b - 1, false), n - 1);
+            let b = MapInformation::dense_block_wire_bytes_as(n, true);
+            assert_eq!(max_features(b, true), n);
+            assert_eq!(max_features(b - 1, true), n - 1);
+        }
+        let ids = [7u64, 3, 9, 5];
+        let n = 12;
+        let mut d = Mat::<f64>::identity(n, n);
+        for a in 0..3 {
+            d[(6 + a, 6 + a)] = 10.0; // feature 9
+        }
+        let mut rng = ChaCha8Rng::seed_from_u64(1);
+        let delta = info(&ids, d, &mut rng);
+        let none = HashMap::new();
+        let budget = MapInformation::dense_block_wire_bytes(3);
+        let got = select(&delta, &none, budget, false);
+        assert_eq!(got, vec![9, 3, 5]);
+        // The sender's covariance scales the gain: feature 7 with P = 100 I comes first.
+        let mut cov = HashMap::new();
+        cov.insert(7, Matrix3::identity() * 100.0);
+        let got = select(&delta, &cov, budget, false);
+        assert_eq!(got, vec![7, 9, 3]);
+        // Bytes of the selected marginal stay within the budget.
+        let m = schur_marginal(&delta, &got).expect("PD");
+        assert!(m.info.block_sparse_wire_bytes() <= budget);
+    }
+}
