@@ -1,4 +1,5 @@
-//! zenoh backend: links between hosts (zenoh 1.10, `transport_tcp` + `auth_usrpwd`).
+//! zenoh backend: links between hosts (zenoh 1.10, `transport_tcp`, `transport_tls` +
+//! `auth_usrpwd`).
 //!
 //! One [`ZenohTransport`] per process = one zenoh session in **peer** mode with explicit
 //! `listen` / `connect` endpoints (those of the node's configured links), multicast scouting and
@@ -24,6 +25,9 @@
 //! (`transport/auth/usrpwd`): connecting peers must present a user and password listed in the
 //! dictionary, otherwise the transport is refused before any message flows. See
 //! `docs/arch/transport.md` for the limits (no encryption on plain TCP, one-way check).
+//!
+//! TLS: with [`ZenohTls`] every link is TLS (`tls/` endpoints), encrypted and mutually
+//! authenticated against the team's CA (each node presents its own certificate).
 
 use std::io::Write;
 use std::path::PathBuf;
@@ -74,6 +78,21 @@ impl std::fmt::Debug for ZenohAuth {
     }
 }
 
+/// TLS on a session's links (zenoh `transport_tls`, rustls): every link is encrypted and
+/// **mutually** authenticated against the team's certificate authority — the listener checks
+/// the connecting node's certificate, the connecting node checks the listener's (and that it
+/// names the address it dialled). Endpoints are then `tls/HOST:PORT`.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct ZenohTls {
+    /// PEM certificate of the CA that signed every node's certificate.
+    pub root_ca: PathBuf,
+    /// PEM certificate of this node (signed by `root_ca`; its subject alternative names hold
+    /// the addresses this node listens on).
+    pub certificate: PathBuf,
+    /// PEM (PKCS#8) private key of `certificate`.
+    pub private_key: PathBuf,
+}
+
 /// zenoh-specific options of one process's session.
 #[derive(Debug, Clone, PartialEq)]
 pub struct ZenohConfig {
@@ -106,6 +125,8 @@ pub struct ZenohConfig {
     /// `None` = none. Needs [`ZenohConfig::auth`] (the rules are per user) and no `connect`
     /// endpoints (only a listener knows its peers' user names).
     pub access: Option<ZenohAccess>,
+    /// TLS on every link (`tls/` endpoints only); `None` = plain TCP.
+    pub tls: Option<ZenohTls>,
 }
 
 /// The role of a zenoh session.
@@ -145,6 +166,7 @@ impl ZenohConfig {
             mode: ZenohMode::Peer,
             multicast_scouting: false,
             access: None,
+            tls: None,
         }
     }
 }
@@ -279,24 +301,79 @@ impl ZenohTransport {
                 period * 8
             ),
         )?;
+        let wanted = if cfg.tls.is_some() { "tls/" } else { "tcp/" };
+        if let Some(ep) = cfg
+            .listen
+            .iter()
+            .chain(&cfg.connect)
+            .find(|e| !e.starts_with(wanted))
+        {
+            return Err(LinkError::Config(format!(
+                "zenoh endpoint {ep:?}: this session uses {wanted} endpoints only ({})",
+                if cfg.tls.is_some() {
+                    "TLS is configured"
+                } else {
+                    "TLS is not configured"
+                }
+            )));
+        }
+        if let Some(t) = &cfg.tls {
+            for (what, path) in [
+                ("root CA certificate", &t.root_ca),
+                ("certificate", &t.certificate),
+                ("private key", &t.private_key),
+            ] {
+                if !path.is_file() {
+                    return Err(LinkError::Config(format!(
+                        "TLS {what} {}: no such file",
+                        path.display()
+                    )));
+                }
+            }
+            let file = |p: &PathBuf| json_str(&p.to_string_lossy());
+            for (k, v) in [
+                ("root_ca_certificate", file(&t.root_ca)),
+                ("listen_certificate", file(&t.certificate)),
+                ("listen_private_key", file(&t.private_key)),
+                ("connect_certificate", file(&t.certificate)),
+                ("connect_private_key", file(&t.private_key)),
+                ("enable_mtls", "true".into()),
+                ("verify_name_on_connect", "true".into()),
+            ] {
+                set(&mut zc, &format!("transport/link/tls/{k}"), v)?;
+            }
+        }
         let lease = cfg.lease.as_millis().max(100);
         set(&mut zc, "transport/link/tx/lease", lease.to_string())?;
         let _dict = match &cfg.auth {
             None => None,
             Some(a) => {
-                let d = DictionaryFile::write(&a.accept)?;
                 set(&mut zc, "transport/auth/usrpwd/user", json_str(&a.user))?;
                 set(
                     &mut zc,
                     "transport/auth/usrpwd/password",
                     json_str(&a.password),
                 )?;
-                set(
-                    &mut zc,
-                    "transport/auth/usrpwd/dictionary_file",
-                    json_str(&d.0.to_string_lossy()),
-                )?;
-                Some(d)
+                // A session that accepts nobody (it only connects) needs no dictionary; one that
+                // listens without one would let anybody in.
+                if a.accept.is_empty() && !cfg.listen.is_empty() {
+                    return Err(LinkError::Config(
+                        "a listening zenoh session with authentication needs the users it \
+                         accepts"
+                            .into(),
+                    ));
+                }
+                if a.accept.is_empty() {
+                    None
+                } else {
+                    let d = DictionaryFile::write(&a.accept)?;
+                    set(
+                        &mut zc,
+                        "transport/auth/usrpwd/dictionary_file",
+                        json_str(&d.0.to_string_lossy()),
+                    )?;
+                    Some(d)
+                }
             }
         };
         if let Some(access) = &cfg.access {
@@ -435,6 +512,31 @@ impl ZenohTransport {
             std::thread::sleep(Duration::from_millis(20));
         }
         false
+    }
+
+    /// Waits up to `timeout` until a subscriber to the data key `from → to` is known to this
+    /// session (so a [`ZenohTransport::raw_put`] on it is routed, not dropped for want of a
+    /// subscriber). For tests and tools.
+    pub fn wait_for_subscriber(
+        &self,
+        from: NodeId,
+        to: NodeId,
+        timeout: Duration,
+    ) -> Result<bool, LinkError> {
+        let publisher = self
+            .session
+            .0
+            .declare_publisher(self.data_key(from, to))
+            .wait()
+            .map_err(err)?;
+        let deadline = std::time::Instant::now() + timeout;
+        while std::time::Instant::now() < deadline {
+            if publisher.matching_status().wait().map_err(err)?.matching() {
+                return Ok(true);
+            }
+            std::thread::sleep(Duration::from_millis(20));
+        }
+        Ok(false)
     }
 
     /// Closes the session now (links opened from it stop working).
