@@ -644,12 +644,20 @@ fn cmd_eval(args: &EvalArgs) -> Result<()> {
 
 /// Log lines to stderr, `RUST_LOG` or warnings and above.
 pub fn init_tracing() {
-    let _ = tracing_subscriber::fmt()
-        .with_writer(std::io::stderr)
-        .with_env_filter(
-            tracing_subscriber::EnvFilter::try_from_default_env()
-                .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("warn")),
+    use tracing_subscriber::Layer as _;
+    use tracing_subscriber::layer::SubscriberExt as _;
+    use tracing_subscriber::util::SubscriberInitExt as _;
+    let filter = tracing_subscriber::EnvFilter::try_from_default_env()
+        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("warn"));
+    // The log's filter is its own (per layer), so the counter of zenoh's access-control
+    // refusals sees zenoh's trace events whatever RUST_LOG says.
+    let _ = tracing_subscriber::registry()
+        .with(
+            tracing_subscriber::fmt::layer()
+                .with_writer(std::io::stderr)
+                .with_filter(filter),
         )
+        .with(canopy_transport::access::refusal_counter())
         .try_init();
 }
 

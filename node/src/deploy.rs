@@ -19,6 +19,10 @@
 //! vehicles = [3, 4]
 //! ```
 //!
+//! `[zenoh.tls]` (TLS on every zenoh link, a certificate per node) and `[secrets]`
+//! `zenoh_password` (per-node users, access control at every listening session) apply to
+//! single- and multi-host runs alike (docs/arch/deploy.md).
+//!
 //! Without `[[host]]` tables (or without `--host` / `--monitor`) a run is the single-host run.
 //! With them, every vehicle (and the hub in central mode) belongs to exactly one host; `shm`
 //! links stay within a host; a `net` link without `listen` listens on
@@ -62,6 +66,58 @@ pub struct ZenohDeploy {
     pub key_prefix: Option<String>,
     /// zenoh multicast scouting (default false: sessions talk only to configured endpoints).
     pub multicast_scouting: bool,
+    /// `[zenoh.tls]`: TLS on every zenoh link of the run (absent: plain TCP).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub tls: Option<TlsDeploy>,
+}
+
+/// `[zenoh.tls]`: every zenoh session of the run (the vehicles', the hub's, the host
+/// launchers' and the monitor's) uses TLS (`tls/` endpoints), mutually authenticated against
+/// the team's CA: each node presents its own certificate and private key, found by replacing
+/// `{user}` in the file names by its zenoh user (the node's name, `host-NAME`, `monitor`).
+/// Relative file names are relative to the scenario file; each file must exist on the host
+/// whose process uses it.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TlsDeploy {
+    /// PEM certificate of the team's CA (*required*).
+    pub root_ca: std::path::PathBuf,
+    /// PEM certificate of each node, e.g. `certs/{user}.pem` (*required*; signed by the CA, its
+    /// subject alternative names listing the addresses the node listens on).
+    pub certificate: String,
+    /// PEM (PKCS#8) private key of each node, e.g. `certs/{user}.key` (*required*).
+    pub private_key: String,
+}
+
+/// The placeholder of [`TlsDeploy`] file names.
+pub const TLS_USER: &str = "{user}";
+
+impl TlsDeploy {
+    /// The TLS files of `user`.
+    pub fn for_user(&self, user: &str) -> canopy_transport::net::ZenohTls {
+        canopy_transport::net::ZenohTls {
+            root_ca: self.root_ca.clone(),
+            certificate: self.certificate.replace(TLS_USER, user).into(),
+            private_key: self.private_key.replace(TLS_USER, user).into(),
+        }
+    }
+
+    /// Makes relative file names relative to `base` (the scenario's directory).
+    pub fn resolve(&mut self, base: &std::path::Path) {
+        if self.root_ca.is_relative() {
+            self.root_ca = base.join(&self.root_ca);
+        }
+        for f in [&mut self.certificate, &mut self.private_key] {
+            if std::path::Path::new(f.as_str()).is_relative() {
+                *f = base.join(f.as_str()).to_string_lossy().into_owned();
+            }
+        }
+    }
+}
+
+/// The zenoh endpoint protocol of the run: `tls` with `[zenoh.tls]`, else `tcp`.
+pub fn endpoint_protocol(s: &Scenario) -> &'static str {
+    if s.zenoh.tls.is_some() { "tls" } else { "tcp" }
 }
 
 impl ZenohDeploy {
@@ -197,7 +253,7 @@ pub fn resolve_endpoints(s: &mut Scenario) -> Result<(), ScenarioError> {
             } else {
                 addr.to_string()
             };
-            Ok((i, format!("tcp/{host}:{port}")))
+            Ok((i, format!("{}/{host}:{port}", endpoint_protocol(s))))
         })
         .collect::<Result<_, ScenarioError>>()?;
     if s.links.is_empty() && !derived.is_empty() {
@@ -238,6 +294,46 @@ pub fn validate(s: &Scenario) -> Result<(), ScenarioError> {
                 },
                 format!("{ep:?} is not a zenoh endpoint (e.g. `tcp/10.0.0.1:7447`)"),
             ));
+        }
+    }
+    let proto = format!("{}/", endpoint_protocol(s));
+    let configured = z
+        .connect
+        .iter()
+        .map(|e| ("zenoh.connect".to_string(), e))
+        .chain(z.monitor.iter().map(|e| ("zenoh.monitor".to_string(), e)))
+        .chain(
+            s.links
+                .iter()
+                .enumerate()
+                .filter(|(_, l)| l.transport == TransportKind::Net)
+                .filter_map(|(i, l)| l.listen.as_ref().map(|e| (format!("link[{i}].listen"), e))),
+        )
+        .collect::<Vec<_>>();
+    if let Some((field, ep)) = configured.iter().find(|(_, e)| !e.starts_with(&proto)) {
+        return Err(ScenarioError::invalid(
+            field.clone(),
+            format!(
+                "{ep:?}: this run's zenoh endpoints are {proto}… ({})",
+                if z.tls.is_some() {
+                    "[zenoh.tls] is set"
+                } else {
+                    "no [zenoh.tls]"
+                }
+            ),
+        ));
+    }
+    if let Some(t) = &z.tls {
+        for (field, f) in [
+            ("certificate", &t.certificate),
+            ("private_key", &t.private_key),
+        ] {
+            if !f.contains(TLS_USER) {
+                return Err(ScenarioError::invalid(
+                    format!("zenoh.tls.{field}"),
+                    format!("{f:?} must contain {TLS_USER} (each node has its own)"),
+                ));
+            }
         }
     }
     if s.hosts.is_empty() {

@@ -513,13 +513,18 @@ pub struct EventSpec {
     pub restart_after_s: Option<f64>,
 }
 
-/// `[secrets]`: credentials for zenoh links (user/password authentication).
+/// `[secrets]`: the team's zenoh credential.
+///
+/// With `zenoh_password`, every zenoh session of a run authenticates (zenoh `auth_usrpwd`) as
+/// the user of its own node — the node's name (`uav3`, `hub`), a host launcher `host-NAME`, the
+/// monitor `monitor` — with this password, and every session that listens enforces access
+/// control built from the topology: an authenticated session may only publish and subscribe on
+/// its own side of its links with the listening node (`canopy_transport::access`; design in
+/// docs/arch/deploy.md). Without it, sessions are neither authenticated nor access-controlled.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize, Default)]
 #[serde(deny_unknown_fields)]
 pub struct SecretsConfig {
-    /// zenoh user name.
-    pub zenoh_user: Option<String>,
-    /// zenoh password.
+    /// The team's zenoh password.
     pub zenoh_password: Option<String>,
 }
 
@@ -809,12 +814,15 @@ pub fn validate(s: &Scenario) -> Result<(), ScenarioError> {
             (TransportKind::Net, Some(ep)) => {
                 let port_ok = ep
                     .strip_prefix("tcp/")
+                    .or_else(|| ep.strip_prefix("tls/"))
                     .and_then(|rest| rest.rsplit_once(':'))
                     .and_then(|(_, port)| port.parse::<u16>().ok());
                 if port_ok.is_none() {
                     return Err(ScenarioError::invalid(
                         format!("{field}.listen"),
-                        format!("`{ep}` is not a zenoh TCP endpoint like tcp/127.0.0.1:7447"),
+                        format!(
+                            "`{ep}` is not a zenoh TCP or TLS endpoint like tcp/127.0.0.1:7447"
+                        ),
                     ));
                 }
                 if let Some(j) = listens.insert(ep.as_str(), i) {
@@ -930,13 +938,23 @@ pub fn validate(s: &Scenario) -> Result<(), ScenarioError> {
             ));
         }
     }
-    if s.links.iter().any(|l| l.transport == TransportKind::Net)
-        && s.secrets.zenoh_user.is_some() != s.secrets.zenoh_password.is_some()
-    {
-        return Err(ScenarioError::invalid(
-            "secrets",
-            "give both zenoh_user and zenoh_password, or neither",
-        ));
+    if let Some(p) = &s.secrets.zenoh_password {
+        if p.is_empty() || p.contains(['\n', '\r']) {
+            return Err(ScenarioError::invalid(
+                "secrets.zenoh_password",
+                "must be non-empty and on one line",
+            ));
+        }
+        // Each node's name is its zenoh user.
+        if let Some((id, n)) = node_names(s)
+            .into_iter()
+            .find(|(_, n)| n.is_empty() || n.contains([':', '\n', '\r']))
+        {
+            return Err(ScenarioError::invalid(
+                format!("vehicle {id}.name"),
+                format!("{n:?} is its zenoh user: non-empty, without ':' or line breaks"),
+            ));
+        }
     }
     Ok(())
 }

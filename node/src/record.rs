@@ -94,6 +94,11 @@ pub struct VehicleRecord {
     /// where every vehicle shares one process).
     #[serde(default)]
     pub peak_rss_bytes: Option<u64>,
+    /// Messages and declarations of other zenoh sessions its access control refused, by
+    /// `"<action> on <key>"`, summed over its incarnations (`canopy run` with
+    /// `[secrets].zenoh_password`; empty otherwise).
+    #[serde(default)]
+    pub access_refused: std::collections::BTreeMap<String, u64>,
 }
 
 /// One statistics sample of a link (cumulative counters at time `t`).

@@ -156,6 +156,10 @@ impl Scenario {
                         r.resolve(base);
                     }
                 }
+                // So are the TLS files.
+                if let Some(t) = s.zenoh.tls.as_mut() {
+                    t.resolve(base);
+                }
                 s.validate()?;
                 Ok(s)
             });

@@ -400,6 +400,29 @@ fn rejections(summary: &Summary) -> String {
     html
 }
 
+/// The table of what the vehicles' zenoh access control refused (nothing when nothing was).
+fn access_refused(summary: &Summary) -> String {
+    let mut rows = String::new();
+    for v in &summary.vehicles {
+        for (what, n) in &v.access_refused {
+            rows.push_str(&format!(
+                "<tr><td>{}</td><td><code>{}</code></td><td style=\"text-align:right\">{n}</td></tr>",
+                escape(&v.name),
+                escape(what)
+            ));
+        }
+    }
+    if rows.is_empty() {
+        return String::new();
+    }
+    format!(
+        "<h2>Refused by zenoh access control</h2><p>Messages and declarations of sessions \
+         using a key of a link they are not part of (a non-neighbour, or a forged sender), \
+         refused by the vehicle's listening session.</p><table><tr><th>vehicle</th>\
+         <th>refused</th><th>count</th></tr>{rows}</table>"
+    )
+}
+
 /// The table of association against the truth, per vehicle (`crate::truth`).
 fn association(summary: &Summary) -> String {
     let mut html = format!(
@@ -460,6 +483,7 @@ pub fn render(run: &RunRecord, summary: &Summary) -> String {
     ));
     html.push_str(&association(summary));
     html.push_str(&rejections(summary));
+    html.push_str(&access_refused(summary));
     html.push_str("<h2>Trajectories and map</h2>");
     html.push_str(&trajectories(run));
     html.push_str("<h2>Position error with ±3σ</h2>");

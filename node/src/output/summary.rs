@@ -83,6 +83,11 @@ pub struct VehicleSummary {
     /// `canopy sim`).
     #[serde(default)]
     pub peak_rss_mb: Option<f64>,
+    /// What the vehicle's zenoh access control refused, by `"<action> on <key>"` (e.g.
+    /// `"Put (ingress) on canopy/run/link/3/2"`: a session without that link published on it);
+    /// empty without `[secrets].zenoh_password` or when nothing was refused.
+    #[serde(default)]
+    pub access_refused: std::collections::BTreeMap<String, u64>,
 }
 
 /// The ATE of one vehicle: RMS over the samples with truth, after each alignment.
@@ -370,6 +375,7 @@ pub fn summarize_vehicle(v: &VehicleRecord) -> VehicleSummary {
         rejections: v.rejections.clone(),
         ate,
         peak_rss_mb: v.peak_rss_bytes.map(|b| b as f64 / 1e6),
+        access_refused: v.access_refused.clone(),
     }
 }
 

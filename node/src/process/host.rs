@@ -167,7 +167,7 @@ pub fn run_host(s: Scenario, name: &str, opts: &HostOptions) -> Result<HostOutco
         stop: opts.stop.clone(),
         monitor_only: None,
     };
-    let (s, secrets) = resolve(s, &launch)?;
+    let (s, secret) = resolve(s, &launch)?;
     crate::preflight::preflight(&s).context("checking the scenario's inputs")?;
     std::fs::write(opts.out.join("scenario.toml"), s.to_toml_string())
         .with_context(|| format!("writing {}", opts.out.join("scenario.toml").display()))?;
@@ -187,7 +187,7 @@ pub fn run_host(s: Scenario, name: &str, opts: &HostOptions) -> Result<HostOutco
     };
 
     // The monitor first: nothing starts on this host without it.
-    let session = control_session(&s, index as NodeId, &secrets)?;
+    let session = control_session(&s, index as NodeId, &secret)?;
     let link = session
         .link(MONITOR_ID, super::CONTROL_MAX_BODY)
         .context("opening the control link to the monitor")?;
@@ -230,7 +230,8 @@ pub fn run_host(s: Scenario, name: &str, opts: &HostOptions) -> Result<HostOutco
         for c in relay.controls() {
             match c {
                 Control::Welcome => welcomed = true,
-                Control::Pace { .. } => {}
+                // Nothing runs yet: no pace to pass on, no process to kill or restart.
+                Control::Pace { .. } | Control::Kill { .. } | Control::Restart { .. } => {}
                 Control::Shutdown => {
                     say("the monitor ended the run before it started".into());
                     return Ok(HostOutcome {
@@ -284,17 +285,17 @@ pub fn run_host(s: Scenario, name: &str, opts: &HostOptions) -> Result<HostOutco
     };
     let mut procs: Vec<Proc> = Vec::new();
     let mut failure: Option<String> = None;
-    let spawn = |n: &str, v: Option<u32>, procs: &mut Vec<Proc>| -> Result<()> {
-        procs.push(spawner.spawn(n, v, 0, &secrets)?);
+    let spawn = |n: &str, v: Option<u32>, inc: u32, procs: &mut Vec<Proc>| -> Result<()> {
+        procs.push(spawner.spawn(n, v, inc, &secret)?);
         Ok(())
     };
     let spawned = (|| -> Result<()> {
-        spawn("world", None, &mut procs)?;
+        spawn("world", None, 0, &mut procs)?;
         if hub_here {
-            spawn("hub", None, &mut procs)?;
+            spawn("hub", None, 0, &mut procs)?;
         }
         for (id, n) in &local_vehicles {
-            spawn(n, Some(*id), &mut procs)?;
+            spawn(n, Some(*id), 0, &mut procs)?;
         }
         Ok(())
     })();
@@ -333,7 +334,59 @@ pub fn run_host(s: Scenario, name: &str, opts: &HostOptions) -> Result<HostOutco
                     }
                 }
                 Control::Welcome => {}
+                // A scheduled crash or hub loss (the monitor runs the scenario's events).
+                Control::Kill { name: who } => {
+                    let mut killed = false;
+                    for p in procs
+                        .iter_mut()
+                        .filter(|p| p.name == who && p.status.is_none())
+                    {
+                        p.planned_kill = true;
+                        p.ended_at = world_t;
+                        let pid = nix::unistd::Pid::from_raw(p.child.id() as i32);
+                        let _ = nix::sys::signal::kill(pid, nix::sys::signal::Signal::SIGKILL);
+                        killed = true;
+                    }
+                    if killed {
+                        say(format!(
+                            "{who} killed with SIGKILL (scheduled by the monitor)"
+                        ));
+                    } else {
+                        eprintln!(
+                            "host {name}: the monitor asked to kill {who}, which does not run \
+                             here (ignored)"
+                        );
+                    }
+                }
+                Control::Restart {
+                    vehicle,
+                    incarnation,
+                } => {
+                    let Some((_, vname)) = local_vehicles.iter().find(|(id, _)| *id == vehicle)
+                    else {
+                        eprintln!(
+                            "host {name}: the monitor asked to restart vehicle {vehicle}, which \
+                             does not run here (ignored)"
+                        );
+                        continue;
+                    };
+                    let started = procs
+                        .iter()
+                        .any(|p| p.vehicle == Some(vehicle) && p.incarnation >= incarnation);
+                    if started {
+                        continue;
+                    }
+                    match spawn(vname, Some(vehicle), incarnation, &mut procs) {
+                        Ok(()) => say(format!("{vname} restarted (incarnation {incarnation})")),
+                        Err(e) => {
+                            failure = Some(format!("restarting {vname}: {e:#}"));
+                        }
+                    }
+                }
             }
+        }
+        if failure.is_some() {
+            break;
         }
         if shutdown_asked {
             break;
@@ -364,7 +417,7 @@ pub fn run_host(s: Scenario, name: &str, opts: &HostOptions) -> Result<HostOutco
             {
                 p.status = Some(st);
                 p.ended_at = world_t;
-                let expected = st.success() && world_finished;
+                let expected = p.planned_kill || (st.success() && world_finished);
                 if !expected {
                     eprintln!(
                         "host {name}: process {} (pid {}) ended unexpectedly: {}; see {}",

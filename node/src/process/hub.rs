@@ -136,6 +136,7 @@ pub fn run(c: &RoleCommon) -> Result<()> {
                 t,
                 links: reports,
                 rejected: agent.rejected(),
+                access_refused: super::access_refusals(),
             };
             let _ = send_body(&mut monitor, r.kind(), 0, t, &r);
             while next_report <= t + 1e-9 {

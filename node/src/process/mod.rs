@@ -69,9 +69,8 @@ use crate::scenario::Scenario;
 use crate::wire::{decode_ddf, send_ddf};
 use crate::world::vehicle_seed;
 
-/// Environment variable carrying the zenoh user to child processes (kept out of files).
-pub const ENV_ZENOH_USER: &str = "CANOPY_ZENOH_USER";
-/// Environment variable carrying the zenoh password to child processes.
+/// Environment variable carrying the team's zenoh password (`[secrets].zenoh_password`) to
+/// child processes (kept out of files).
 pub const ENV_ZENOH_PASSWORD: &str = "CANOPY_ZENOH_PASSWORD";
 
 /// Largest body on a control link (reports, sensor batches): a map report of 16 MiB holds
@@ -168,11 +167,7 @@ pub(crate) fn stop_flag() -> Arc<AtomicBool> {
 pub(crate) fn load_resolved(c: &RoleCommon) -> Result<Scenario> {
     let mut s = Scenario::load(&c.scenario)
         .with_context(|| format!("loading the run's scenario {}", c.scenario.display()))?;
-    if let (Ok(u), Ok(p)) = (
-        std::env::var(ENV_ZENOH_USER),
-        std::env::var(ENV_ZENOH_PASSWORD),
-    ) {
-        s.secrets.zenoh_user = Some(u);
+    if let Ok(p) = std::env::var(ENV_ZENOH_PASSWORD) {
         s.secrets.zenoh_password = Some(p);
     }
     Ok(s)
@@ -237,7 +232,7 @@ pub(crate) struct FusionLinks {
     pub clock: Arc<ManualClock>,
     /// Compression of information-carrying messages (`[fusion] delta_compression`).
     compression: crate::wire::Compression,
-    _zenoh: Option<ZenohTransport>,
+    _zenoh: NetSessions,
 }
 
 impl std::fmt::Debug for FusionLinks {
@@ -246,6 +241,158 @@ impl std::fmt::Debug for FusionLinks {
             .field("peers", &self.links.keys().collect::<Vec<_>>())
             .finish_non_exhaustive()
     }
+}
+
+/// The zenoh sessions of a node's `net` links.
+///
+/// Without the team's password: one session, listening on the endpoints of the links whose end
+/// `a` the node is and connecting to the others, neither authenticated nor access-controlled.
+///
+/// With it (`[secrets].zenoh_password`), the node's user is its name and it opens up to two
+/// sessions, because zenoh's user/password check is one-way (only a listener learns who
+/// connected, so only a session that does not connect can enforce rules by user):
+/// - a **listening** session for its links as end `a`: it accepts every node of the team
+///   (authentication = holding the team's password) and enforces access control by user,
+///   default deny: the user of neighbour `b` may only publish on `link/b/me`, subscribe to
+///   `link/me/b` and hold / watch the liveliness tokens of that link
+///   (`ZenohAccess::for_links`). Any other publication or declaration — a non-neighbour, or a
+///   neighbour forging another node's key — is refused by zenoh and counted
+///   (`canopy_transport::access::refusals`, reported to the monitor);
+/// - a **connecting** session for its links as end `b`, which listens nowhere: only the
+///   listeners it connects to reach it, and each of them sends it only its own link's traffic
+///   (their egress rules).
+struct NetSessions {
+    /// The session serving links whose end `a` this node is (and, without a password, all).
+    listening: Option<ZenohTransport>,
+    /// With a password: the session serving links whose end `b` this node is.
+    connecting: Option<ZenohTransport>,
+}
+
+impl NetSessions {
+    fn open(
+        s: &Scenario,
+        c: &RoleCommon,
+        me: NodeId,
+        mine: &[(usize, crate::network::LinkSpec)],
+        listen: Vec<String>,
+        connect: Vec<String>,
+    ) -> Result<Self> {
+        use canopy_transport::access::{AclLink, ZenohAccess};
+        let prefix = c.zenoh_prefix();
+        let names = crate::network::node_names(s);
+        let user = |id: NodeId| {
+            names
+                .get(&id)
+                .cloned()
+                .with_context(|| format!("node {id} has no name (zenoh user)"))
+        };
+        let me_user = user(me)?;
+        let tls = s.zenoh.tls.as_ref().map(|t| t.for_user(&me_user));
+        let Some(password) = s.secrets.zenoh_password.clone() else {
+            if listen.is_empty() && connect.is_empty() {
+                return Ok(Self {
+                    listening: None,
+                    connecting: None,
+                });
+            }
+            let mut cfg = ZenohConfig::new(prefix, listen, connect);
+            cfg.tls = tls;
+            return Ok(Self {
+                listening: Some(
+                    ZenohTransport::open(me, cfg).context("opening the zenoh session")?,
+                ),
+                connecting: None,
+            });
+        };
+        let listening = if listen.is_empty() {
+            None
+        } else {
+            let acl: Vec<AclLink> = mine
+                .iter()
+                .filter(|(_, l)| l.transport == TransportKind::Net && l.a == me)
+                .map(|(_, l)| {
+                    Ok(AclLink {
+                        user: user(l.b)?,
+                        from: l.b,
+                        to: me,
+                    })
+                })
+                .collect::<Result<_>>()?;
+            let mut cfg = ZenohConfig::new(prefix.clone(), listen, Vec::new());
+            cfg.auth = Some(ZenohAuth {
+                user: me_user.clone(),
+                password: password.clone(),
+                accept: names
+                    .values()
+                    .filter(|n| **n != me_user)
+                    .map(|n| (n.clone(), password.clone()))
+                    .collect(),
+            });
+            cfg.access = Some(ZenohAccess::for_links(&prefix, &acl));
+            cfg.tls = tls.clone();
+            Some(
+                ZenohTransport::open(me, cfg)
+                    .context("opening the listening zenoh session (access-controlled)")?,
+            )
+        };
+        let connecting = if connect.is_empty() {
+            None
+        } else {
+            let mut cfg = ZenohConfig::new(prefix, Vec::new(), connect);
+            cfg.auth = Some(ZenohAuth {
+                user: me_user,
+                password,
+                accept: Vec::new(),
+            });
+            cfg.tls = tls;
+            Some(ZenohTransport::open(me, cfg).context("opening the connecting zenoh session")?)
+        };
+        Ok(Self {
+            listening,
+            connecting,
+        })
+    }
+
+    /// The session of a link whose end `a` this node is (`as_a`) or not.
+    fn for_link(&self, as_a: bool) -> Option<&ZenohTransport> {
+        if as_a {
+            self.listening.as_ref()
+        } else {
+            self.connecting.as_ref().or(self.listening.as_ref())
+        }
+    }
+}
+
+/// What this process's zenoh access control has refused of other sessions so far, by
+/// `"<action> on <key>"` ([`canopy_transport::access::refusals`], ingress only). Each new kind
+/// of refusal is logged once, with its cause.
+///
+/// Egress refusals are left out: they are this node's own declarations withheld from a peer
+/// not entitled to them — zenoh offers e.g. the liveliness token of each of a node's links to
+/// every connected session, and the rules send it only to that link's neighbour — so they
+/// occur in normal operation whenever a session serves two neighbours, and say nothing about
+/// what a peer attempted.
+pub(crate) fn access_refusals() -> BTreeMap<String, u64> {
+    static LOGGED: std::sync::Mutex<std::collections::BTreeSet<String>> =
+        std::sync::Mutex::new(std::collections::BTreeSet::new());
+    let refused: BTreeMap<String, u64> = canopy_transport::access::refusals()
+        .into_iter()
+        .filter(|(what, _)| what.contains("(ingress)"))
+        .collect();
+    // A panic while logging cannot leave the set half-updated (one insert).
+    let mut logged = LOGGED.lock().unwrap_or_else(|p| p.into_inner());
+    for (what, n) in &refused {
+        if logged.insert(what.clone()) {
+            tracing::warn!(
+                refused = %what,
+                count = n,
+                "zenoh access control refused a message: the session that sent it is not \
+                 allowed that key (a non-neighbour, or a key of a link it is not part of); \
+                 dropped and counted, logged once per key"
+            );
+        }
+    }
+    refused
 }
 
 /// The zenoh key prefix of a run.
@@ -280,19 +427,7 @@ impl FusionLinks {
                 }
             }
         }
-        let zenoh = if listen.is_empty() && connect.is_empty() {
-            None
-        } else {
-            let mut cfg = ZenohConfig::new(c.zenoh_prefix(), listen, connect);
-            if let (Some(u), Some(p)) = (&s.secrets.zenoh_user, &s.secrets.zenoh_password) {
-                cfg.auth = Some(ZenohAuth {
-                    user: u.clone(),
-                    password: p.clone(),
-                    accept: vec![(u.clone(), p.clone())],
-                });
-            }
-            Some(ZenohTransport::open(me, cfg).context("opening the zenoh session")?)
-        };
+        let sessions = NetSessions::open(s, c, me, &mine, listen, connect)?;
         let mut links = BTreeMap::new();
         for (li, l) in &mine {
             let (peer, end) = if l.a == me { (l.b, 0u32) } else { (l.a, 1u32) };
@@ -302,9 +437,9 @@ impl FusionLinks {
                         .with_context(|| format!("opening the iceoryx2 link {me}-{peer}"))?,
                 ),
                 TransportKind::Net => Box::new(
-                    zenoh
-                        .as_ref()
-                        .expect("opened above for net links")
+                    sessions
+                        .for_link(l.a == me)
+                        .context("no zenoh session for a net link")?
                         .link(peer, canopy_transport::codec::DEFAULT_MAX_BODY_LEN)
                         .with_context(|| format!("opening the zenoh link {me}-{peer}"))?,
                 ),
@@ -323,7 +458,7 @@ impl FusionLinks {
             links,
             clock,
             compression: s.fusion.delta_compression,
-            _zenoh: zenoh,
+            _zenoh: sessions,
         })
     }
 

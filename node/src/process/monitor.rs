@@ -38,7 +38,7 @@ use super::protocol::{
     Control, EstimateReport, FeatureReport, FrameAssociations, HostMsg, LinkReport, MONITOR_ID,
     Report, TruthReport, VehicleCounters, WORLD_ID,
 };
-use super::{ENV_ZENOH_PASSWORD, ENV_ZENOH_USER, control_link, decode_body, send_body};
+use super::{ENV_ZENOH_PASSWORD, control_link, decode_body, send_body};
 use crate::baseline::{BaselineRun, run_reference};
 use crate::metrics::{
     HeldSince, estimate_sample, feature_confidence_ratio, feature_record, pose_sample,
@@ -151,6 +151,10 @@ pub struct VehicleCheck {
     /// where the kernel does not report it).
     #[serde(default)]
     pub peak_rss_mb: Option<f64>,
+    /// What its zenoh access control refused, by `"<action> on <key>"`, summed over its
+    /// incarnations (as in `summary.json`).
+    #[serde(default)]
+    pub access_refused: BTreeMap<String, u64>,
 }
 
 /// One end of a fusion link at the end of the run.
@@ -184,6 +188,13 @@ pub struct RunChecks {
     pub link_ends: Vec<LinkEndCheck>,
     /// Hub: DDF messages it rejected.
     pub hub_rejected: u64,
+    /// Hub: what its zenoh access control refused, by `"<action> on <key>"`.
+    #[serde(default)]
+    pub hub_access_refused: BTreeMap<String, u64>,
+    /// `--monitor`: what the monitor's control-plane session refused of the host launchers'
+    /// sessions (a session using a host's control link that is not that host's).
+    #[serde(default)]
+    pub control_access_refused: BTreeMap<String, u64>,
     /// The run was interrupted (Ctrl-C).
     pub interrupted: bool,
     /// Why the run failed, if it did.
@@ -257,7 +268,7 @@ impl Spawner<'_> {
         name: &str,
         vehicle: Option<u32>,
         incarnation: u32,
-        secrets: &Option<(String, String)>,
+        secret: &Option<String>,
     ) -> Result<Proc> {
         let logs = self.out.join("logs");
         std::fs::create_dir_all(&logs)?;
@@ -299,8 +310,8 @@ impl Spawner<'_> {
             .stdout(file.try_clone()?)
             .stderr(file)
             .process_group(0);
-        if let Some((u, p)) = secrets {
-            cmd.env(ENV_ZENOH_USER, u).env(ENV_ZENOH_PASSWORD, p);
+        if let Some(p) = secret {
+            cmd.env(ENV_ZENOH_PASSWORD, p);
         }
         let child = cmd
             .spawn()
@@ -407,6 +418,8 @@ struct Monitor {
     /// How the host launchers' processes ended (`--monitor`).
     remote_procs: Vec<ProcessRecord>,
     hub_rejected: u64,
+    /// What the hub's zenoh access control refused (its last report).
+    hub_access_refused: BTreeMap<String, u64>,
     hub_alive: bool,
     /// Vehicles the world holds its streams for (a scheduled restart).
     restart_requests: BTreeMap<u32, f64>,
@@ -417,23 +430,27 @@ struct Monitor {
 }
 
 /// Resolves a scenario for a run: overrides, free ports for `net` links without `listen`,
-/// absolute replay paths. Returns it and the secrets (removed from it).
-pub fn resolve(
-    mut s: Scenario,
-    opts: &LaunchOptions,
-) -> Result<(Scenario, Option<(String, String)>)> {
+/// absolute replay paths. Returns it and the team's zenoh password (removed from it: it reaches
+/// the processes through their environment, never a file).
+pub fn resolve(mut s: Scenario, opts: &LaunchOptions) -> Result<(Scenario, Option<String>)> {
     if let Some(d) = opts.duration {
         s.run.duration_s = d;
     }
     if let Some(b) = opts.baseline {
         s.run.baseline = b;
     }
+    let proto = crate::deploy::endpoint_protocol(&s);
     for l in &mut s.links {
         if l.transport == TransportKind::Net && l.listen.is_none() {
             let port = canopy_transport::net::free_loopback_port()
                 .context("finding a free loopback port for a net link")?;
-            l.listen = Some(format!("tcp/127.0.0.1:{port}"));
+            l.listen = Some(format!("{proto}/127.0.0.1:{port}"));
         }
+    }
+    // TLS files: absolute, so the processes find them from the run directory.
+    if let Some(t) = s.zenoh.tls.as_mut() {
+        let cwd = std::env::current_dir().context("the current directory")?;
+        t.resolve(&cwd);
     }
     for v in &mut s.vehicles {
         if let Some(r) = v.replay.as_mut() {
@@ -443,12 +460,9 @@ pub fn resolve(
             }
         }
     }
-    let secrets = match (s.secrets.zenoh_user.take(), s.secrets.zenoh_password.take()) {
-        (Some(u), Some(p)) => Some((u, p)),
-        _ => None,
-    };
+    let secret = s.secrets.zenoh_password.take();
     s.validate().context("the resolved scenario")?;
-    Ok((s, secrets))
+    Ok((s, secret))
 }
 
 impl Monitor {
@@ -457,7 +471,7 @@ impl Monitor {
         name: &str,
         vehicle: Option<u32>,
         incarnation: u32,
-        secrets: &Option<(String, String)>,
+        secret: &Option<String>,
     ) -> Result<()> {
         let p = Spawner {
             out: &self.out,
@@ -466,7 +480,7 @@ impl Monitor {
             netns: &self.netns,
             extra: &[],
         }
-        .spawn(name, vehicle, incarnation, secrets)?;
+        .spawn(name, vehicle, incarnation, secret)?;
         self.procs.push(p);
         Ok(())
     }
@@ -572,8 +586,15 @@ impl Monitor {
             return;
         }
         if from == self.s.fusion.hub_id && self.s.fusion.mode == FusionMode::Central {
-            if let Report::Hub { t, links, rejected } = r {
+            if let Report::Hub {
+                t,
+                links,
+                rejected,
+                access_refused,
+            } = r
+            {
                 self.hub_rejected = rejected;
+                self.hub_access_refused = access_refused;
                 for l in links {
                     self.link_streams
                         .entry((from, l.peer))
@@ -786,40 +807,76 @@ pub(crate) fn check_multi_host(s: &Scenario, flag: &str) -> Result<()> {
              see docs/arch/deploy.md)"
         );
     }
-    if !s.events.is_empty() {
-        anyhow::bail!(
-            "{flag}: scheduled [[event]]s (crash, restart, hub loss) are not supported in a \
-             multi-host run yet"
-        );
-    }
     Ok(())
 }
 
 /// The zenoh session of the control plane of a multi-host run (host launchers ↔ monitor):
 /// under `deploy::control_prefix`, the monitor node [`MONITOR_ID`] and host `i` as node `i`.
-/// `listen`: the monitor's side in peer mode.
+/// Peer mode: the monitor listens, every host launcher connects to it.
+///
+/// With the team's password (`[secrets].zenoh_password`) each session authenticates as its own
+/// user (`monitor`, `host-NAME`), and the monitor's session, which only listens, accepts every
+/// host's user and enforces access control: host `i` may only use its own side of the control
+/// link `i` ↔ monitor (`canopy_transport::access`). A host launcher only connects (zenoh's
+/// user/password check is one-way: it has no user name for the monitor to enforce rules by);
+/// what reaches it comes from the monitor's session, whose egress rules send it only its own
+/// control link.
 pub(crate) fn control_session(
     s: &Scenario,
     local: NodeId,
-    secrets: &Option<(String, String)>,
+    secret: &Option<String>,
 ) -> Result<canopy_transport::net::ZenohTransport> {
     use crate::deploy::ZenohModeConfig;
+    use canopy_transport::access::{AclLink, ZenohAccess};
     use canopy_transport::net::{ZenohAuth, ZenohConfig, ZenohMode, ZenohTransport};
     let monitor = s.zenoh.monitor.clone();
-    let (mode, listen, connect) = match (s.zenoh.mode, local == MONITOR_ID) {
+    let is_monitor = local == MONITOR_ID;
+    let (mode, listen, connect) = match (s.zenoh.mode, is_monitor) {
         (ZenohModeConfig::Client, _) => (ZenohMode::Client, vec![], s.zenoh.connect.clone()),
         (ZenohModeConfig::Peer, true) => (ZenohMode::Peer, monitor.into_iter().collect(), vec![]),
         (ZenohModeConfig::Peer, false) => (ZenohMode::Peer, vec![], monitor.into_iter().collect()),
     };
-    let mut cfg = ZenohConfig::new(crate::deploy::control_prefix(s), listen, connect);
+    let prefix = crate::deploy::control_prefix(s);
+    let mut cfg = ZenohConfig::new(prefix.clone(), listen, connect);
     cfg.mode = mode;
     cfg.multicast_scouting = s.zenoh.multicast_scouting;
-    if let Some((u, p)) = secrets {
+    let user = if is_monitor {
+        crate::deploy::MONITOR_USER.to_string()
+    } else {
+        s.hosts
+            .get(local as usize)
+            .map(crate::deploy::host_user)
+            .context("the control plane's node is no [[host]]")?
+    };
+    cfg.tls = s.zenoh.tls.as_ref().map(|t| t.for_user(&user));
+    if let Some(p) = secret {
+        let listens = !cfg.listen.is_empty();
+        let hosts: Vec<(NodeId, String)> = s
+            .hosts
+            .iter()
+            .enumerate()
+            .map(|(i, h)| (i as NodeId, crate::deploy::host_user(h)))
+            .collect();
         cfg.auth = Some(ZenohAuth {
-            user: u.clone(),
+            user,
             password: p.clone(),
-            accept: vec![(u.clone(), p.clone())],
+            accept: if listens {
+                hosts.iter().map(|(_, u)| (u.clone(), p.clone())).collect()
+            } else {
+                Vec::new()
+            },
         });
+        if listens {
+            let links: Vec<AclLink> = hosts
+                .into_iter()
+                .map(|(from, user)| AclLink {
+                    user,
+                    from,
+                    to: MONITOR_ID,
+                })
+                .collect();
+            cfg.access = Some(ZenohAccess::for_links(&prefix, &links));
+        }
     }
     ZenohTransport::open(local, cfg).context("opening the control plane's zenoh session")
 }
@@ -857,8 +914,8 @@ struct Remote {
 }
 
 impl Remote {
-    fn open(s: &Scenario, secrets: &Option<(String, String)>, wait: Duration) -> Result<Self> {
-        let session = control_session(s, MONITOR_ID, secrets)?;
+    fn open(s: &Scenario, secret: &Option<String>, wait: Duration) -> Result<Self> {
+        let session = control_session(s, MONITOR_ID, secret)?;
         let hosts = s
             .hosts
             .iter()
@@ -1017,11 +1074,18 @@ impl Monitor {
     /// whole team plus `[run].max_lead_s`, once every vehicle has been initialised (before
     /// that, nothing: a host started early waits for the others). Sent when it moves by a
     /// batch, and at least twice a wall second (a host that connects late, a lost message).
-    fn send_pace(&mut self, last: &mut (f64, Option<Instant>)) {
+    ///
+    /// `hold`: the time of a scheduled restart whose vehicle is down. No host steps past it
+    /// until the vehicle is back, as the single-host world holds every stream there: the
+    /// restart happens at exactly that time for the whole team (what the reference assumes),
+    /// however far the vehicles of other hosts could otherwise run while it is down.
+    fn send_pace(&mut self, last: &mut (f64, Option<Instant>), hold: Option<f64>) {
         if self.vehicles.values().any(|v| v.initialisations == 0) {
             return;
         }
-        let until = (self.team_time() + self.s.run.max_lead_s).min(self.s.run.duration_s);
+        let until = (self.team_time() + self.s.run.max_lead_s)
+            .min(self.s.run.duration_s)
+            .min(hold.unwrap_or(f64::INFINITY));
         let moved = until >= last.0 + super::world::BATCH_S;
         let stale = last
             .1
@@ -1041,6 +1105,33 @@ impl Monitor {
             }
         }
         *last = (until, Some(Instant::now()));
+    }
+
+    /// Sends a scheduled event's order (kill, restart) to the host launcher running `node`
+    /// (`--monitor`). The control link is reliable (zenoh over TCP); an order the host cannot
+    /// receive (its session away) fails the run with the reason, as a lost host does.
+    fn order_host(&mut self, node: u32, order: Control) {
+        let host = crate::deploy::host_of(&self.s, node).map(|(i, _)| i);
+        let Some(r) = self.remote.as_mut() else {
+            return;
+        };
+        let Some(h) = host.and_then(|i| r.hosts.get_mut(i)) else {
+            self.failure.get_or_insert(format!(
+                "node {node} runs on no host: cannot send {order:?}"
+            ));
+            return;
+        };
+        if h.link.peer_state() != PeerState::Up {
+            self.failure.get_or_insert(format!(
+                "host {} is out of reach: cannot send it {order:?}",
+                h.name
+            ));
+            return;
+        }
+        if let Err(e) = send_body(&mut h.link, MessageKind::CONTROL, 0, 0.0, &order) {
+            self.failure
+                .get_or_insert(format!("sending {order:?} to host {}: {e:#}", h.name));
+        }
     }
 
     /// Asks every host launcher to end its share and waits for them to say they are done.
@@ -1204,7 +1295,7 @@ pub fn launch(mut s: Scenario, opts: &LaunchOptions) -> Result<LaunchOutcome> {
         check_multi_host(&s, "--monitor")?;
         crate::deploy::resolve_endpoints(&mut s).context("deriving the net links' endpoints")?;
     }
-    let (s, secrets) = resolve(s, opts)?;
+    let (s, secret) = resolve(s, opts)?;
     // Every check `canopy check` makes, here in the launcher: a bad input fails the run before
     // any process starts, with the file, line and reason.
     crate::preflight::preflight(&s).context("checking the scenario's inputs")?;
@@ -1259,13 +1350,14 @@ pub fn launch(mut s: Scenario, opts: &LaunchOptions) -> Result<LaunchOutcome> {
         remote: None,
         remote_procs: Vec::new(),
         hub_rejected: 0,
+        hub_access_refused: BTreeMap::new(),
         hub_alive: s.fusion.mode == FusionMode::Central,
         restart_requests: Default::default(),
         failure: None,
         statuses: BTreeMap::new(),
     };
     if let Some(wait) = opts.monitor_only {
-        m.remote = Some(Remote::open(&s, &secrets, wait)?);
+        m.remote = Some(Remote::open(&s, &secret, wait)?);
     } else {
         // Links first, so the children find the monitor.
         m.links
@@ -1296,12 +1388,12 @@ pub fn launch(mut s: Scenario, opts: &LaunchOptions) -> Result<LaunchOutcome> {
         .context("starting the reference thread")?;
 
     let spawn_all = |m: &mut Monitor| -> Result<()> {
-        m.spawn("world", None, 0, &secrets)?;
+        m.spawn("world", None, 0, &secret)?;
         if s.fusion.mode == FusionMode::Central {
-            m.spawn("hub", None, 0, &secrets)?;
+            m.spawn("hub", None, 0, &secret)?;
         }
         for v in &s.vehicles {
-            m.spawn(&v.display_name(), Some(v.id), 0, &secrets)?;
+            m.spawn(&v.display_name(), Some(v.id), 0, &secret)?;
         }
         Ok(())
     };
@@ -1382,7 +1474,13 @@ pub fn launch(mut s: Scenario, opts: &LaunchOptions) -> Result<LaunchOutcome> {
                 std::thread::sleep(Duration::from_millis(5));
                 continue;
             }
-            m.send_pace(&mut last_pace);
+            // A restart due while its vehicle is down holds the team at its time.
+            let hold = pending
+                .iter()
+                .filter(|&&(i, stage)| stage == 1 && !pending.contains(&(i, 0)))
+                .map(|&(i, _)| s.events[i].at_s + s.events[i].restart_after_s.unwrap_or(0.0))
+                .reduce(f64::min);
+            m.send_pace(&mut last_pace, hold);
         }
         let team = m.team_time();
         pb.set_position(team.max(0.0) as u64);
@@ -1426,7 +1524,11 @@ pub fn launch(mut s: Scenario, opts: &LaunchOptions) -> Result<LaunchOutcome> {
                     let id = e.vehicle.expect("validated");
                     let name = names[&id].clone();
                     let t = m.vehicles.get(&id).map_or(t, |v| v.last_t);
-                    m.kill(&name, nix::sys::signal::Signal::SIGKILL, true);
+                    if m.remote.is_some() {
+                        m.order_host(id, Control::Kill { name: name.clone() });
+                    } else {
+                        m.kill(&name, nix::sys::signal::Signal::SIGKILL, true);
+                    }
                     if let Some(v) = m.vehicles.get_mut(&id) {
                         v.alive = false;
                     }
@@ -1456,7 +1558,15 @@ pub fn launch(mut s: Scenario, opts: &LaunchOptions) -> Result<LaunchOutcome> {
                     };
                     m.vehicles.get_mut(&id).expect("validated").incarnation = inc;
                     m.restart_requests.remove(&id);
-                    if let Err(err) = m.spawn(&name, Some(id), inc, &secrets) {
+                    if m.remote.is_some() {
+                        m.order_host(
+                            id,
+                            Control::Restart {
+                                vehicle: id,
+                                incarnation: inc,
+                            },
+                        );
+                    } else if let Err(err) = m.spawn(&name, Some(id), inc, &secret) {
                         m.failure = Some(format!("restarting {name}: {err:#}"));
                     }
                     say(
@@ -1471,7 +1581,12 @@ pub fn launch(mut s: Scenario, opts: &LaunchOptions) -> Result<LaunchOutcome> {
                     });
                 }
                 (EventKind::HubLoss, _) => {
-                    m.kill("hub", nix::sys::signal::Signal::SIGKILL, true);
+                    if m.remote.is_some() {
+                        let hub = m.s.fusion.hub_id;
+                        m.order_host(hub, Control::Kill { name: "hub".into() });
+                    } else {
+                        m.kill("hub", nix::sys::signal::Signal::SIGKILL, true);
+                    }
                     m.hub_alive = false;
                     say(
                         &pb,
@@ -1611,8 +1726,22 @@ fn assemble(
             }
         }
         rec.peak_rss_bytes = v.counters.values().filter_map(|c| c.peak_rss_bytes).max();
+        for c in v.counters.values() {
+            for (k, n) in &c.access_refused {
+                *rec.access_refused.entry(k.clone()).or_insert(0) += n;
+            }
+        }
+        if !rec.access_refused.is_empty() {
+            eprintln!(
+                "{}: zenoh access control refused {} message(s) of other sessions: {:?}",
+                v.name,
+                rec.access_refused.values().sum::<u64>(),
+                rec.access_refused
+            );
+        }
         let rec_rejections = rec.rejections.clone();
         let rec_peak_rss = rec.peak_rss_bytes;
+        let rec_access_refused = rec.access_refused.clone();
         let association = rec.association;
         vehicles.push(rec);
         if let Some(b) = &baseline {
@@ -1657,6 +1786,7 @@ fn assemble(
             counters: v.counters.values().cloned().collect(),
             rejections: rec_rejections,
             peak_rss_mb: rec_peak_rss.map(|b| b as f64 / 1e6),
+            access_refused: rec_access_refused,
             estimate_reports: v.estimates.len(),
             map_reports: v.maps.len(),
             last_report_t: v.estimates.iter().map(|e| e.0).fold(f64::NAN, f64::max),
@@ -1792,6 +1922,8 @@ fn assemble(
         vehicles: vchecks,
         link_ends,
         hub_rejected: m.hub_rejected,
+        hub_access_refused: m.hub_access_refused.clone(),
+        control_access_refused: super::access_refusals(),
         interrupted,
         failure: m.failure.clone(),
         prefix: m.prefix.clone(),

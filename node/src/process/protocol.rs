@@ -161,7 +161,7 @@ impl Validate for Progress {
 }
 
 /// Monitor → process.
-#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub enum Control {
     /// Finish: send final reports if not done yet, close links, exit 0.
     Shutdown,
@@ -175,12 +175,34 @@ pub enum Control {
         /// Simulation time [s].
         until: f64,
     },
+    /// Monitor → host launcher (multi-host runs): a scheduled `[[event]]` — SIGKILL the live
+    /// process called `name` (a vehicle's name, or `hub`) on this host.
+    Kill {
+        /// The process (`[[vehicle]]` name or `hub`).
+        name: String,
+    },
+    /// Monitor → host launcher (multi-host runs): start vehicle `vehicle` again as
+    /// `incarnation` (a scheduled restart; the host's world holds its streams at the restart
+    /// time until the new process asks to be initialised). Repeated orders of an incarnation
+    /// already started are ignored.
+    Restart {
+        /// Vehicle id.
+        vehicle: u32,
+        /// Its new incarnation (1 for the first restart).
+        incarnation: u32,
+    },
 }
 
 impl Validate for Control {
     fn validate(&self) -> Result<(), ValidationError> {
         match self {
             Control::Pace { until } => finite("pace.until", [*until]),
+            Control::Kill { name } if name.is_empty() || name.len() > 256 => Err(
+                ValidationError::Other("kill.name: empty or longer than 256 bytes".into()),
+            ),
+            Control::Restart { incarnation, .. } if *incarnation == 0 => Err(
+                ValidationError::Other("restart.incarnation: a restart's is ≥ 1".into()),
+            ),
             _ => Ok(()),
         }
     }
@@ -255,6 +277,11 @@ pub struct VehicleCounters {
     /// kernel does not report it).
     #[serde(default)]
     pub peak_rss_bytes: Option<u64>,
+    /// Messages and declarations of other sessions that this process's zenoh access control
+    /// refused, by `"<action> on <key>"` (`canopy_transport::access::refusals`): a
+    /// non-neighbour, or a session using a key of a link it is not part of.
+    #[serde(default)]
+    pub access_refused: std::collections::BTreeMap<String, u64>,
 }
 
 /// What the estimator did with one observation (the monitor audits it against the truth).
@@ -402,6 +429,8 @@ pub enum Report {
         links: Vec<LinkReport>,
         /// Messages rejected by the hub's DDF node.
         rejected: u64,
+        /// What its zenoh access control refused (as [`VehicleCounters::access_refused`]).
+        access_refused: std::collections::BTreeMap<String, u64>,
     },
     /// Truth (world only), at record times.
     Truth {
@@ -648,5 +677,38 @@ mod tests {
             })],
         };
         assert!(round_trip(&nan_imu).is_err());
+    }
+
+    /// The monitor's orders to a host launcher (scheduled events across hosts) survive the
+    /// codec; an empty process name or a restart as incarnation 0 (the first start) is
+    /// refused.
+    #[test]
+    fn event_orders_round_trip_and_bad_ones_are_refused() {
+        let kill = Control::Kill {
+            name: "uav3".into(),
+        };
+        assert_eq!(round_trip(&kill).unwrap(), kill);
+        let restart = Control::Restart {
+            vehicle: 3,
+            incarnation: 1,
+        };
+        assert_eq!(round_trip(&restart).unwrap(), restart);
+        for bad in [
+            Control::Kill {
+                name: String::new(),
+            },
+            Control::Restart {
+                vehicle: 3,
+                incarnation: 0,
+            },
+        ] {
+            assert!(
+                matches!(
+                    round_trip(&bad),
+                    Err(CodecError::Invalid(ValidationError::Other(_)))
+                ),
+                "{bad:?} accepted"
+            );
+        }
     }
 }

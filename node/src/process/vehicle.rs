@@ -338,6 +338,7 @@ impl Vehicle<'_> {
             merges_adopted: self.view.node.merges_adopted,
             merges_refused: self.view.node.merges_refused,
             peak_rss_bytes: super::peak_rss_bytes(),
+            access_refused: super::access_refusals(),
         }
     }
 

@@ -129,9 +129,6 @@ pub fn run(c: &RoleCommon) -> Result<()> {
         .filter(|(v, _)| local(v.id))
         .map(|(_, src)| src)
         .collect();
-    if host.is_some() && !s.events.is_empty() {
-        bail!("scheduled [[event]]s are not supported in a multi-host run (yet)");
-    }
     let duration = s.run.duration_s;
     let record_dt = s.run.record_interval_s;
     let eps = 1e-9;
@@ -199,7 +196,15 @@ pub fn run(c: &RoleCommon) -> Result<()> {
     // Scheduled restarts: the world holds every stream at the restart time until the new
     // process asks for initialisation, so the restart happens at exactly that time (as in
     // `canopy sim`, and as the reference assumes).
-    let mut restarts: Vec<(f64, usize, u32)> = crate::baseline::restarts(&s);
+    // On a host (multi-host run): the restarts of its own vehicles, by their slot here.
+    let mut restarts: Vec<(f64, usize, u32)> = crate::baseline::restarts(&s)
+        .into_iter()
+        .filter_map(|(t, i, inc)| {
+            let id = s.vehicles[i].id;
+            let slot = local_vehicles.iter().position(|v| v.id == id)?;
+            Some((t, slot, inc))
+        })
+        .collect();
     let mut waiting_since: Option<Instant> = None;
     let mut end_reached = false;
     let mut shutdown = false;
