@@ -4,16 +4,19 @@
 //! - on loopback addresses standing in for the machines (alpha 127.0.0.1, beta 127.0.0.2, the
 //!   monitor on 127.0.0.1), with a copy of the scenario whose addresses are replaced and whose
 //!   port bases are moved to free ports (other runs may hold 7450–7462 on a shared machine):
-//!   two-hosts, central mode, a monitor killed mid-run, a host without its monitor;
+//!   two-hosts with the team's password and a rogue session refused and counted, central mode
+//!   over TLS, a monitor killed mid-run, a host without its monitor;
 //! - on emulated machines ([`Machines`]: a network namespace each, joined by a bridge, every
 //!   process with its own tmpfs on /dev/shm and /tmp, so nothing passes through shared memory
-//!   between hosts): `two-hosts.toml` unchanged, and tree-8 over three machines. These FAIL
-//!   where namespaces cannot be created, unless `CANOPY_TEST_NO_NAMESPACES=1` (README).
+//!   between hosts): `two-hosts.toml` unchanged, tree-8 over three machines, a cut cable, a
+//!   vehicle killed and restarted on its machine. These FAIL where namespaces cannot be
+//!   created, unless `CANOPY_TEST_NO_NAMESPACES=1` (README).
 //!
 //! Each host runs its own world (its vehicles' sensor input simulated from the scenario's
 //! seed), its vehicles and their `shm` links; the links between hosts are zenoh on the
 //! endpoints `deploy::resolve_endpoints` derives, and every report reaches the monitor over
-//! zenoh (the host launchers relay them).
+//! zenoh (the host launchers relay them). Single-host runs the tests compare with are made
+//! once per test process ([`one_host`]).
 
 mod procs;
 
@@ -53,21 +56,35 @@ fn free_ports(addr: &str, n: u16) -> u16 {
     panic!("no {n} consecutive free ports on {addr}");
 }
 
-/// The shipped two-hosts scenario with loopback addresses and free ports, written into `dir`.
-fn loopback_copy(dir: &Path) -> PathBuf {
+/// The team's zenoh password of the loopback runs (`[secrets].zenoh_password`): every session
+/// authenticates as its node's user and every listening session enforces access control.
+const TEAM_PASSWORD: &str = "canopy-hosts-test-team";
+
+/// A loopback copy of two-hosts.toml.
+struct Loopback {
+    /// The scenario file.
+    path: PathBuf,
+    /// Its `[zenoh].key_prefix`.
+    prefix: String,
+    /// Where uav2 (on beta) listens for its link to uav3 (link[1]).
+    uav2_endpoint: String,
+}
+
+/// The shipped two-hosts scenario with loopback addresses, free ports and the team's password
+/// ([`TEAM_PASSWORD`]), written into `dir`; with `real_time_factor`, paced at that many
+/// simulated seconds per wall second.
+fn loopback_copy(dir: &Path, real_time_factor: Option<f64>) -> Loopback {
     let text = std::fs::read_to_string(topology("two-hosts.toml")).expect("two-hosts.toml");
     // Links 1 and 2 (indices in the file) are the net ones: port_base + 0..3 must be free.
     let alpha = free_ports("127.0.0.1", 3);
     let beta = free_ports("127.0.0.2", 3);
     let monitor = free_ports("127.0.0.1", 1);
-    let text = text
+    // A key prefix of its own: no other run's session can match this run's keys.
+    let prefix = format!("canopy/test-{}-{monitor}", std::process::id());
+    let mut text = text
         .replace(
             "monitor = \"tcp/10.0.0.1:7450\"",
-            // A key prefix of its own: no other run's session can match this run's keys.
-            &format!(
-                "monitor = \"tcp/127.0.0.1:{monitor}\"\nkey_prefix = \"canopy/test-{}-{monitor}\"",
-                std::process::id()
-            ),
+            &format!("monitor = \"tcp/127.0.0.1:{monitor}\"\nkey_prefix = \"{prefix}\""),
         )
         .replace(
             "address = \"10.0.0.1\"",
@@ -78,9 +95,24 @@ fn loopback_copy(dir: &Path) -> PathBuf {
             &format!("address = \"127.0.0.2\"\nport_base = {beta}"),
         );
     assert!(text.contains("127.0.0.2") && text.contains(&format!(":{monitor}")));
+    if let Some(f) = real_time_factor {
+        text = text.replacen(
+            "max_lead_s = 2.0",
+            &format!("max_lead_s = 2.0\nreal_time_factor = {f:?}"),
+            1,
+        );
+        assert!(text.contains("real_time_factor"), "two-hosts.toml changed");
+    }
+    text.push_str(&format!(
+        "\n[secrets]\nzenoh_password = \"{TEAM_PASSWORD}\"\n"
+    ));
     let path = dir.join("two-hosts-loopback.toml");
     std::fs::write(&path, text).expect("write the scenario copy");
-    path
+    Loopback {
+        path,
+        prefix,
+        uav2_endpoint: format!("tcp/127.0.0.2:{}", beta + 1),
+    }
 }
 
 /// Starts `canopy run SCENARIO ARGS…` here with its output in files under `logs`.
@@ -182,6 +214,20 @@ fn opted_out() -> bool {
         return true;
     }
     false
+}
+
+/// `n` emulated machines ([`Machines::new`]), or `None` when opted out
+/// ([`NO_NAMESPACES`]); panics — the test FAILS — where they cannot be created.
+fn machines(n: usize) -> Option<Machines> {
+    if opted_out() {
+        return None;
+    }
+    Some(Machines::new(n).unwrap_or_else(|e| {
+        panic!(
+            "cannot emulate {n} machines: {e}. Run as root with iproute2 and util-linux \
+             (unshare), or set {NO_NAMESPACES}=1 to opt out on a machine without namespaces"
+        )
+    }))
 }
 
 fn ip(args: &[&str]) -> Result<(), String> {
@@ -474,9 +520,7 @@ fn assert_converged(r: &procs::Run, label: &str) {
 /// scheduling, the worlds pacing per host under the team's pace), i.e. the linearisation
 /// points. `tol`: relative.
 fn assert_rmse_close(r: &procs::Run, single: &Path, duration: &str, tol: f64) {
-    let one = run(single, &["--quiet", "--duration", duration]);
-    assert_sound(&one);
-    one.print_standing("one host");
+    let one = one_host(single, duration, 0);
     let (multi_rmse, one_rmse) = (r.summary.team.map_rmse_m, one.summary.team.map_rmse_m);
     let reference = r
         .summary
@@ -494,6 +538,24 @@ fn assert_rmse_close(r: &procs::Run, single: &Path, duration: &str, tol: f64) {
     );
 }
 
+/// The `k`-th single-host run (`canopy run`) of `scenario` for `duration` simulated seconds,
+/// sound, run once per test process and shared by the tests comparing with it.
+fn one_host(scenario: &Path, duration: &str, k: usize) -> &'static procs::Run {
+    type Cache = std::collections::BTreeMap<(PathBuf, String, usize), &'static procs::Run>;
+    static RUNS: std::sync::Mutex<Cache> = std::sync::Mutex::new(Cache::new());
+    let key = (scenario.to_path_buf(), duration.to_string(), k);
+    let mut runs = RUNS.lock().unwrap_or_else(|e| e.into_inner());
+    if let Some(r) = runs.get(&key) {
+        return r;
+    }
+    let one = run(scenario, &["--quiet", "--duration", duration]);
+    assert_sound(&one);
+    one.print_standing(&format!("one host (run {k})"));
+    let one: &'static procs::Run = Box::leak(Box::new(one));
+    runs.insert(key, one);
+    one
+}
+
 /// Each host's own logs: a world per host and that host's vehicles only.
 fn assert_hosts_ran_their_share(work: &Path, shares: &[(&str, &[&str])], all: &[&str]) {
     for (host, mine) in shares {
@@ -509,19 +571,77 @@ fn assert_hosts_ran_their_share(work: &Path, shares: &[(&str, &[&str])], all: &[
     }
 }
 
-/// Two host launchers and the monitor on loopback addresses (alpha 127.0.0.1, beta 127.0.0.2):
-/// the outputs are sound (`assert_sound`: every process of both hosts exited cleanly,
-/// confidence against the reference, NEES), both cross-host links are zenoh and carried fusion
-/// traffic both ways on every end with no transport rejection, each host ran its own world,
-/// no process is left behind, and the team's map RMSE is within 5 % of the same scenario's
-/// single-host run (5 %: measured 1.0 % apart; repeated single-host runs of this scenario
-/// spread by ~1 %, doubled for two independently scheduled runs, plus slack).
+/// Forged publications the rogue of [`two_hosts_and_a_monitor_run_the_team`] makes.
+const FORGED: usize = 5;
+
+/// A rogue zenoh session during a run: it holds a valid credential (the team's password, user
+/// `uav4`: a team member, but not uav2's neighbour) and connects to uav2's listening endpoint.
+/// It opens a link of its own to uav2 (declares a subscriber on `link/2/4` and the liveliness
+/// token `alive/4/2`) and, once uav2's subscriber on `link/3/2` is known to it, publishes
+/// [`FORGED`] well-formed envelopes there claiming to be uav3. Waits for uav2 at most `wait`.
+fn rogue(lb: &Loopback, wait: Duration) {
+    use canopy_transport::codec::{DEFAULT_MAX_BODY_LEN, encode_to_vec};
+    use canopy_transport::net::{ZenohAuth, ZenohConfig, ZenohTransport};
+    use canopy_transport::{MessageKind, SendMeta, WireVector};
+    let mut cfg = ZenohConfig::new(lb.prefix.clone(), vec![], vec![lb.uav2_endpoint.clone()]);
+    cfg.auth = Some(ZenohAuth {
+        user: "uav4".into(),
+        password: TEAM_PASSWORD.into(),
+        accept: vec![],
+    });
+    let session = ZenohTransport::open(4, cfg).expect("the rogue's session opens");
+    let own = session
+        .link(2, DEFAULT_MAX_BODY_LEN)
+        .expect("the rogue's link");
+    let routed = session
+        .wait_for_subscriber(3, 2, wait)
+        .expect("matching status");
+    assert!(
+        routed,
+        "uav2's subscriber on link/3/2 never reached the rogue"
+    );
+    for k in 0..FORGED as u64 {
+        let meta = SendMeta::new(MessageKind::DDF_DELTA, 1_000 + k, 1.0);
+        let bytes = encode_to_vec(&meta, 3, &WireVector::from_slice(&[3.0]), u64::MAX)
+            .expect("an envelope");
+        session.raw_put(3, 2, bytes).expect("put");
+    }
+    // Time for the puts to leave before the session closes.
+    std::thread::sleep(Duration::from_secs(1));
+    drop(own);
+    let _ = session.close();
+}
+
+/// Two host launchers and the monitor on loopback addresses (alpha 127.0.0.1, beta 127.0.0.2),
+/// with the team's password (every zenoh session authenticated as its own node's user, every
+/// listening session enforcing access control): the outputs are sound (`assert_sound`: every
+/// process of both hosts exited cleanly, confidence against the reference, NEES), both
+/// cross-host links are zenoh and carried fusion traffic both ways on every end with no
+/// transport rejection, each host ran its own world, no process is left behind, and the team's
+/// map RMSE is within 5 % of the same scenario's single-host run (5 %: measured 1.0 % apart;
+/// repeated single-host runs of this scenario spread by ~1 %, doubled for two independently
+/// scheduled runs, plus slack).
+///
+/// Meanwhile a rogue ([`rogue`]: valid credential of uav4, not uav2's neighbour) connects to
+/// uav2 and forges uav3's publications: uav2's access control refuses exactly the [`FORGED`]
+/// puts on `link/3/2` and the rogue's own link declarations, and the run counts them in
+/// `checks.json`, `summary.json` and `report.html` (uav2 only; uav2 received nothing but
+/// uav3's messages: no transport rejection), and uav2's log names each refused key once.
 #[test]
 fn two_hosts_and_a_monitor_run_the_team() {
     let _g = serial();
     let tmp = tempfile::tempdir().expect("temporary directory");
-    let scenario = loopback_copy(tmp.path());
-    let r = run_hosts(None, &scenario, &["alpha", "beta"], DURATION, tmp.path());
+    // Paced at 3× real time (≥ 10 s wall): the rogue acts while uav2 runs (an unpaced run of
+    // this scenario may be over in a few wall seconds).
+    let lb = loopback_copy(tmp.path(), Some(3.0));
+    let r = run_hosts_with(
+        None,
+        &lb.path,
+        &["alpha", "beta"],
+        DURATION,
+        tmp.path(),
+        |_| rogue(&lb, Duration::from_secs(60)),
+    );
     let mut names: Vec<&str> = r.checks.processes.iter().map(|p| p.name.as_str()).collect();
     names.sort();
     assert_eq!(
@@ -536,6 +656,74 @@ fn two_hosts_and_a_monitor_run_the_team() {
         &all,
     );
     assert_links_carried_traffic(&r);
+
+    // The rogue's traffic: refused at uav2 and counted, nowhere else.
+    let key = |action: &str, k: &str| format!("{action} on {}/{k}", lb.prefix);
+    let forged = key("Put (ingress)", "link/3/2");
+    for v in &r.checks.vehicles {
+        eprintln!("{}: access refused {:?}", v.name, v.access_refused);
+        if v.name != "uav2" {
+            assert!(
+                v.access_refused.is_empty(),
+                "{}: {:?}",
+                v.name,
+                v.access_refused
+            );
+        }
+    }
+    let uav2 = r
+        .checks
+        .vehicles
+        .iter()
+        .find(|v| v.name == "uav2")
+        .expect("uav2");
+    assert_eq!(
+        uav2.access_refused.get(&forged).copied(),
+        Some(FORGED as u64),
+        "{:?}",
+        uav2.access_refused
+    );
+    for declared in [
+        key("Declare Subscriber (ingress)", "link/2/4"),
+        key("Liveliness Token (ingress)", "alive/4/2"),
+    ] {
+        assert!(
+            uav2.access_refused.get(&declared).is_some_and(|&n| n >= 1),
+            "{declared} not refused: {:?}",
+            uav2.access_refused
+        );
+    }
+    let in_summary = r
+        .summary
+        .vehicles
+        .iter()
+        .find(|v| v.name == "uav2")
+        .map(|v| v.access_refused.clone())
+        .expect("uav2 in summary.json");
+    assert_eq!(
+        in_summary, uav2.access_refused,
+        "summary.json and checks.json"
+    );
+    let report = std::fs::read_to_string(r.file("report.html")).expect("report.html");
+    assert!(report.contains("Refused by zenoh access control") && report.contains(&forged));
+    assert!(
+        r.checks.control_access_refused.is_empty(),
+        "{:?}",
+        r.checks.control_access_refused
+    );
+    // Logged once per refused key, with its cause, in uav2's log on beta.
+    let log = std::fs::read_to_string(tmp.path().join("beta/logs/uav2.log")).expect("uav2.log");
+    let lines: Vec<&str> = log
+        .lines()
+        .filter(|l| l.contains("zenoh access control refused"))
+        .collect();
+    assert_eq!(
+        lines.iter().filter(|l| l.contains(&forged)).count(),
+        1,
+        "{lines:#?}"
+    );
+    assert_eq!(lines.len(), uav2.access_refused.len(), "{lines:#?}");
+
     assert_converged(&r, "two hosts");
     assert_rmse_close(&r, &topology("two-hosts.toml"), DURATION, 0.05);
 }
@@ -546,16 +734,10 @@ fn two_hosts_and_a_monitor_run_the_team() {
 /// `CANOPY_TEST_NO_NAMESPACES=1`.
 #[test]
 fn two_hosts_on_machines_with_private_shm() {
-    if opted_out() {
-        return;
-    }
     let _g = serial();
-    let machines = Machines::new(2).unwrap_or_else(|e| {
-        panic!(
-            "cannot emulate two machines: {e}. Run as root with iproute2 and util-linux \
-             (unshare), or set {NO_NAMESPACES}=1 to opt out on a machine without namespaces"
-        )
-    });
+    let Some(machines) = machines(2) else {
+        return;
+    };
     // Not under /tmp: every machine mounts its own tmpfs there.
     let work = tempfile::tempdir_in(env!("CARGO_TARGET_TMPDIR")).expect("work directory");
     let scenario = topology("two-hosts.toml");
@@ -577,10 +759,94 @@ fn two_hosts_on_machines_with_private_shm() {
     assert_rmse_close(&r, &scenario, DURATION, 0.05);
 }
 
+/// Makes a test certificate authority and one certificate per zenoh user in `dir` with
+/// openssl (scripts/test.sh installs it): EC P-256 keys (PKCS#8), CA `ca.pem`; `USER.pem` /
+/// `USER.key` with CN = USER, subject alternative names the loopback addresses the hosts use,
+/// for server and client authentication. `tag` names the CA (two CAs must differ).
+fn make_certs(dir: &Path, tag: &str, users: &[&str]) {
+    std::fs::create_dir_all(dir).expect("certificates directory");
+    let openssl = |args: &[&str]| {
+        let out = Command::new("openssl")
+            .args(args)
+            .current_dir(dir)
+            .output()
+            .unwrap_or_else(|e| {
+                panic!("cannot run openssl ({e}): install it (scripts/test.sh does, from Debian)")
+            });
+        assert!(
+            out.status.success(),
+            "openssl {args:?}: {}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+    };
+    let ec = [
+        "-newkey",
+        "ec",
+        "-pkeyopt",
+        "ec_paramgen_curve:prime256v1",
+        "-nodes",
+    ];
+    let subject = format!("/CN=canopy-test-ca-{tag}");
+    let mut ca = vec!["req", "-x509"];
+    ca.extend(ec);
+    ca.extend([
+        "-keyout",
+        "ca.key",
+        "-out",
+        "ca.pem",
+        "-days",
+        "2",
+        "-subj",
+        &subject,
+        "-addext",
+        "basicConstraints=critical,CA:TRUE",
+        "-addext",
+        "keyUsage=critical,keyCertSign,cRLSign",
+    ]);
+    openssl(&ca);
+    std::fs::write(
+        dir.join("node.ext"),
+        "basicConstraints=CA:FALSE\nsubjectAltName=IP:127.0.0.1,IP:127.0.0.2\n\
+         extendedKeyUsage=serverAuth,clientAuth\n",
+    )
+    .expect("extensions file");
+    for u in users {
+        let (key, csr, pem, cn) = (
+            format!("{u}.key"),
+            format!("{u}.csr"),
+            format!("{u}.pem"),
+            format!("/CN={u}"),
+        );
+        let mut req = vec!["req"];
+        req.extend(ec);
+        req.extend(["-keyout", &key, "-out", &csr, "-subj", &cn]);
+        openssl(&req);
+        openssl(&[
+            "x509",
+            "-req",
+            "-in",
+            &csr,
+            "-CA",
+            "ca.pem",
+            "-CAkey",
+            "ca.key",
+            "-CAcreateserial",
+            "-out",
+            &pem,
+            "-days",
+            "2",
+            "-extfile",
+            "node.ext",
+        ]);
+    }
+}
+
 /// `topologies/central-4.toml` over two hosts on loopback addresses: alpha (127.0.0.1) runs the
 /// hub, uav1 and uav2 (their star links stay `shm`), beta (127.0.0.2) runs uav3 and uav4, whose
-/// links to the hub become `net`. Free ports as in [`loopback_copy`].
-fn central_on_two_hosts(dir: &Path) -> PathBuf {
+/// links to the hub become `net`. Free ports as in [`loopback_copy`]. Every zenoh link is TLS
+/// (`[zenoh.tls]`, certificates from [`make_certs`] in `certs`) and the team's password is set.
+/// Returns the scenario and where the hub listens for uav4 (link[3]).
+fn central_on_two_hosts(dir: &Path, certs: &Path) -> (PathBuf, String) {
     let text = std::fs::read_to_string(topology("central-4.toml")).expect("central-4.toml");
     let mut parts = text.split("[[link]]");
     let mut out = parts.next().expect("head").to_string();
@@ -600,8 +866,13 @@ fn central_on_two_hosts(dir: &Path) -> PathBuf {
         r#"
 [zenoh]
 mode = "peer"
-monitor = "tcp/127.0.0.1:{monitor}"
+monitor = "tls/127.0.0.1:{monitor}"
 key_prefix = "canopy/test-{pid}-{monitor}"
+
+[zenoh.tls]
+root_ca = "{certs}/ca.pem"
+certificate = "{certs}/{{user}}.pem"
+private_key = "{certs}/{{user}}.key"
 
 [[host]]
 name = "alpha"
@@ -615,24 +886,87 @@ name = "beta"
 address = "127.0.0.2"
 port_base = {beta}
 vehicles = [3, 4]
+
+[secrets]
+zenoh_password = "{TEAM_PASSWORD}"
 "#,
-        pid = std::process::id()
+        pid = std::process::id(),
+        certs = certs.display()
     ));
     let path = dir.join("central-two-hosts.toml");
     std::fs::write(&path, out).expect("write the scenario");
-    path
+    (path, format!("tls/127.0.0.1:{}", alpha + 3))
 }
 
-/// Central mode across two hosts (loopback addresses): the hub runs on alpha and its host's
-/// world paces it; uav3 and uav4 reach it over zenoh from beta. Sound, every star link carried
-/// traffic both ways, the hub is among alpha's processes, and the team's map RMSE within 5 %
-/// of central-4 on one host (the reason of [`two_hosts_and_a_monitor_run_the_team`]'s 5 %).
+/// Central mode across two hosts (loopback addresses), every zenoh link TLS with a
+/// certificate per node from a CA made at test time, and the team's password (access control
+/// at the hub, which serves two vehicles): the hub runs on alpha and its host's world paces
+/// it; uav3 and uav4 reach it over TLS from beta. Sound, every star link carried traffic both
+/// ways, the hub is among alpha's processes, no access-control refusal anywhere (the egress
+/// refusals of the hub's own tokens towards the other vehicle are not attempts and are not
+/// counted), and the team's map RMSE within 5 % of central-4 on one host (the reason of
+/// [`two_hosts_and_a_monitor_run_the_team`]'s 5 %). Meanwhile a session whose certificate comes
+/// from another CA (CN uav4, the team's password) dials the hub: the TLS handshake refuses it,
+/// so it never learns of the hub's subscriptions.
 #[test]
-fn central_mode_across_two_hosts() {
+fn central_mode_across_two_hosts_over_tls() {
     let _g = serial();
     let tmp = tempfile::tempdir().expect("temporary directory");
-    let scenario = central_on_two_hosts(tmp.path());
-    let r = run_hosts(None, &scenario, &["alpha", "beta"], DURATION, tmp.path());
+    let certs = tmp.path().join("certs");
+    let users = [
+        "hub",
+        "uav1",
+        "uav2",
+        "uav3",
+        "uav4",
+        "host-alpha",
+        "host-beta",
+        "monitor",
+    ];
+    make_certs(&certs, "team", &users);
+    let outsider = tmp.path().join("outsider");
+    make_certs(&outsider, "outsider", &["uav4"]);
+    let (scenario, hub_for_uav4) = central_on_two_hosts(tmp.path(), &certs);
+    let prefix = std::fs::read_to_string(&scenario)
+        .expect("scenario")
+        .lines()
+        .find_map(|l| {
+            l.strip_prefix("key_prefix = \"")
+                .map(|p| p.trim_end_matches('"').to_string())
+        })
+        .expect("key prefix");
+    let r = run_hosts_with(
+        None,
+        &scenario,
+        &["alpha", "beta"],
+        DURATION,
+        tmp.path(),
+        |_| {
+            use canopy_transport::net::{ZenohAuth, ZenohConfig, ZenohTls, ZenohTransport};
+            let mut cfg = ZenohConfig::new(prefix.clone(), vec![], vec![hub_for_uav4.clone()]);
+            cfg.auth = Some(ZenohAuth {
+                user: "uav4".into(),
+                password: TEAM_PASSWORD.into(),
+                accept: vec![],
+            });
+            cfg.tls = Some(ZenohTls {
+                root_ca: outsider.join("ca.pem"),
+                certificate: outsider.join("uav4.pem"),
+                private_key: outsider.join("uav4.key"),
+            });
+            let session = ZenohTransport::open(4, cfg).expect("the outsider's session opens");
+            // The hub subscribes to link/4/0 from the start of its share; 10 s of retries (200 ms
+            // doubling to 1.6 s) against a hub that is up for the whole run.
+            let routed = session
+                .wait_for_subscriber(4, 0, Duration::from_secs(10))
+                .expect("matching status");
+            assert!(
+                !routed,
+                "a session with another CA's certificate reached the hub"
+            );
+            let _ = session.close();
+        },
+    );
     assert!(
         tmp.path().join("alpha/logs/hub.log").is_file(),
         "the hub runs on alpha"
@@ -640,8 +974,27 @@ fn central_mode_across_two_hosts() {
     assert!(!tmp.path().join("beta/logs/hub.log").exists());
     assert!(r.checks.processes.iter().any(|p| p.name == "hub"));
     assert_eq!(r.checks.hub_rejected, 0);
+    assert!(
+        r.checks.hub_access_refused.is_empty(),
+        "{:?}",
+        r.checks.hub_access_refused
+    );
+    for v in &r.checks.vehicles {
+        assert!(
+            v.access_refused.is_empty(),
+            "{}: {:?}",
+            v.name,
+            v.access_refused
+        );
+    }
+    let resolved = std::fs::read_to_string(tmp.path().join("alpha/scenario.toml")).unwrap();
+    assert!(resolved.contains("tls/127.0.0.1:") && !resolved.contains("tcp/"));
+    assert!(
+        !resolved.contains(TEAM_PASSWORD),
+        "the password reached a file"
+    );
     assert_links_carried_traffic(&r);
-    assert_converged(&r, "central, two hosts");
+    assert_converged(&r, "central, two hosts, TLS");
     assert_rmse_close(&r, &topology("central-4.toml"), DURATION, 0.05);
 }
 
@@ -695,24 +1048,17 @@ vehicles = [5, 6, 8]
 
 /// tree-8 across three emulated machines (own netns, private /dev/shm and /tmp): sound, every
 /// link (three `net` across machines, four `shm` inside them) carried traffic both ways, each
-/// machine ran its own world and its vehicles only, and the team's map RMSE is within 5 % of
-/// tree-8 on one host. Issue #14's acceptance figure is 2 % (measured −1.9 % to +0.8 % over
-/// five runs: docs/arch/deploy.md); the test allows 5 % because the single-host figure itself
-/// spread 3 % over five runs on a loaded machine (process timing decides when deltas arrive),
-/// so a 2 % bound would judge the machine's load, not the deployment. Fails where namespaces
-/// cannot be created unless `CANOPY_TEST_NO_NAMESPACES=1`.
+/// machine ran its own world and its vehicles only, and — issue #14's acceptance — the team's
+/// map RMSE is within 2 % of tree-8 on one host, judged against two one-host runs side by side
+/// ([`assert_rmse_within_one_host_spread`]: the one-host figure itself spreads by up to 3 %
+/// from run to run on a loaded machine, so one run is no fixed reference). Fails where
+/// namespaces cannot be created unless `CANOPY_TEST_NO_NAMESPACES=1`.
 #[test]
 fn tree8_on_three_machines_with_private_shm() {
-    if opted_out() {
-        return;
-    }
     let _g = serial();
-    let machines = Machines::new(3).unwrap_or_else(|e| {
-        panic!(
-            "cannot emulate three machines: {e}. Run as root with iproute2 and util-linux \
-             (unshare), or set {NO_NAMESPACES}=1 to opt out on a machine without namespaces"
-        )
-    });
+    let Some(machines) = machines(3) else {
+        return;
+    };
     let work = tempfile::tempdir_in(env!("CARGO_TARGET_TMPDIR")).expect("work directory");
     let scenario = tree8_on_three_hosts(work.path());
     let r = run_hosts(
@@ -748,7 +1094,121 @@ fn tree8_on_three_machines_with_private_shm() {
     for (name, s) in r.print_standing("tree-8 on three machines") {
         assert!(s.coverage >= 0.8, "{name}: coverage {:.2}", s.coverage);
     }
-    assert_rmse_close(&r, &topology("tree-8.toml"), TREE8_DURATION, 0.05);
+    assert_rmse_within_one_host_spread(&r, &topology("tree-8.toml"), TREE8_DURATION, 0.02);
+}
+
+/// Issue #14's acceptance: the team's map RMSE across hosts within `tol` (2 %) of the same
+/// scenario on one host. One host's own figure spreads from run to run — process timing
+/// decides when each delta arrives relative to each vehicle's measurements, hence the
+/// linearisation points (tree-8, 60 s: 1.895–1.951 m, 3 %, over five runs on a loaded
+/// machine) — so a single one-host run is no fixed reference. The baseline is two one-host runs
+/// of the scenario, side by side with this one, and the bound is `tol` beyond their range:
+/// `[min (1 − tol), max (1 + tol)]`. The figures (both runs, their spread, the offset from
+/// their mean) are printed for the test log.
+fn assert_rmse_within_one_host_spread(r: &procs::Run, single: &Path, duration: &str, tol: f64) {
+    let ones: Vec<f64> = (0..2)
+        .map(|k| one_host(single, duration, k).summary.team.map_rmse_m)
+        .collect();
+    let multi = r.summary.team.map_rmse_m;
+    let (lo, hi) = (ones[0].min(ones[1]), ones[0].max(ones[1]));
+    let mean = 0.5 * (lo + hi);
+    eprintln!(
+        "team map RMSE: across hosts {multi:.3} m ({:+.1} % from the one-host mean); one host \
+         {:.3} m and {:.3} m (spread {:.1} %); bound [{:.3}, {:.3}] m",
+        100.0 * (multi / mean - 1.0),
+        ones[0],
+        ones[1],
+        100.0 * (hi - lo) / mean,
+        lo * (1.0 - tol),
+        hi * (1.0 + tol)
+    );
+    assert!(
+        multi >= lo * (1.0 - tol) && multi <= hi * (1.0 + tol),
+        "team map RMSE {multi:.3} m across hosts, one host {ones:?} m: more than {:.0} % \
+         outside the one-host range",
+        100.0 * tol
+    );
+}
+
+/// Simulated seconds of the crash-restart runs: `crash-restart.toml`'s crash at 30 s and
+/// restart at 40 s leave 20 s (twice `procs::MATURE_S`) for the team to recover.
+const CRASH_DURATION: &str = "60";
+
+/// `topologies/crash-restart.toml` (tree-4; uav3 SIGKILLed at 30 s, restarted 10 s later) laid
+/// out as two-hosts.toml: alpha (10.0.0.1, with the monitor) runs uav1 and uav3 (their link
+/// `shm`), beta (10.0.0.2) uav2 and uav4; uav2–uav3 and uav3–uav4 are `net` links across the
+/// machines, on derived endpoints.
+fn crash_restart_on_two_hosts(dir: &Path) -> PathBuf {
+    use canopy_node::deploy::HostSpec;
+    use canopy_node::network::TransportKind;
+    use canopy_node::scenario::Scenario;
+    let mut s = Scenario::load(&topology("crash-restart.toml")).expect("crash-restart.toml");
+    for l in &mut s.links {
+        if l.b == 3 && l.a == 2 || l.a == 3 && l.b == 4 {
+            l.transport = TransportKind::Net;
+        }
+    }
+    assert_eq!(
+        s.links
+            .iter()
+            .filter(|l| l.transport == TransportKind::Net)
+            .count(),
+        2,
+        "crash-restart.toml changed: update this test"
+    );
+    s.zenoh.monitor = Some("tcp/10.0.0.1:7450".into());
+    for (name, address, vehicles) in [("alpha", "10.0.0.1", [1, 3]), ("beta", "10.0.0.2", [2, 4])] {
+        s.hosts.push(HostSpec {
+            name: name.into(),
+            vehicles: vehicles.to_vec(),
+            hub: false,
+            address: Some(address.into()),
+            port_base: 7460,
+        });
+    }
+    s.secrets.zenoh_password = Some(TEAM_PASSWORD.into());
+    let path = dir.join("crash-restart-two-hosts.toml");
+    std::fs::write(&path, s.to_toml_string()).expect("write the scenario");
+    path
+}
+
+/// A vehicle process killed on one machine and restarted there (issue #14): crash-restart over
+/// two emulated machines ([`crash_restart_on_two_hosts`]). The monitor runs the scenario's
+/// `[[event]]`: when uav3 reports t ≥ 30 s it asks alpha's launcher to SIGKILL it, and at 40 s
+/// (alpha's world holds its streams there, the team's pace holds beta's) to start it again as
+/// incarnation 1. The run passes the outage suite's crash-restart checks (outage.rs
+/// `crash_restart`): sound (`assert_sound`), pose NEES in band, uav3 ran twice (SIGKILL, then a
+/// clean exit), the new uav3 initialised and fused, its neighbours — across the machines too —
+/// saw the restart and resynchronised (the side with history initiates the Sync), the team's
+/// information shares agree, and every vehicle stands as in the same scenario on one host
+/// (coverage and share within 0.05, map RMSE within 0.5 m, the outage suite's tolerances
+/// against its reference run). Fails where namespaces cannot be created unless
+/// `CANOPY_TEST_NO_NAMESPACES=1`.
+#[test]
+fn a_vehicle_killed_on_one_machine_restarts_there() {
+    let _g = serial();
+    let Some(machines) = machines(2) else {
+        return;
+    };
+    let work = tempfile::tempdir_in(env!("CARGO_TARGET_TMPDIR")).expect("work directory");
+    let scenario = crash_restart_on_two_hosts(work.path());
+    let r = run_hosts(
+        Some(&machines),
+        &scenario,
+        &["alpha", "beta"],
+        CRASH_DURATION,
+        work.path(),
+    );
+    procs::assert_in_band(&r, 0.8);
+    assert!(
+        work.path().join("alpha/logs/uav3.1.log").is_file()
+            && !work.path().join("beta/logs/uav3.1.log").exists(),
+        "uav3 restarts on its own host"
+    );
+    let end: f64 = CRASH_DURATION.parse().expect("duration");
+    procs::assert_crash_restarted(&r, "uav3", &["uav1", "uav2", "uav4"], end);
+    let st = r.print_standing("crash-restart across machines");
+    assert_stands_as_one_host(&st, &topology("crash-restart.toml"), CRASH_DURATION);
 }
 
 /// A host launcher whose monitor never appears says so, naming the endpoint, within seconds
@@ -757,7 +1217,7 @@ fn tree8_on_three_machines_with_private_shm() {
 fn a_host_without_its_monitor_fails_fast_and_clearly() {
     let _g = serial();
     let tmp = tempfile::tempdir().expect("temporary directory");
-    let scenario = loopback_copy(tmp.path());
+    let scenario = loopback_copy(tmp.path(), None).path;
     let text = std::fs::read_to_string(&scenario).unwrap();
     let monitor = text
         .lines()
@@ -797,7 +1257,7 @@ fn a_host_without_its_monitor_fails_fast_and_clearly() {
 fn hosts_end_cleanly_when_the_monitor_dies() {
     let _g = serial();
     let tmp = tempfile::tempdir().expect("temporary directory");
-    let scenario = loopback_copy(tmp.path());
+    let scenario = loopback_copy(tmp.path(), None).path;
     let logs = tmp.path().join("launchers");
     std::fs::create_dir_all(&logs).unwrap();
     let mon = tmp.path().join("monitor").display().to_string();
@@ -858,16 +1318,10 @@ fn hosts_end_cleanly_when_the_monitor_dies() {
 /// namespaces cannot be created unless `CANOPY_TEST_NO_NAMESPACES=1`.
 #[test]
 fn two_machines_survive_a_cut_cable() {
-    if opted_out() {
-        return;
-    }
     let _g = serial();
-    let machines = Machines::new(2).unwrap_or_else(|e| {
-        panic!(
-            "cannot emulate two machines: {e}. Run as root with iproute2 and util-linux \
-             (unshare), or set {NO_NAMESPACES}=1 to opt out on a machine without namespaces"
-        )
-    });
+    let Some(machines) = machines(2) else {
+        return;
+    };
     let work = tempfile::tempdir_in(env!("CARGO_TARGET_TMPDIR")).expect("work directory");
     let text = std::fs::read_to_string(topology("two-hosts.toml")).expect("two-hosts.toml");
     let text = text.replacen(
@@ -923,7 +1377,46 @@ fn two_machines_survive_a_cut_cable() {
         eprintln!("{link}: reported down at t = {down:?}");
     }
     assert_links_carried_traffic(&r);
-    for (name, s) in r.print_standing("cut and healed") {
-        assert!(s.coverage >= 0.8, "{name}: coverage {:.2}", s.coverage);
+    // The outage suite's checks of a partition healed (outage.rs `partition_heal`): NEES in
+    // band, and every vehicle stands as in the same scenario without the cut (here: on one
+    // host, the same sensor data) — coverage and share within 0.05, map RMSE within 0.5 m.
+    // Not its per-link down window: the team pauses on the team's pace during a cut, so the
+    // simulated seconds a link is reported down depend on when zenoh reconnects.
+    procs::assert_in_band(&r, 0.8);
+    let st = r.print_standing("cut and healed");
+    assert_stands_as_one_host(&st, &topology("two-hosts.toml"), "60");
+}
+
+/// The outage suite's convergence check (outage.rs `assert_converged`) against the same
+/// scenario run on one host without the fault under test: every vehicle holds nearly as many
+/// of the reference's mature features (coverage within 0.05), about as much information on
+/// them (share within 0.05), and a map as accurate (RMSE at most 0.5 m above, a quarter of the
+/// ≈ 2 m these maps have, far below what a diverged or double-counted map shows).
+fn assert_stands_as_one_host(
+    standing: &std::collections::BTreeMap<String, procs::Standing>,
+    single: &Path,
+    duration: &str,
+) {
+    let one = one_host(single, duration, 0).map_standing();
+    for (name, s) in standing {
+        let c = one[name];
+        assert!(
+            s.coverage >= c.coverage - 0.05,
+            "{name}: coverage {:.3}, one host {:.3}",
+            s.coverage,
+            c.coverage
+        );
+        assert!(
+            s.share >= c.share - 0.05,
+            "{name}: share {:.3}, one host {:.3}",
+            s.share,
+            c.share
+        );
+        assert!(
+            s.rmse - c.rmse <= 0.5,
+            "{name}: map RMSE {:.2} m, one host {:.2} m",
+            s.rmse,
+            c.rmse
+        );
     }
 }
