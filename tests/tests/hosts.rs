@@ -1007,17 +1007,7 @@ const TREE8_DURATION: &str = "60";
 /// uav6, uav8), its three `net` links crossing hosts, their endpoints derived (the explicit
 /// loopback `listen` of uav2–uav3 removed).
 fn tree8_on_three_hosts(dir: &Path) -> PathBuf {
-    let text = std::fs::read_to_string(topology("tree-8.toml")).expect("tree-8.toml");
-    let listen = "listen = \"tcp/127.0.0.1:7461\"";
-    assert!(
-        text.contains(listen),
-        "tree-8.toml changed: update this test"
-    );
-    let mut text: String = text
-        .lines()
-        .filter(|l| !l.starts_with(listen))
-        .collect::<Vec<_>>()
-        .join("\n");
+    let mut text = tree8_without_fixed_port();
     text.push_str(
         r#"
 
@@ -1094,7 +1084,35 @@ fn tree8_on_three_machines_with_private_shm() {
     for (name, s) in r.print_standing("tree-8 on three machines") {
         assert!(s.coverage >= 0.8, "{name}: coverage {:.2}", s.coverage);
     }
-    assert_rmse_within_one_host_spread(&r, &topology("tree-8.toml"), TREE8_DURATION, 0.02);
+    assert_rmse_within_one_host_spread(&r, &tree8_one_host(), TREE8_DURATION, 0.02);
+}
+
+/// tree-8.toml without the fixed loopback port of uav2–uav3 (`listen = "tcp/127.0.0.1:7461"`).
+fn tree8_without_fixed_port() -> String {
+    let text = std::fs::read_to_string(topology("tree-8.toml")).expect("tree-8.toml");
+    let listen = "listen = \"tcp/127.0.0.1:7461\"";
+    assert!(
+        text.contains(listen),
+        "tree-8.toml changed: update this test"
+    );
+    text.lines()
+        .filter(|l| !l.starts_with(listen))
+        .collect::<Vec<_>>()
+        .join("\n")
+}
+
+/// tree-8.toml for its one-host runs, without its fixed port (another run on a shared machine
+/// may hold 7461, and uav2 then cannot listen — seen once: "vehicles [2] did not come up"); the
+/// launcher picks a free one.
+fn tree8_one_host() -> PathBuf {
+    static FILE: std::sync::OnceLock<PathBuf> = std::sync::OnceLock::new();
+    FILE.get_or_init(|| {
+        let dir = tempfile::tempdir().expect("temporary directory").keep();
+        let path = dir.join("tree-8-one-host.toml");
+        std::fs::write(&path, tree8_without_fixed_port()).expect("write the scenario");
+        path
+    })
+    .clone()
 }
 
 /// Issue #14's acceptance: the team's map RMSE across hosts within `tol` (2 %) of the same
@@ -1130,9 +1148,13 @@ fn assert_rmse_within_one_host_spread(r: &procs::Run, single: &Path, duration: &
     );
 }
 
-/// Simulated seconds of the crash-restart runs: `crash-restart.toml`'s crash at 30 s and
-/// restart at 40 s leave 20 s (twice `procs::MATURE_S`) for the team to recover.
-const CRASH_DURATION: &str = "60";
+/// Simulated seconds of the crash-restart runs: the scenario's own 90 s, as in the outage
+/// suite. The neighbours' resync after the restart starts when they detect the new process
+/// (liveliness, on the wall clock), so how many simulated seconds the recovery takes depends
+/// on the run's speed: with 60 s (20 s after the restart) uav1 and uav2 still held 0.31–0.32
+/// of the reference's information in one run on emulated machines under load ~20 (0.80 on
+/// loopback and on one host).
+const CRASH_DURATION: &str = "90";
 
 /// `topologies/crash-restart.toml` (tree-4; uav3 SIGKILLed at 30 s, restarted 10 s later) laid
 /// out as two-hosts.toml: alpha (10.0.0.1, with the monitor) runs uav1 and uav3 (their link
