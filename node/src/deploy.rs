@@ -53,8 +53,9 @@ pub enum ZenohModeConfig {
 pub struct ZenohDeploy {
     /// `peer` (default) or `client`.
     pub mode: ZenohModeConfig,
-    /// `client` mode: the router endpoints every session connects to (*required* there). With
-    /// `canopy run --monitor --router` the monitor is that router and listens on them.
+    /// `client` mode: the router endpoints the control plane's sessions connect to (*required*
+    /// there; the routers are run by the user, e.g. `zenohd`; the vehicles' `net` links do not
+    /// use them yet, and client mode is not tested: docs/arch/deploy.md).
     #[serde(skip_serializing_if = "Vec::is_empty")]
     pub connect: Vec<String>,
     /// `peer` mode: the endpoint the monitor listens on, e.g. `tcp/10.0.0.1:7450`; every host
