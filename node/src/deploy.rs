@@ -532,6 +532,35 @@ mod tests {
         assert!(e.contains("zenoh.monitor"), "{e}");
     }
 
+    fn tls(certificate: &str) -> TlsDeploy {
+        TlsDeploy {
+            root_ca: "certs/ca.pem".into(),
+            certificate: certificate.into(),
+            private_key: "certs/{user}.key".into(),
+        }
+    }
+
+    /// With `[zenoh.tls]` the derived endpoints are TLS ones and each user gets its own files.
+    #[test]
+    fn tls_derives_tls_endpoints_and_per_user_files() {
+        let mut s = tree8_on_three_hosts();
+        s.zenoh.tls = Some(tls("certs/{user}.pem"));
+        s.zenoh.monitor = Some("tls/10.0.0.1:7450".into());
+        validate(&s).unwrap();
+        resolve_endpoints(&mut s).unwrap();
+        assert_eq!(s.links[1].listen.as_deref(), Some("tls/10.0.0.1:7461"));
+        let f = s.zenoh.tls.as_ref().unwrap().for_user("host-beta");
+        assert_eq!(
+            f.certificate,
+            std::path::PathBuf::from("certs/host-beta.pem")
+        );
+        assert_eq!(
+            f.private_key,
+            std::path::PathBuf::from("certs/host-beta.key")
+        );
+        assert_eq!(f.root_ca, std::path::PathBuf::from("certs/ca.pem"));
+    }
+
     /// Each bad `[zenoh]` / `[[host]]` table is refused with the field and the reason.
     #[test]
     fn bad_host_tables_are_refused_with_field_and_reason() {
@@ -576,6 +605,24 @@ mod tests {
                 "bad key prefix",
                 Box::new(|s| s.zenoh.key_prefix = Some("/canopy/x".into())),
                 &["zenoh.key_prefix"],
+            ),
+            (
+                "plain TCP endpoint under TLS",
+                Box::new(|s| s.zenoh.tls = Some(tls("certs/{user}.pem"))),
+                &["zenoh.monitor", "tls/", "[zenoh.tls] is set"],
+            ),
+            (
+                "one certificate for every node",
+                Box::new(|s| {
+                    s.zenoh.tls = Some(tls("certs/node.pem"));
+                    s.zenoh.monitor = Some("tls/10.0.0.1:7450".into());
+                }),
+                &["zenoh.tls.certificate", "{user}"],
+            ),
+            (
+                "TLS endpoint without TLS",
+                Box::new(|s| s.zenoh.monitor = Some("tls/10.0.0.1:7450".into())),
+                &["zenoh.monitor", "tcp/", "no [zenoh.tls]"],
             ),
         ];
         for (what, spoil, expected) in cases {
