@@ -15,7 +15,8 @@
 //! −cos θ cos φ) for the z-y-x Euler angles of [`crate::rotation`], hence
 //! φ = atan2(−f_y, −f_z), θ = atan2(f_x, √(f_y² + f_z²)) ([`level_attitude`]).
 //!
-//! [`detect_rest`] finds the rest period at the start of a recording from the IMU alone.
+//! [`detect_rest`] finds the rest period at the start of a recording from the IMU alone;
+//! [`rest_noise_density`] measures the IMU's white-noise densities over it (Allan variance).
 
 use nalgebra::{Matrix2x3, SMatrix, Vector3};
 
@@ -353,6 +354,81 @@ pub fn detect_rest(samples: &[ImuSample], cfg: &RestDetection) -> Option<usize> 
     (end > 0 && rest_s >= cfg.min_rest_s).then_some(end)
 }
 
+/// White-noise densities of an IMU measured over a rest period ([`rest_noise_density`]).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct RestNoise {
+    /// Gyro white-noise density [rad/s/√Hz] (RMS over the axes).
+    pub gyro_density: f64,
+    /// Accelerometer white-noise density [m/s²/√Hz] (RMS over the axes).
+    pub accel_density: f64,
+    /// Averaging times the estimate was taken over [s] (the largest value over them is kept).
+    pub taus: (f64, f64),
+}
+
+/// The white-noise densities an estimator should assume for an IMU, measured on the recording
+/// itself over a rest period: for averaging times τ = m·Δt on an octave grid from `min_tau`
+/// (the interval the filter propagates on the IMU alone, a camera frame) up to `max_tau` and
+/// at most a twelfth of the period (≥ 12 clusters), the Allan variance σ²(τ) =
+/// ½⟨(ȳ_{k+1} − ȳ_k)²⟩ of non-overlapping cluster means ȳ_k; white noise of density N has
+/// σ²(τ) = N²/τ, so N(τ) = √(σ²(τ)·τ) (RMS over the three axes). The largest N(τ) over the grid
+/// is returned (conservative: at these τ the vibration of running motors adds to the sensor's
+/// own noise, and the datasheet figure — for a still sensor — underestimates it; a bias
+/// instability would lower N(τ) at large τ, never raise it). Below `min_tau` vibration at
+/// motor frequencies averages out within one propagation interval and is not counted.
+///
+/// `None` when the samples are not finite, `min_tau`/`max_tau` are not positive and ordered, or
+/// the period holds fewer than 12 clusters of `min_tau`.
+pub fn rest_noise_density(samples: &[ImuSample], min_tau: f64, max_tau: f64) -> Option<RestNoise> {
+    if !(min_tau > 0.0 && max_tau >= min_tau) {
+        return None;
+    }
+    let n = samples.len();
+    let ok = samples.iter().all(|s| {
+        s.dt.is_finite()
+            && s.dt > 0.0
+            && s.specific_force.iter().all(|v| v.is_finite())
+            && s.angular_rate.iter().all(|v| v.is_finite())
+    });
+    if !ok || n == 0 {
+        return None;
+    }
+    let dt = samples.iter().map(|s| s.dt).sum::<f64>() / n as f64;
+    const MIN_CLUSTERS: usize = 12;
+    let mut m = ((min_tau / dt).round() as usize).max(1);
+    let (mut gyro, mut accel): (f64, f64) = (0.0, 0.0);
+    let (mut lo, mut hi) = (f64::NAN, f64::NAN);
+    while n / m >= MIN_CLUSTERS && (m as f64) * dt <= max_tau * (1.0 + 1e-9) {
+        let tau = m as f64 * dt;
+        let means: Vec<(Vector3<f64>, Vector3<f64>)> = samples
+            .chunks_exact(m)
+            .map(|c| {
+                let f = c.iter().fold(Vector3::zeros(), |a, s| a + s.specific_force);
+                let w = c.iter().fold(Vector3::zeros(), |a, s| a + s.angular_rate);
+                (f / m as f64, w / m as f64)
+            })
+            .collect();
+        let k = (means.len() - 1) as f64;
+        let (mut avar_f, mut avar_w) = (0.0, 0.0);
+        for p in means.windows(2) {
+            avar_f += 0.5 * (p[1].0 - p[0].0).norm_squared() / k;
+            avar_w += 0.5 * (p[1].1 - p[0].1).norm_squared() / k;
+        }
+        // norm² sums the axes: /3 for the RMS over them.
+        accel = accel.max((avar_f / 3.0 * tau).sqrt());
+        gyro = gyro.max((avar_w / 3.0 * tau).sqrt());
+        if lo.is_nan() {
+            lo = tau;
+        }
+        hi = tau;
+        m *= 2;
+    }
+    (!lo.is_nan()).then_some(RestNoise {
+        gyro_density: gyro,
+        accel_density: accel,
+        taus: (lo, hi),
+    })
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -608,5 +684,69 @@ mod tests {
             x.angular_rate.z = 0.01 * k as f64;
         }
         assert_eq!(detect_rest(&moving, &RestDetection::default()), None);
+    }
+
+    /// White noise of known density is recovered (closed form: σ²(τ) = N²/τ), and a strong
+    /// vibration whose period divides the frame interval adds nothing, although it dominates the
+    /// per-sample spread.
+    #[test]
+    fn rest_noise_density_recovers_white_noise_and_ignores_vibration() {
+        let mut rng = ChaCha8Rng::seed_from_u64(11);
+        let dt: f64 = 0.005;
+        let (nw, nf) = (1.0e-3, 1.5e-2);
+        let gw = Normal::new(0.0, nw / dt.sqrt()).unwrap();
+        let gf = Normal::new(0.0, nf / dt.sqrt()).unwrap();
+        let mut plain = Vec::new();
+        let mut shaken = Vec::new();
+        for k in 1..=2000 {
+            let t = k as f64 * dt;
+            let w = Vector3::from_fn(|_, _| gw.sample(&mut rng));
+            let f = Vector3::from_fn(|_, _| gf.sample(&mut rng)) + Vector3::new(0.0, 0.0, -9.81);
+            let s = ImuSample {
+                time: t,
+                dt,
+                specific_force: f,
+                angular_rate: w + Vector3::new(0.07, 0.02, 0.03),
+            };
+            plain.push(s);
+            // 40 Hz (whole periods in every cluster of τ = 0.05·2^j s, so each cluster mean
+            // cancels it), 1 m/s² and 0.05 rad/s: far above the white noise per sample.
+            let v = (2.0 * std::f64::consts::PI * 40.0 * t).sin();
+            shaken.push(ImuSample {
+                specific_force: s.specific_force + Vector3::new(1.0, 0.5, 0.8) * v,
+                angular_rate: s.angular_rate + Vector3::new(0.05, 0.03, 0.02) * v,
+                ..s
+            });
+        }
+        for samples in [&plain, &shaken] {
+            let r = rest_noise_density(samples, 0.05, 1.0).unwrap();
+            assert!(
+                (r.taus.0 - 0.05).abs() < 1e-12 && r.taus.1 <= 1.0 + 1e-9,
+                "{r:?}"
+            );
+            // The largest of 4–5 Allan estimates with ≥ 12 clusters each (RMS over 3 axes):
+            // within −15 %/+35 % of the density (≈ 3σ of the estimator's spread, biased up by
+            // the max).
+            for (got, want) in [(r.gyro_density, nw), (r.accel_density, nf)] {
+                assert!(
+                    got > 0.85 * want && got < 1.35 * want,
+                    "{got} vs {want} ({r:?})"
+                );
+            }
+        }
+        // The per-sample spread of the shaken sensor would claim a density ≈ 2.7× too large.
+        let sd = (shaken
+            .iter()
+            .map(|s| (s.angular_rate.x - 0.07).powi(2))
+            .sum::<f64>()
+            / shaken.len() as f64)
+            .sqrt();
+        assert!(sd * dt.sqrt() > 2.0 * nw, "{sd}");
+        // Too short a period for 12 clusters; bad arguments; non-finite samples.
+        assert!(rest_noise_density(&plain[..100], 0.05, 1.0).is_none());
+        assert!(rest_noise_density(&plain, 0.0, 1.0).is_none());
+        let mut bad = plain.clone();
+        bad[7].angular_rate.y = f64::NAN;
+        assert!(rest_noise_density(&bad, 0.05, 1.0).is_none());
     }
 }

@@ -22,15 +22,7 @@ fn main() {
     let mut scn = Scenario::builtin_default();
     scn.vehicles.truncate(1);
     scn.vehicles[0].sensor.model = match kind {
-        "pixel" => SensorModelConfig::Pixel {
-            fu_px: 600.0,
-            fv_px: 600.0,
-            u0_px: 320.0,
-            v0_px: 240.0,
-            width_px: 640.0,
-            height_px: 480.0,
-            sigma_px: 1.0,
-        },
+        "pixel" => SensorModelConfig::vga_camera(1.0),
         _ => SensorModelConfig::Bearing {
             sigma_bearing_deg: 0.2,
         },

@@ -1257,6 +1257,20 @@ impl Default for SensorModelConfig {
 }
 
 impl SensorModelConfig {
+    /// The simulated camera of the tests and examples: 640 × 480 px, 600 px focal length
+    /// (±28° × ±22° field of view), principal point at the centre, σ `sigma_px`.
+    pub fn vga_camera(sigma_px: f64) -> Self {
+        SensorModelConfig::Pixel {
+            fu_px: 600.0,
+            fv_px: 600.0,
+            u0_px: 320.0,
+            v0_px: 240.0,
+            width_px: 640.0,
+            height_px: 480.0,
+            sigma_px,
+        }
+    }
+
     /// The estimator-facing model (angles converted to radians).
     pub fn model(&self) -> SensorModel {
         match *self {

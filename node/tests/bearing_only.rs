@@ -33,15 +33,7 @@ fn bearing_sensor() -> SensorModelConfig {
 
 /// A 640×480 camera with 600 px focal length (±28° × ±22°), σ 1 px (≈ 0.1°).
 fn pixel_sensor() -> SensorModelConfig {
-    SensorModelConfig::Pixel {
-        fu_px: 600.0,
-        fv_px: 600.0,
-        u0_px: 320.0,
-        v0_px: 240.0,
-        width_px: 640.0,
-        height_px: 480.0,
-        sigma_px: 1.0,
-    }
+    SensorModelConfig::vga_camera(1.0)
 }
 
 fn range_bearing_sensor() -> SensorModelConfig {

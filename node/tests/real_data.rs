@@ -1,8 +1,9 @@
 //! The real-data path on the EuRoC MAV V1_01_easy recording (first 30 s, `shared/data`, never
 //! committed): `canopy import` into a replay scenario, then `canopy check`, `canopy sim` and
-//! `canopy run` on it. What is asserted is the import's correctness against independent data
-//! (the motion-capture ground truth, the recording's own timestamps), not the estimation
-//! accuracy (the filter's business).
+//! `canopy run` on it. Asserted: the import's correctness against independent data (the
+//! motion-capture ground truth, the recording's own timestamps), the tracker's error statistics
+//! the import's pixel defaults stand for, and the estimate's accuracy and consistency against
+//! the ground truth at 20 Hz and at 10 and 5 Hz (ATE ≤ 0.10 m, pose ANEES ≤ [`POSE_ANEES_BOUND`]).
 //!
 //! Where the data is: `$CANOPY_EUROC_DIR`, else `../shared/data/euroc-v1_01-30s` relative to
 //! the repository root. Without it these tests FAIL, naming both; set
@@ -51,6 +52,14 @@ fn euroc_dir() -> Option<PathBuf> {
         dir.display()
     );
 }
+
+/// Pose ANEES (6 dof, 1 = ideal) the imported EuRoC V1_01 replay must not exceed, at 20, 10
+/// and 5 Hz. Measured 3.10, 3.38, 2.54 (docs/benchmarks.md, "Real data"): the replay is
+/// deterministic, so the margin only absorbs floating-point differences between builds and
+/// small filter changes; undoing any one of the issue-11 fixes brings the 20 Hz figure to
+/// ≥ 4.8 (tracks as independent 7.98, calibration IMU noise × 4 4.81, × 1 17.9, 5° parallax
+/// 5.65). 3 is the issue's goal; 20 Hz and 10 Hz miss it by 3 % and 13 %.
+const POSE_ANEES_BOUND: f64 = 3.6;
 
 /// Imports the recording into `out`.
 fn import(dir: &Path, out: &Path) {
@@ -234,7 +243,7 @@ fn euroc_import_is_consistent_with_the_recording_and_its_ground_truth() {
     // Camera mount: triangulate long tracks from the ground-truth poses, reproject.
     let mount = v.sensor.mount();
     let model = v.sensor.model();
-    let median = median_reprojection_px(
+    let residuals = track_residuals(
         &log,
         &gt,
         &gt_ns,
@@ -243,23 +252,55 @@ fn euroc_import_is_consistent_with_the_recording_and_its_ground_truth() {
         mount.lever_arm_body,
         &model,
     );
+    let median = median_reprojection_px(&residuals);
     let off = mount.sensor_from_body * nav_from_body(&Vector3::new(0.0, 3f64.to_radians(), 0.0));
-    let median_off =
-        median_reprojection_px(&log, &gt, &gt_ns, origin, off, mount.lever_arm_body, &model);
+    let median_off = median_reprojection_px(&track_residuals(
+        &log,
+        &gt,
+        &gt_ns,
+        origin,
+        off,
+        mount.lever_arm_body,
+        &model,
+    ));
     println!(
         "median reprojection error of triangulated tracks: {median:.3} px (mount tilted 3°: {median_off:.3} px)"
     );
     assert!(median < 2.0, "{median} px");
     assert!(median_off > 2.0 * median, "{median_off} px vs {median} px");
+
+    // The import's pixel defaults, measured here: the tracker's own error (residuals beyond
+    // 4 px — about 4σ — are outliers, the frame's common part removed) has σ ≈ 1 px per axis
+    // and is correlated along a track as a first-order Gauss–Markov sequence of correlation
+    // time τ ≈ 0.33 s (measured: σ 0.85 / 0.96 px, ρ 0.86, 0.75, 0.47, 0.18 at 1, 2, 5, 10
+    // frames, τ = −k·0.05 s / ln ρ = 0.33, 0.35, 0.33, 0.29 s).
+    let (own, common, ac) = tracker_error(&residuals, 4.0);
+    let tau: Vec<f64> = [1.0, 2.0, 5.0, 10.0]
+        .iter()
+        .zip(ac)
+        .map(|(k, r)| -k * 0.05 / r.ln())
+        .collect();
+    println!(
+        "tracker error: σ ({:.3}, {:.3}) px per axis, common to a frame ({:.3}, {:.3}) px; \
+         autocorrelation at 1, 2, 5, 10 frames {:.3?} (correlation time {:.3?} s)",
+        own.x, own.y, common.x, common.y, ac, tau
+    );
+    // σ within 0.6–1.4 px of the 1 px default; every lag's correlation time within a factor
+    // 1.5 of the 0.33 s default (a white tracker would give ≈ 0 and τ → 0; the fit of each
+    // track's mean biases ρ slightly down).
+    assert!(own.iter().all(|s| (0.6..1.4).contains(s)), "{own}");
+    assert!(tau.iter().all(|t| (0.22..0.5).contains(t)), "{tau:?}");
 }
 
 /// One sighting of a track: sensor origin (navigation frame), C_n^s, pixel.
 type Sighting = (Vector3<f64>, Matrix3<f64>, Vector2<f64>);
 
-/// Median over long tracks of the median reprojection error [px]: each track triangulated
-/// (linear least squares on the bearing constraints) from the ground-truth body poses through
-/// the given mount, then reprojected through the pinhole of eq. 21.43.
-fn median_reprojection_px(
+/// Reprojection residuals [px] of the long tracks (≥ 10 sightings over ≥ 0.3 m), each
+/// triangulated (linear least squares on the bearing constraints) from the ground-truth body
+/// poses through the given mount and reprojected through the pinhole of eq. 21.43: per track,
+/// (frame index, residual) in time order. Tracks with fewer than half their sightings in front
+/// of the camera are left out.
+fn track_residuals(
     log: &ReplayLog,
     gt: &[(String, Vector3<f64>, Matrix3<f64>)],
     gt_ns: &[u64],
@@ -267,7 +308,7 @@ fn median_reprojection_px(
     sensor_from_body: Matrix3<f64>,
     lever: Vector3<f64>,
     model: &canopy_fusion::sensor::SensorModel,
-) -> f64 {
+) -> Vec<Vec<(usize, Vector2<f64>)>> {
     let canopy_fusion::sensor::SensorModel::Pixel { camera, .. } = model else {
         panic!("pixel model expected")
     };
@@ -283,9 +324,9 @@ fn median_reprojection_px(
         let qb = UnitQuaternion::from_matrix(&gt[k].2);
         Some((p, qa.slerp(&qb, s).to_rotation_matrix().into_inner()))
     };
-    // Observations per track: (sensor origin, C_n^s, pixel).
-    let mut tracks: BTreeMap<u64, Vec<Sighting>> = BTreeMap::new();
-    for f in &log.frames {
+    // Observations per track: (frame index, sensor origin, C_n^s, pixel).
+    let mut tracks: BTreeMap<u64, Vec<(usize, Sighting)>> = BTreeMap::new();
+    for (i, f) in log.frames.iter().enumerate() {
         let Some((p, c_nb)) = pose(f.time) else {
             continue;
         };
@@ -297,19 +338,19 @@ fn median_reprojection_px(
             tracks
                 .entry(o.descriptor)
                 .or_default()
-                .push((p + c_nb * lever, sensor_from_nav, z));
+                .push((i, (p + c_nb * lever, sensor_from_nav, z)));
         }
     }
-    let mut medians = Vec::new();
+    let mut out = Vec::new();
     for obs in tracks.values().filter(|o| o.len() >= 10) {
         // Baseline ≥ 0.3 m for a well-conditioned triangulation.
-        if (obs[0].0 - obs[obs.len() - 1].0).norm() < 0.3 {
+        if (obs[0].1.0 - obs[obs.len() - 1].1.0).norm() < 0.3 {
             continue;
         }
         // Each pixel: y^s·(u−u0)/fu … as two linear constraints on the point m^n:
         // ((u−u0)/fu)·x^s − y^s = 0, ((v−v0)/fv)·x^s − z^s = 0, x^s = C (m − o).
         let mut a = nalgebra::DMatrix::zeros(2 * obs.len(), 4);
-        for (i, (o, c, z)) in obs.iter().enumerate() {
+        for (i, (_, (o, c, z))) in obs.iter().enumerate() {
             let a_n = (z.x - camera.u0) / camera.fu;
             let b_n = (z.y - camera.v0) / camera.fv;
             let r1 = c.row(1) - c.row(0) * a_n;
@@ -329,26 +370,110 @@ fn median_reprojection_px(
             continue;
         }
         let m = h.fixed_rows::<3>(0) / h[3];
-        let mut errs: Vec<f64> = obs
+        let res: Vec<(usize, Vector2<f64>)> = obs
             .iter()
-            .filter_map(|(o, c, z)| {
+            .filter_map(|(i, (o, c, z))| {
                 let x = c * (m - o);
                 (x.x > 0.1).then(|| {
                     let u = camera.fu * x.y / x.x + camera.u0;
                     let v = camera.fv * x.z / x.x + camera.v0;
-                    ((u - z.x).powi(2) + (v - z.y).powi(2)).sqrt()
+                    (*i, Vector2::new(z.x - u, z.y - v))
                 })
             })
             .collect();
-        if errs.len() < obs.len() / 2 {
-            continue;
+        if res.len() >= obs.len() / 2 {
+            out.push(res);
         }
-        errs.sort_by(f64::total_cmp);
-        medians.push(errs[errs.len() / 2]);
     }
-    assert!(medians.len() >= 20, "only {} long tracks", medians.len());
+    assert!(out.len() >= 20, "only {} long tracks", out.len());
+    out
+}
+
+/// Median over long tracks of the median reprojection error [px] ([`track_residuals`]).
+fn median_reprojection_px(residuals: &[Vec<(usize, Vector2<f64>)>]) -> f64 {
+    let mut medians: Vec<f64> = residuals
+        .iter()
+        .map(|r| {
+            let mut e: Vec<f64> = r.iter().map(|x| x.1.norm()).collect();
+            e.sort_by(f64::total_cmp);
+            e[e.len() / 2]
+        })
+        .collect();
     medians.sort_by(f64::total_cmp);
     medians[medians.len() / 2]
+}
+
+/// The tracker's own error, from the residuals of [`track_residuals`]: residuals beyond
+/// `outlier_px` dropped, each frame's mean over its tracks (an error common to the frame: the
+/// ground truth's pose, the camera calibration) removed, each track's mean removed. Returns the
+/// σ per axis of what is left [px], the common part's σ per axis [px], and the mean over tracks
+/// of the normalized autocorrelation at lags of 1, 2, 5 and 10 frames.
+fn tracker_error(
+    residuals: &[Vec<(usize, Vector2<f64>)>],
+    outlier_px: f64,
+) -> (Vector2<f64>, Vector2<f64>, [f64; 4]) {
+    let inliers: Vec<Vec<(usize, Vector2<f64>)>> = residuals
+        .iter()
+        .map(|r| {
+            r.iter()
+                .copied()
+                .filter(|x| x.1.norm() < outlier_px)
+                .collect()
+        })
+        .collect();
+    let mut per_frame: BTreeMap<usize, (Vector2<f64>, f64)> = BTreeMap::new();
+    for (i, e) in inliers.iter().flatten() {
+        let f = per_frame.entry(*i).or_insert((Vector2::zeros(), 0.0));
+        f.0 += e;
+        f.1 += 1.0;
+    }
+    // A frame with at least 5 tracks defines its common part.
+    let common: BTreeMap<usize, Vector2<f64>> = per_frame
+        .into_iter()
+        .filter(|(_, (_, n))| *n >= 5.0)
+        .map(|(i, (s, n))| (i, s / n))
+        .collect();
+    let (mut own2, mut n_own) = (Vector2::zeros(), 0.0);
+    let (mut com2, mut n_com) = (Vector2::zeros(), 0.0);
+    for c in common.values() {
+        com2 += c.component_mul(c);
+        n_com += 1.0;
+    }
+    let lags = [1usize, 2, 5, 10];
+    let mut ac = [0.0; 4];
+    let mut n_ac = [0.0; 4];
+    for track in &inliers {
+        let r: Vec<(usize, Vector2<f64>)> = track
+            .iter()
+            .filter_map(|(i, e)| common.get(i).map(|c| (*i, e - c)))
+            .collect();
+        if r.len() < 12 {
+            continue;
+        }
+        let mean = r.iter().fold(Vector2::zeros(), |a, x| a + x.1) / r.len() as f64;
+        let d: BTreeMap<usize, Vector2<f64>> = r.iter().map(|(i, e)| (*i, e - mean)).collect();
+        let var: f64 = d.values().map(|e| e.norm_squared()).sum();
+        for e in d.values() {
+            own2 += e.component_mul(e);
+            n_own += 1.0;
+        }
+        for (k, &lag) in lags.iter().enumerate() {
+            let cov: f64 = d
+                .iter()
+                .filter_map(|(i, e)| d.get(&(i + lag)).map(|f| e.dot(f)))
+                .sum();
+            if var > 0.0 {
+                ac[k] += cov / var;
+                n_ac[k] += 1.0;
+            }
+        }
+    }
+    let sd = |s: Vector2<f64>, n: f64| (s / n).map(f64::sqrt);
+    (
+        sd(own2, n_own),
+        sd(com2, n_com),
+        std::array::from_fn(|k| ac[k] / n_ac[k]),
+    )
 }
 
 /// check, sim and run on the imported scenario, each bounded in time: the outputs exist, their
@@ -405,9 +530,8 @@ fn euroc_replays_in_check_sim_and_run() {
         let v = &summary["vehicles"][0];
         // The estimate against the motion capture (the scenario names the imported ground
         // truth): ATE after SE(3) alignment within the 0.10 m that good open-source
-        // visual-inertial estimators reach on V1_01 (measured 0.027 m; the replay is
-        // deterministic, so any figure above it is a regression, not noise). The pose ANEES
-        // against this ground truth is reported (measured 16.7: see docs/benchmarks.md).
+        // visual-inertial estimators reach on V1_01 (measured 0.028 m), and not over-confident:
+        // pose ANEES ≤ POSE_ANEES_BOUND (below).
         let ate = v["ate"]["se3_m"]
             .as_f64()
             .expect("an ATE against the ground truth");
@@ -421,7 +545,7 @@ fn euroc_replays_in_check_sim_and_run() {
             v["position_rmse_m"]
         );
         assert!(ate <= 0.10 && ate4 <= 0.10, "ATE {ate} m / {ate4} m");
-        assert!(anees.is_finite());
+        assert!(anees <= POSE_ANEES_BOUND, "pose ANEES {anees}");
         // Every observation the import wrote (600 frames, 13304 observations) was processed.
         assert_eq!(v["observations"], 13304, "{}", d.display());
         let rejections = v["rejections"].as_object().expect("rejections by reason");
@@ -454,4 +578,73 @@ fn euroc_replays_in_check_sim_and_run() {
         std::fs::read_to_string(sim_dir.join("mav.est.tum")).unwrap(),
         std::fs::read_to_string(run_dir.join("mav.est.tum")).unwrap()
     );
+}
+
+/// A copy of the recording's files in `out` with only every `keep_every`-th frame of the tracks
+/// (20 Hz → 10 Hz, 5 Hz): another frame rate of the same camera.
+fn subsampled(dir: &Path, out: &Path, keep_every: usize) {
+    std::fs::create_dir_all(out).unwrap();
+    for f in ["imu.csv", "cam0.yaml", "groundtruth.tum"] {
+        std::fs::copy(dir.join(f), out.join(f)).unwrap();
+    }
+    let text = std::fs::read_to_string(dir.join("tracks.csv")).unwrap();
+    let mut frames: Vec<&str> = Vec::new();
+    let mut kept = String::new();
+    for l in text.lines() {
+        if l.starts_with('#') {
+            kept.push_str(l);
+            kept.push('\n');
+            continue;
+        }
+        let t = l.split(',').next().unwrap();
+        if frames.last() != Some(&t) {
+            frames.push(t);
+        }
+        if (frames.len() - 1).is_multiple_of(keep_every) {
+            kept.push_str(l);
+            kept.push('\n');
+        }
+    }
+    std::fs::write(out.join("tracks.csv"), kept).unwrap();
+}
+
+/// Other frame rates of the same recording, imported with the same defaults (nothing chosen per
+/// rate: the import derives the equivalent white pixel σ from the frame interval): the
+/// estimate stays within the ATE goal and not over-confident at 10 Hz and 5 Hz.
+#[test]
+fn euroc_at_10_and_5_hz_stays_accurate_and_consistent() {
+    let Some(dir) = euroc_dir() else { return };
+    for keep_every in [2, 4] {
+        let tmp = tempfile::tempdir().unwrap();
+        let rec = tmp.path().join("recording");
+        subsampled(&dir, &rec, keep_every);
+        let out = tmp.path().join("scenario");
+        import(&rec, &out);
+        let scenario = out.join("scenario.toml");
+        let sim_dir = out.join("sim");
+        let (ok, stdout, stderr) = run_bounded(
+            &[
+                "sim",
+                scenario.to_str().unwrap(),
+                "--out",
+                sim_dir.to_str().unwrap(),
+                "--quiet",
+            ],
+            Duration::from_secs(300),
+        );
+        assert!(ok, "canopy sim: {stdout}{stderr}");
+        let summary: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(sim_dir.join("summary.json")).unwrap())
+                .unwrap();
+        let v = &summary["vehicles"][0];
+        let ate = v["ate"]["se3_m"].as_f64().expect("an ATE");
+        let anees = v["pose_anees"].as_f64().expect("a pose ANEES");
+        let hz = 20 / keep_every;
+        println!(
+            "{hz} Hz: ATE SE(3) {ate:.3} m, pose ANEES {anees:.2}, observations {}",
+            v["observations"]
+        );
+        assert!(ate <= 0.10, "{hz} Hz: ATE {ate} m");
+        assert!(anees <= POSE_ANEES_BOUND, "{hz} Hz: pose ANEES {anees}");
+    }
 }

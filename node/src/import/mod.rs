@@ -29,6 +29,13 @@
 //!   C_b^n = C_W^n C_S^W C_b^S with C_W^n = R_z(ψ₀)ᵀ·diag(1, −1, −1), ψ₀ the body's initial
 //!   heading in that NED version of W, p^n = C_W^n (p^W − p^W₀).
 //!
+//! # Noise (measured on the recording, not tuned)
+//! IMU white-noise densities: the larger of the calibration's and those measured over the rest
+//! period ([`canopy_fusion::alignment::rest_noise_density`]). Pixel σ: `--sigma-px` per
+//! observation, correlated along a track over `--track-correlation-s`, written as the
+//! equivalent independent σ at the frame interval ([`equivalent_white_sigma`]). The defaults
+//! and their measurements: docs/arch/import.md.
+//!
 //! # Time
 //! The recording's clock is kept: `[run] time_origin_ns` is the first replayed IMU timestamp
 //! (t = 0, the time of the initial estimate); log times are (ns − origin)/1e9 as f64, which
@@ -125,23 +132,42 @@ pub struct ImportArgs {
     /// Gravity magnitude [m/s²] (`[world] gravity_mps2`), instead of the site's normal gravity.
     #[arg(long)]
     pub gravity: Option<f64>,
-    /// Pixel noise σ of the observations [px] (normalized tracks: σ/f in the image plane).
+    /// Pixel noise σ of one observation of a track [px] (normalized tracks: σ/f in the image
+    /// plane). Default 1 px: the EuRoC V1_01 tracks against the motion capture, per axis, after
+    /// the common error of each frame is removed (0.85 / 0.96 px, `real_data.rs`;
+    /// docs/arch/import.md).
     #[arg(long, default_value_t = 1.0)]
     pub sigma_px: f64,
+    /// Correlation time of a track's pixel error [s] (0: independent frames). A tracker follows
+    /// its own previous estimate, so the error of one track is correlated from frame to frame;
+    /// the filter takes observations as independent, so the scenario's σ is the equivalent
+    /// white σ at the recording's frame interval Δ: σ·√((1+ρ)/(1−ρ)), ρ = exp(−Δ/τ) (the
+    /// variance of a long average of a first-order Gauss–Markov sequence). Default 0.33 s:
+    /// measured on the EuRoC V1_01 tracks against the motion capture (autocorrelation 0.86,
+    /// 0.76, 0.49, 0.20 at 1, 2, 5, 10 frames).
+    #[arg(long, default_value_t = 0.33)]
+    pub track_correlation_s: f64,
     /// 1-σ turn-on accelerometer bias [m/s²] (unobservable at rest; ≈ 10 mg for a MEMS IMU).
     #[arg(long, default_value_t = 0.1)]
     pub accel_bias_sigma: f64,
     /// 1-σ turn-on gyro bias [rad/s] (EuRoC's ADIS16448 shows ≈ 0.08 rad/s on one axis).
     #[arg(long, default_value_t = 0.1)]
     pub gyro_bias_sigma: f64,
-    /// Scale on the IMU white-noise densities of the calibration. Datasheet and Allan-variance
-    /// figures are for a still sensor; on a flying vehicle vibration, scale-factor and
-    /// misalignment errors add to them, and visual-inertial estimators inflate them (by 10–40×
-    /// in the public EuRoC configurations of OKVIS and VINS-Mono).
-    #[arg(long, default_value_t = 4.0)]
+    /// Scale on the IMU white-noise densities of the calibration (default 1: the figures as
+    /// given). The densities written are the larger of these and the densities measured on the
+    /// recording's own rest period (`--calibration-noise` to skip the measurement).
+    #[arg(long, default_value_t = 1.0)]
     pub imu_noise_scale: f64,
-    /// Feature initialization: rays of a track must span this angle [deg].
-    #[arg(long, default_value_t = 5.0)]
+    /// Use only the calibration's IMU noise densities (× `--imu-noise-scale`), not the ones
+    /// measured over the rest period ([`canopy_fusion::alignment::rest_noise_density`]).
+    #[arg(long)]
+    pub calibration_noise: bool,
+    /// Feature initialization: rays of a track must span this angle [deg]. Default 10°, the
+    /// filter's own default: a triangulation's relative depth error is ≈ σ_θ/parallax (σ_θ =
+    /// σ/f, the equivalent white σ above: 0.45° on EuRoC at 20 Hz), ≈ 9 % at 5° and 4.5 % at 10°,
+    /// and the EKF linearizes at that point (on EuRoC V1_01, 5° left pose ANEES 5.7 and a 4 %
+    /// scale error, 10° 3.1 and 1.4 %: docs/benchmarks.md).
+    #[arg(long, default_value_t = 10.0)]
     pub min_parallax: f64,
     /// Nearest depth a feature may have [m].
     #[arg(long, default_value_t = 0.1)]
@@ -281,6 +307,18 @@ pub fn body_frame(down_imu: &Vector3<f64>, imu_from_camera: &Matrix3<f64>) -> Ma
         .expect("the optical axis and image up are orthogonal: one is not vertical");
     let y = z.cross(&x);
     Matrix3::from_columns(&[x, y, z])
+}
+
+/// The white σ that stands for observations of σ `sigma` every `interval` whose errors are
+/// correlated with time constant `tau` (first-order Gauss–Markov, ρ = exp(−interval/τ)): the
+/// mean of n such observations has variance σ²/n·(1+ρ)/(1−ρ) for large n, that of n independent
+/// ones of σ' is σ'²/n, so σ' = σ·√((1+ρ)/(1−ρ)). `tau` = 0: independent, σ' = σ.
+pub fn equivalent_white_sigma(sigma: f64, interval: f64, tau: f64) -> f64 {
+    if tau <= 0.0 || interval <= 0.0 {
+        return sigma;
+    }
+    let rho = (-interval / tau).exp();
+    sigma * ((1.0 + rho) / (1.0 - rho)).sqrt()
 }
 
 /// C_c^s: camera frame (x right, y down, z forward) → filter sensor frame (x forward, y right,
@@ -573,14 +611,87 @@ pub fn import(args: &ImportArgs) -> Result<ImportSummary, ImportError> {
             args.imu_noise_scale
         )));
     }
+    // The frame interval (median of the recording's; the nominal rate if there is one frame).
+    let frame_interval = {
+        let mut d: Vec<f64> = frames.windows(2).map(|w| w[1].time - w[0].time).collect();
+        d.sort_by(f64::total_cmp);
+        d.get(d.len() / 2)
+            .copied()
+            .or(cam.rate_hz.map(|r| 1.0 / r))
+            .unwrap_or(0.05)
+    };
+    // White-noise densities measured over the rest period, from the frame interval up to 1 s.
+    let measured = match (rest_n, args.calibration_noise) {
+        (Some(n), false) => alignment::rest_noise_density(&raw_samples[..n], frame_interval, 1.0),
+        _ => None,
+    };
+    let (mut accel_nd, mut gyro_nd) = (
+        imu_calib.accel_noise_density * args.imu_noise_scale,
+        imu_calib.gyro_noise_density * args.imu_noise_scale,
+    );
+    let noise_source = match measured {
+        Some(m) => {
+            notes.push(format!(
+                "IMU noise measured over the rest period (Allan variance, τ {:.3}–{:.3} s): gyro \
+                 {:.3e} rad/s/√Hz, accelerometer {:.3e} m/s²/√Hz (calibration × {}: {:.3e}, {:.3e})",
+                m.taus.0,
+                m.taus.1,
+                m.gyro_density,
+                m.accel_density,
+                args.imu_noise_scale,
+                gyro_nd,
+                accel_nd
+            ));
+            let s = format!(
+                "white-noise densities: the larger of the calibration's × {} and those measured over \
+                 the rest period (Allan variance, τ {:.3}–{:.3} s: gyro {:.4e}, accelerometer {:.4e})",
+                args.imu_noise_scale, m.taus.0, m.taus.1, m.gyro_density, m.accel_density
+            );
+            gyro_nd = gyro_nd.max(m.gyro_density);
+            accel_nd = accel_nd.max(m.accel_density);
+            s
+        }
+        None => {
+            if !args.calibration_noise {
+                notes.push(
+                    "no rest period to measure the IMU noise on: the calibration's densities are \
+                     used (a datasheet's are for a still sensor; give figures measured on a \
+                     recording of the same vehicle with --imu-calib, or --imu-noise-scale)"
+                        .into(),
+                );
+            }
+            format!(
+                "white-noise densities: the calibration's × {}",
+                args.imu_noise_scale
+            )
+        }
+    };
     let noise = ImuNoiseConfig {
-        accel_noise_density: imu_calib.accel_noise_density * args.imu_noise_scale,
-        gyro_noise_density: imu_calib.gyro_noise_density * args.imu_noise_scale,
+        accel_noise_density: accel_nd,
+        gyro_noise_density: gyro_nd,
         accel_bias_rw_density: imu_calib.accel_random_walk,
         gyro_bias_rw_density: imu_calib.gyro_random_walk,
         accel_bias_sigma: args.accel_bias_sigma,
         gyro_bias_sigma: args.gyro_bias_sigma,
     };
+    if !(args.sigma_px.is_finite() && args.sigma_px > 0.0) {
+        return Err(ImportError::Missing(format!(
+            "--sigma-px {}: must be a finite number > 0",
+            args.sigma_px
+        )));
+    }
+    if !(args.track_correlation_s.is_finite() && args.track_correlation_s >= 0.0) {
+        return Err(ImportError::Missing(format!(
+            "--track-correlation-s {}: must be a finite number ≥ 0",
+            args.track_correlation_s
+        )));
+    }
+    let sigma_px = equivalent_white_sigma(args.sigma_px, frame_interval, args.track_correlation_s);
+    notes.push(format!(
+        "pixel σ {} px per observation, correlated over {} s along a track: {:.3} px as independent \
+         observations every {:.4} s",
+        args.sigma_px, args.track_correlation_s, sigma_px, frame_interval
+    ));
     let imu_rate = (imu_samples.len() as f64 / last_t).max(1e-3);
     let frame_rate = cam.rate_hz.unwrap_or_else(|| {
         if frames.len() > 1 {
@@ -767,16 +878,25 @@ pub fn import(args: &ImportArgs) -> Result<ImportSummary, ImportError> {
         num(pinhole.principal[1]),
         num(pinhole.size[0]),
         num(pinhole.size[1]),
-        num(args.sigma_px)
+        num(sigma_px)
+    );
+    let _ = writeln!(
+        toml,
+        "# sigma_px: {} px per observation, its error correlated over {} s along a track (--sigma-px,\n\
+         # --track-correlation-s), as independent observations every {} s: σ·√((1+ρ)/(1−ρ)), ρ = exp(−Δ/τ).",
+        num(args.sigma_px),
+        num(args.track_correlation_s),
+        num(frame_interval)
     );
     let _ = writeln!(
         toml,
         "\n[vehicle.imu]\nrate_hz = {}\n# {}\nnoise = {{ accel_noise_density = {}, gyro_noise_density = {}, accel_bias_rw_density = {}, gyro_bias_rw_density = {}, accel_bias_sigma = {}, gyro_bias_sigma = {} }}",
         num(imu_rate),
         match &files.imu_calib {
-            Some(p) => format!("noise densities from {}", source(p)),
-            None =>
-                "noise densities of the ADIS16448 (EuRoC's IMU): no IMU calibration given".into(),
+            Some(p) => format!("noise figures from {}; {noise_source}", source(p)),
+            None => format!(
+                "noise figures of the ADIS16448 (EuRoC's IMU; no IMU calibration given); {noise_source}"
+            ),
         },
         num(noise.accel_noise_density),
         num(noise.gyro_noise_density),
@@ -897,5 +1017,23 @@ mod tests {
         assert!((p_s.y / p_s.x - p_c.x / p_c.z).abs() < 1e-15);
         assert!((p_s.z / p_s.x - p_c.y / p_c.z).abs() < 1e-15);
         assert!((sensor_from_camera().determinant() - 1.0).abs() < 1e-15);
+    }
+
+    #[test]
+    fn equivalent_white_sigma_matches_the_variance_of_a_long_correlated_mean() {
+        // Exact variance of the mean of n samples of a first-order Gauss–Markov sequence:
+        // σ²/n²·(n + 2 Σ_{k=1}^{n−1} (n − k) ρ^k), against n independent samples of σ'.
+        let (sigma, interval, tau): (f64, f64, f64) = (1.0, 0.05, 0.33);
+        let rho: f64 = (-interval / tau).exp();
+        let n = 20_000usize;
+        let sum: f64 = (1..n).map(|k| (n - k) as f64 * rho.powi(k as i32)).sum();
+        let exact = sigma * sigma * (n as f64 + 2.0 * sum) / (n * n) as f64;
+        let white = equivalent_white_sigma(sigma, interval, tau).powi(2) / n as f64;
+        // The finite-n correction is O(1/(n(1−ρ))) ≈ 4e-4 relative here.
+        assert!((white / exact - 1.0).abs() < 1e-3, "{white} vs {exact}");
+        // 20 Hz and 10 Hz frames of the EuRoC tracks (closed form); independent frames.
+        let at = |dt| equivalent_white_sigma(1.0, dt, 0.33);
+        assert!((at(0.05) - 3.6367).abs() < 1e-3 && (at(0.1) - 2.5788).abs() < 1e-3);
+        assert_eq!(equivalent_white_sigma(1.5, 0.05, 0.0), 1.5);
     }
 }

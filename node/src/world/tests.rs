@@ -898,15 +898,7 @@ fn low_flight_is_rejected() {
 #[test]
 fn bearing_and_pixel_measurements_match_the_estimators_model_at_the_truth() {
     use canopy_fusion::observation::ObservationModel;
-    let pixel = SensorModelConfig::Pixel {
-        fu_px: 600.0,
-        fv_px: 600.0,
-        u0_px: 320.0,
-        v0_px: 240.0,
-        width_px: 640.0,
-        height_px: 480.0,
-        sigma_px: 0.0,
-    };
+    let pixel = SensorModelConfig::vga_camera(0.0);
     let bearing = SensorModelConfig::Bearing {
         sigma_bearing_deg: 0.0,
     };
