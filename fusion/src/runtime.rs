@@ -53,13 +53,24 @@ pub fn subnormals_flushed() -> bool {
     std::hint::black_box(tiny * 0.5) == 0.0
 }
 
-/// Keeps freed heap memory mapped instead of returning it to the kernel (glibc `mallopt`).
+/// Heap blocks of this many bytes or more are `mmap`ped, and unmapped when freed
+/// ([`tune_allocator`]).
+pub const MMAP_THRESHOLD: usize = 4 << 20;
+
+/// Keeps freed heap memory mapped instead of returning it to the kernel (glibc `mallopt`),
+/// except for the largest blocks.
 ///
-/// Why: a fusion round allocates and frees several k×k matrices (k = 3 × features; 6.5 MB at
-/// 300 features). With glibc's defaults such blocks are `mmap`ped and unmapped every time, and
+/// Why: a fusion round allocates and frees several k×k matrices (k = 3 × features; 1.8 MB at
+/// 160 features). With glibc's defaults such blocks are `mmap`ped and unmapped every time, and
 /// every round then pays a page fault per 4 KiB touched plus the kernel's zeroing: perf showed
 /// ~10 % of a vehicle process in page faults and memset. Serving them from a heap that is never
-/// trimmed makes the memory reused warm. The cost is that a process keeps its peak heap.
+/// trimmed makes the memory reused warm.
+///
+/// Blocks of [`MMAP_THRESHOLD`] and more are still `mmap`ped: a heap that is never trimmed
+/// keeps its peak, and matrices that grow a little every round (the map grows) fragment it, so
+/// that a vehicle at 324 features held 250 MB of anonymous memory for ~60 MB of live matrices
+/// (issue 15). Above 4 MiB (k ≳ 720, ~240 features) a page fault per 4 KiB is small next to the
+/// O(k²)–O(k³) work on the block, and a freed block goes back to the kernel at once.
 /// No effect on other C libraries.
 pub fn tune_allocator() {
     #[cfg(all(target_os = "linux", target_env = "gnu"))]
@@ -68,7 +79,7 @@ pub fn tune_allocator() {
         // SAFETY: mallopt only sets allocator parameters; it is called before any thread of
         // this process allocates concurrently (first thing in the command dispatch).
         unsafe {
-            libc::mallopt(libc::M_MMAP_THRESHOLD, 256 << 20);
+            libc::mallopt(libc::M_MMAP_THRESHOLD, MMAP_THRESHOLD as libc::c_int);
             libc::mallopt(libc::M_TRIM_THRESHOLD, 1 << 30);
         }
     }

@@ -586,7 +586,7 @@ impl VehicleEstimator {
     /// back fail safe: the fused copy is dropped).
     pub fn lend(&mut self) -> SlamFilter {
         self.lent = Some(self.filter.vehicle_part());
-        self.filter.clone()
+        self.filter.fusion_snapshot()
     }
 
     /// Whether a copy is out ([`lend`](Self::lend)).
@@ -792,6 +792,9 @@ pub struct HubAgent {
     store: MapInformation,
     ddf: DdfNode,
     rejected: u64,
+    /// Every failure on the hub's fusion path, by reason (`fusion.<step>.<error>` as in
+    /// [`VehicleFusion::rejections`]), logged once.
+    rejections: Rejections,
 }
 
 impl HubAgent {
@@ -808,6 +811,7 @@ impl HubAgent {
             store: MapInformation::zero(origin),
             ddf: node,
             rejected: 0,
+            rejections: Rejections::default(),
         })
     }
 
@@ -826,9 +830,25 @@ impl HubAgent {
         self.rejected
     }
 
+    /// The failures on the hub's fusion path, by reason: `fusion.message.<error>` (a received
+    /// message rejected or refused), `fusion.round.<error>`, `fusion.link_up.<error>`,
+    /// `fusion.link_down.<error>`.
+    pub fn rejections(&self) -> &Rejections {
+        &self.rejections
+    }
+
+    fn reject<T>(&mut self, step: &str, r: Result<T, DdfError>) -> Result<T, DdfError> {
+        if let Err(e) = &r {
+            let key = format!("fusion.{step}.{}", variant_key(&format!("{e:?}")));
+            self.rejections.add(key, 1, e);
+        }
+        r
+    }
+
     /// A fusion round.
     pub fn on_round(&mut self, now: f64) -> Result<Vec<Outgoing>, DdfError> {
-        Ok(self.ddf.on_round(now, &mut self.store)?.messages)
+        let r = self.ddf.on_round(now, &mut self.store).map(|o| o.messages);
+        self.reject("round", r)
     }
 
     /// A DDF message.
@@ -838,19 +858,23 @@ impl HubAgent {
         from: NodeId,
         msg: DdfMessage,
     ) -> Result<Vec<Outgoing>, DdfError> {
-        self.ddf
+        let r = self
+            .ddf
             .on_message(now, from, msg, &mut self.store)
-            .inspect_err(|_| self.rejected += 1)
+            .inspect_err(|_| self.rejected += 1);
+        self.reject("message", r)
     }
 
     /// Link events.
     pub fn on_link_up(&mut self, now: f64, peer: NodeId) -> Result<Vec<Outgoing>, DdfError> {
-        self.ddf.on_link_up(now, peer)
+        let r = self.ddf.on_link_up(now, peer);
+        self.reject("link_up", r)
     }
 
     /// Link events.
     pub fn on_link_down(&mut self, peer: NodeId) -> Result<(), DdfError> {
-        self.ddf.on_link_down(peer)
+        let r = self.ddf.on_link_down(peer);
+        self.reject("link_down", r)
     }
 }
 

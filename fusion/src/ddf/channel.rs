@@ -3,6 +3,7 @@
 
 use super::message::{Body, DdfMessage, Header, Hello, MAX_LIST, MAX_SUBMAP_ACKS};
 use super::node::{DdfConfig, DdfError};
+use super::store::{self, PackedInformation};
 use super::{FuseTarget, LinkMode, MapSource};
 use crate::ci::{self, Submap, SubmapTracker};
 use crate::info::{InfoError, MapInformation};
@@ -127,10 +128,10 @@ pub(crate) struct Channel {
     peer_history: Option<bool>,
     pair: Pair,
     sync_gen: u64,
-    /// S: cumulative information sent in the current epoch pair.
-    sent: MapInformation,
+    /// S: cumulative information sent in the current epoch pair (packed: `store` module).
+    sent: PackedInformation,
     /// R: cumulative information received from the peer and applied in the current pair.
-    received: MapInformation,
+    received: PackedInformation,
     seq_sent: u64,
     applied: u64,
     buffer: BTreeMap<u64, MapInformation>,
@@ -140,8 +141,10 @@ pub(crate) struct Channel {
     last_nack: Option<f64>,
     last_hello: Option<f64>,
     last_sync: Option<f64>,
-    /// R_total: everything ever received from the peer and applied, over all epochs.
-    received_total: MapInformation,
+    /// R_total − R: R_total is everything ever received from the peer and applied, over all
+    /// epochs; it differs from R only by what earlier epoch pairs left (`None`: nothing, the
+    /// case until a peer restarts), so only that difference is stored.
+    total_offset: Option<PackedInformation>,
     tracker: SubmapTracker,
     /// Number of the last submap sent on this link.
     submap_seq: u64,
@@ -194,7 +197,13 @@ impl<'a> LazyInformation<'a> {
             }
             // In the node's key space (an estimate that could not apply a merge yet still
             // shares its information under the merged keys).
-            self.value = Some(info.rekeyed(self.keys));
+            // (Moved, not copied, when no merge touches it: it is the size of the map.)
+            let info = if self.keys.touches(&info.ids) {
+                info.rekeyed(self.keys)
+            } else {
+                info
+            };
+            self.value = Some(info);
         }
         Ok(self.value.as_ref().expect("just set"))
     }
@@ -230,8 +239,8 @@ impl Channel {
             peer_history: None,
             pair: Pair::Unpaired,
             sync_gen: 0,
-            sent: MapInformation::zero(origin),
-            received: MapInformation::zero(origin),
+            sent: PackedInformation::zero(origin),
+            received: PackedInformation::zero(origin),
             seq_sent: 0,
             applied: 0,
             buffer: BTreeMap::new(),
@@ -240,7 +249,7 @@ impl Channel {
             last_nack: None,
             last_hello: None,
             last_sync: None,
-            received_total: MapInformation::zero(origin),
+            total_offset: None,
             tracker: SubmapTracker::default(),
             submap_seq: 0,
             submap_acks: Vec::new(),
@@ -305,11 +314,29 @@ impl Channel {
         self.msg(ctx, body)
     }
 
-    /// Forgets the epoch pair: a new one starts with the peer's new epoch.
+    /// R_total = R + (R_total − R).
+    fn received_total(&self) -> PackedInformation {
+        let mut total = self.received.clone();
+        if let Some(offset) = &self.total_offset {
+            total.add_packed(offset, 1.0);
+        }
+        total
+    }
+
+    /// Replaces R by `received`, keeping R_total: the offset R_total − R becomes the old
+    /// R_total minus the new R.
+    fn set_received(&mut self, received: PackedInformation) {
+        let mut offset = self.received_total();
+        offset.add_packed(&received, -1.0);
+        self.total_offset = (!offset.is_zero()).then_some(offset);
+        self.received = received;
+    }
+
+    /// Forgets the epoch pair: a new one starts with the peer's new epoch (R_total is kept).
     fn reset_pair(&mut self, origin: Vector3<f64>) {
         self.pair = Pair::Unpaired;
-        self.sent = MapInformation::zero(origin);
-        self.received = MapInformation::zero(origin);
+        self.sent = PackedInformation::zero(origin);
+        self.set_received(PackedInformation::zero(origin));
         self.seq_sent = 0;
         self.applied = 0;
         self.buffer.clear();
@@ -343,7 +370,7 @@ impl Channel {
     pub(crate) fn rekey(&mut self, keys: &KeyMap, fact: Merge) {
         self.sent = self.sent.rekeyed(keys);
         self.received = self.received.rekeyed(keys);
-        self.received_total = self.received_total.rekeyed(keys);
+        self.total_offset = self.total_offset.as_ref().map(|o| o.rekeyed(keys));
         for d in self.buffer.values_mut() {
             *d = d.rekeyed(keys);
         }
@@ -407,9 +434,10 @@ impl Channel {
         // sent us; the restarted peer's first delta (Y_k − C_k, C_k = baseline) removes that
         // old information again where it is no longer backed (docs of `crate::ddf`).
         self.sync_gen += 1;
-        let baseline = self.received_total.clone();
-        self.sent = baseline.clone();
-        self.received = MapInformation::zero(ctx.origin);
+        let total = self.received_total();
+        let baseline = total.to_dense();
+        self.sent = total;
+        self.set_received(PackedInformation::zero(ctx.origin));
         self.stats.syncs_initiated += 1;
         self.pair = Pair::Initiating {
             generation: self.sync_gen,
@@ -474,7 +502,7 @@ impl Channel {
         // One-way: the channel filter is retired on this link (design.md §4).
         self.mode = LinkMode::Ci;
         self.reset_pair(origin);
-        self.received_total = MapInformation::zero(origin);
+        self.total_offset = None;
     }
 
     /// Fuses `info` into the caller's estimate, then records it (R, R_total, watermark).
@@ -490,9 +518,9 @@ impl Channel {
                 source: e,
             });
         }
-        self.received.add_assign(info).map_err(DdfError::Internal)?;
-        self.received_total
-            .add_assign(info)
+        // R_total moves with R (the offset R_total − R is unchanged).
+        self.received
+            .accumulate(info, 1.0)
             .map_err(DdfError::Internal)?;
         Ok(())
     }
@@ -596,10 +624,20 @@ impl Channel {
                 // Fused as it arrives: each CI fusion is consistent whatever the correlation
                 // with what was fused before it.
                 match target.fuse_submap(&submap, ctx.config.ci_criterion) {
-                    Ok(()) => self.submap_fused(seq),
-                    Err(_) => self.stats.ci_failures += 1,
+                    Ok(()) => {
+                        self.submap_fused(seq);
+                        Ok(())
+                    }
+                    Err(e) => {
+                        // Counted here, and its reason goes to the caller (counted by reason
+                        // and logged there, like a refused delta).
+                        self.stats.ci_failures += 1;
+                        Err(DdfError::FuseRejected {
+                            from: self.peer,
+                            source: e,
+                        })
+                    }
                 }
-                Ok(())
             }
             Body::SubmapAck { seqs } => {
                 self.stats.submap_acks += seqs.len() as u64;
@@ -683,8 +721,18 @@ impl Channel {
         }
         // Apply: R := baseline, S := 0 (nothing to fuse: the baseline is what the peer
         // already received from us, however long ago).
-        self.sent = MapInformation::zero(ctx.origin);
-        self.received = baseline;
+        let baseline = match PackedInformation::from_dense(&baseline) {
+            Ok(b) => b,
+            Err(e) => {
+                // Validated on receipt (shape, origin), so this is not reached; refused, not
+                // applied, if it were.
+                self.stats.rejected += 1;
+                debug_assert!(false, "validated Sync baseline refused: {e}");
+                return;
+            }
+        };
+        self.sent = PackedInformation::zero(ctx.origin);
+        self.set_received(baseline);
         self.seq_sent = 0;
         self.applied = 0;
         self.buffer.clear();
@@ -746,7 +794,7 @@ impl Channel {
             self.stats.cumulatives_sent += 1;
             let body = Body::Cumulative {
                 upto: self.seq_sent,
-                info: self.sent.clone(),
+                info: self.sent.to_dense(),
             };
             let msg = self.msg(ctx, body);
             out.push(msg);
@@ -766,7 +814,12 @@ impl Channel {
             return Ok(());
         }
         // Apply S − R: exactly the deltas ≤ upto not applied yet.
-        let missing = info.sub(&self.received).map_err(DdfError::Internal)?;
+        let received = PackedInformation::from_dense(&info).map_err(DdfError::Internal)?;
+        let mut missing = info;
+        let mut minus_r = self.received.to_dense();
+        minus_r.matrix *= -1.0;
+        minus_r.vector *= -1.0;
+        missing.add_assign(&minus_r).map_err(DdfError::Internal)?;
         if let Err(e) = target.fuse(&missing) {
             self.stats.fuse_failures += 1;
             return Err(DdfError::FuseRejected {
@@ -774,10 +827,8 @@ impl Channel {
                 source: e,
             });
         }
-        self.received_total
-            .add_assign(&missing)
-            .map_err(DdfError::Internal)?;
-        self.received = info;
+        // R_total += S − R and R := S: the offset R_total − R is unchanged.
+        self.received = received;
         self.applied = upto;
         self.peer_seq_hint = self.peer_seq_hint.max(upto);
         self.buffer.retain(|&s, _| s > upto);
@@ -882,15 +933,16 @@ impl Channel {
         out: &mut Vec<DdfMessage>,
     ) -> Result<(), DdfError> {
         let current = lazy.get()?;
-        // d = Y_i − C_ik with C_ik = S + R (design.md §4).
-        let d = current
-            .sub_both(&self.sent, &self.received)
-            .map_err(DdfError::Internal)?;
+        // d = Y_i − C_ik with C_ik = S + R (design.md §4), only its blocks above the threshold.
         let rel = ctx.config.block_threshold_rel;
-        let d = d.sparsified_with(
+        let d = store::channel_delta(
+            current,
+            &self.sent,
+            &self.received,
             rel * current.matrix_norm_max(),
             rel * current.vector_norm_max(),
-        );
+        )
+        .map_err(DdfError::Internal)?;
         if d.is_empty() {
             return Ok(());
         }
@@ -915,7 +967,7 @@ impl Channel {
             }
             _ => d,
         };
-        self.sent.add_assign(&d).map_err(DdfError::Internal)?;
+        self.sent.accumulate(&d, 1.0).map_err(DdfError::Internal)?;
         if let Some(describe) = self.describe_new(&d.ids, lazy.source(), ctx) {
             out.push(describe);
         }

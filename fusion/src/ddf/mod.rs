@@ -85,6 +85,7 @@
 mod channel;
 mod message;
 mod node;
+mod store;
 
 pub use channel::ChannelStats;
 pub use message::{Body, DdfMessage, Header, Hello, MAX_LIST, MAX_SUBMAP_ACKS, Outgoing};

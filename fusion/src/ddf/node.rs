@@ -107,7 +107,8 @@ pub enum DdfError {
     /// The caller's own estimate passed to `on_round` is invalid.
     #[error("invalid local estimate: {0}")]
     InvalidEstimate(InfoError),
-    /// The caller's estimator refused a delta; it stays pending and is retried.
+    /// The caller's estimator refused a delta (it stays pending and is retried) or a CI submap
+    /// (not acknowledged, so the peer sends its features again).
     #[error("estimator refused information from node {from}: {source}")]
     FuseRejected {
         /// Sender of the refused information.
@@ -415,13 +416,13 @@ impl DdfNode {
                 return None;
             }
             Body::Delta { info, .. } | Body::Cumulative { info, .. } => {
-                *info = info.rekeyed(&self.keys);
+                info.rekey(&self.keys);
                 for m in target.associate(info) {
                     self.adopt_merge(m.from, m.into, target);
                 }
-                *info = info.rekeyed(&self.keys);
+                info.rekey(&self.keys);
             }
-            Body::Sync { baseline, .. } => *baseline = baseline.rekeyed(&self.keys),
+            Body::Sync { baseline, .. } => baseline.rekey(&self.keys),
             Body::Submap { submap, .. } => *submap = submap.rekeyed(&self.keys),
             Body::Hello(_) | Body::Nack { .. } | Body::SubmapAck { .. } => {}
         }

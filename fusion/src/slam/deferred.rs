@@ -33,6 +33,18 @@ use crate::rotation::wrap_angle;
 use crate::state::{ATT, VEHICLE_DIM};
 
 impl SlamFilter {
+    /// A copy of this filter for a deferred fusion, which takes the maintained map information
+    /// Y_mm (`info_cache`) along instead of copying it: one k × k matrix less per round. Until
+    /// the fused copy comes back this filter only predicts, which never reads Y_mm, and then it
+    /// adopts the copy; if the copy is lost, this filter inverts P_mm afresh at its next round
+    /// (the estimate is the same either way).
+    pub fn fusion_snapshot(&mut self) -> SlamFilter {
+        let cache = std::mem::take(&mut self.info_cache);
+        let mut copy = self.clone();
+        copy.info_cache = cache;
+        copy
+    }
+
     /// The vehicles of this filter without its map or stored poses: what
     /// [`SlamFilter::predict`] reads and writes. Flushes the pending transitions first (this
     /// changes only the representation of P), so the part starts with none and this filter's

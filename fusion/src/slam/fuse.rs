@@ -532,10 +532,9 @@ impl SlamFilter {
         // In place: a fresh k×k allocation per round costs page faults comparable to the sum.
         let mut post = schur;
         post += y_aa_ref;
-        let p_aa_post = post
-            .llt(Side::Lower)
-            .map_err(|_| SlamError::NotPositiveDefinite("fused information"))?
-            .inverse();
+        // One k×k buffer fewer at once than `llt().inverse()` (the peak of a vehicle's memory).
+        let p_aa_post = crate::info::spd_inverse(post.as_ref())
+            .map_err(|_| SlamError::NotPositiveDefinite("fused information"))?;
         let dx_a = &p_aa_post * &g;
         if !all_finite(p_aa_post.as_ref())
             || !all_finite(y_aa_ref.as_ref())

@@ -188,7 +188,7 @@ impl SlamFilter {
     }
 
     /// The cached Y if it is current and passes the accuracy probe against `p_mm`.
-    pub(super) fn checked_info(&self, p_mm: &Mat<f64>) -> Option<&Mat<f64>> {
+    pub(super) fn checked_info(&self, p_mm: MatRef<'_, f64>) -> Option<&Mat<f64>> {
         if !self.info_cache_current() || self.info_cache.steps > MAX_INCREMENTAL_STEPS {
             return None;
         }

@@ -50,7 +50,6 @@ use crate::observation::{ObservationError, ObservationModel};
 use crate::rotation::wrap_angle;
 use crate::sensor::{FeatureId, ImuSample, ObservationFrame, SensorModel, SensorMount};
 use crate::state::{ATT, NavFrame, VEHICLE_DIM};
-use faer::linalg::solvers::DenseSolveCore;
 use faer::{Col, Mat};
 use nalgebra::{Matrix3, SMatrix, Vector3};
 
@@ -596,16 +595,28 @@ impl SlamFilter {
     /// origin convention of `info`, keyed by feature id in state order. The inverse is cached
     /// until the map changes, and a later fusion of a whole-map delta reuses it.
     pub fn map_information(&mut self) -> Result<MapInformation, SlamError> {
-        let mm = self.map_marginal();
-        let k = mm.mean.nrows();
-        let y = match self.checked_info(&mm.covariance) {
+        let feats: Vec<(FeatureId, usize)> = self.layout.features().collect();
+        let k = feats.len() * 3;
+        let idx: Vec<usize> = feats.iter().flat_map(|&(_, off)| off..off + 3).collect();
+        let ids: Vec<FeatureId> = feats.iter().map(|&(id, _)| id).collect();
+        let mean = Col::from_fn(k, |i| self.x[idx[i]]);
+        // P_mm as a view of P when the features are contiguous in the state (they are: vehicles,
+        // features, stored poses), else gathered: no k×k copy per round.
+        let gathered;
+        let p_mm = match idx.first() {
+            Some(&first) if idx.iter().enumerate().all(|(i, &s)| s == first + i) => {
+                self.p.as_ref().submatrix(first, first, k, k)
+            }
+            _ => {
+                gathered = fuse::gather(self.p.as_ref(), &idx, &idx);
+                gathered.as_ref()
+            }
+        };
+        let y = match self.checked_info(p_mm) {
             Some(y) if y.nrows() == k => y.clone(),
             _ => {
-                let y = mm
-                    .covariance
-                    .llt(faer::Side::Lower)
-                    .map_err(|_| SlamError::NotPositiveDefinite("map covariance"))?
-                    .inverse();
+                let y = crate::info::spd_inverse(p_mm)
+                    .map_err(|_| SlamError::NotPositiveDefinite("map covariance"))?;
                 self.info_cache = info_cache::InfoCache {
                     generation: self.map_generation,
                     y: Some(y.clone()),
@@ -615,10 +626,10 @@ impl SlamFilter {
             }
         };
         let o = self.config.origin;
-        let centred = Col::from_fn(k, |i| mm.mean[i] - o[i % 3]);
+        let centred = Col::from_fn(k, |i| mean[i] - o[i % 3]);
         let vector = &y * &centred;
         Ok(MapInformation {
-            ids: mm.ids,
+            ids,
             origin: o,
             matrix: y,
             vector,

@@ -1,0 +1,506 @@
+//! Storage of a channel's map information (S, R and R_total of [`super::channel`]).
+//!
+//! A channel records sums of deltas over the features the link has carried. Dense 3N × 3N
+//! copies of such sums (three per neighbour) were most of a vehicle process's memory, and
+//! growing them re-allocated N² on every new feature. [`PackedInformation`] keeps the same
+//! numbers exactly, in half the space and without re-allocation:
+//!
+//! * only the upper block triangle is stored (the information is symmetric: every delta is
+//!   exactly symmetric, so is every sum of them; the wire form carries the same blocks);
+//! * block column `c` (feature `ids[c]`) is its own allocation holding the 3 × 3 blocks
+//!   (0, c) … (c, c), each column-major, so a new feature appends one block column and never
+//!   moves the others.
+//!
+//! [`channel_delta`] forms the channel's outgoing delta d = Y_i − S − R directly from the dense
+//! estimate and the two packed sums, block by block, keeping only the blocks above the
+//! threshold: the same numbers, in the same order, as forming Y_i − S − R densely and then
+//! [`MapInformation::sparsified_with`] (tested against that below), without the dense
+//! temporaries.
+
+use crate::info::{InfoError, MapInformation};
+use crate::keys::KeyMap;
+use crate::sensor::FeatureId;
+use crate::state::FEATURE_DIM;
+use faer::{Col, Mat};
+use nalgebra::Vector3;
+use std::collections::HashMap;
+
+/// Entries of one 3 × 3 block.
+const BLOCK: usize = FEATURE_DIM * FEATURE_DIM;
+
+/// Symmetric map information in packed upper-block-triangle form (module docs).
+#[derive(Clone, Debug)]
+pub(crate) struct PackedInformation {
+    ids: Vec<FeatureId>,
+    index: HashMap<FeatureId, usize>,
+    origin: Vector3<f64>,
+    /// `cols[c][BLOCK * r..BLOCK * (r + 1)]`: block (r, c), r ≤ c, column-major.
+    cols: Vec<Vec<f64>>,
+    /// y, 3 entries per feature.
+    vector: Vec<f64>,
+}
+
+impl PackedInformation {
+    /// No information, no features.
+    pub(crate) fn zero(origin: Vector3<f64>) -> Self {
+        Self {
+            ids: Vec::new(),
+            index: HashMap::new(),
+            origin,
+            cols: Vec::new(),
+            vector: Vec::new(),
+        }
+    }
+
+    /// True when every number held is exactly zero (or none is held).
+    pub(crate) fn is_zero(&self) -> bool {
+        self.vector.iter().all(|v| *v == 0.0) && self.cols.iter().flatten().all(|v| *v == 0.0)
+    }
+
+    /// Bytes held by the numbers (upper block triangle and y).
+    #[cfg(test)]
+    pub(crate) fn heap_bytes(&self) -> usize {
+        std::mem::size_of::<f64>()
+            * (self.cols.iter().map(Vec::len).sum::<usize>() + self.vector.len())
+    }
+
+    /// Block position of `id`, appending an all-zero feature when it is new.
+    fn slot(&mut self, id: FeatureId) -> usize {
+        if let Some(&k) = self.index.get(&id) {
+            return k;
+        }
+        let k = self.ids.len();
+        self.ids.push(id);
+        self.index.insert(id, k);
+        self.cols.push(vec![0.0; BLOCK * (k + 1)]);
+        self.vector.extend_from_slice(&[0.0; FEATURE_DIM]);
+        k
+    }
+
+    /// Entry (a, b) (axis within block) of block (p, q) of the full symmetric matrix.
+    #[inline]
+    fn entry(&self, p: usize, q: usize, a: usize, b: usize) -> f64 {
+        if p <= q {
+            self.cols[q][BLOCK * p + FEATURE_DIM * b + a]
+        } else {
+            self.cols[p][BLOCK * q + FEATURE_DIM * a + b]
+        }
+    }
+
+    /// self += sign · info over the union of ids (order-stable: self's ids, then info's new
+    /// ones in info's order), reading the upper block triangle of `info` in self's order (the
+    /// diagonal blocks whole). Errors on an origin or shape mismatch before changing anything.
+    pub(crate) fn accumulate(&mut self, info: &MapInformation, sign: f64) -> Result<(), InfoError> {
+        check_origin(self.origin, info.origin)?;
+        let n = FEATURE_DIM * info.ids.len();
+        for (what, found) in [
+            ("information matrix rows", info.matrix.nrows()),
+            ("information matrix columns", info.matrix.ncols()),
+            ("information vector", info.vector.nrows()),
+        ] {
+            if found != n {
+                return Err(InfoError::Dimension {
+                    what,
+                    expected: n,
+                    found,
+                });
+            }
+        }
+        let pos: Vec<usize> = info.ids.iter().map(|&id| self.slot(id)).collect();
+        for (bj, &pj) in pos.iter().enumerate() {
+            for (bi, &pi) in pos.iter().enumerate() {
+                // Each stored block (min, max) once: from info's block at those positions.
+                if pi > pj {
+                    continue;
+                }
+                let dst = &mut self.cols[pj][BLOCK * pi..BLOCK * (pi + 1)];
+                for b in 0..FEATURE_DIM {
+                    let src = &info.matrix.col_as_slice(FEATURE_DIM * bj + b)
+                        [FEATURE_DIM * bi..FEATURE_DIM * (bi + 1)];
+                    for a in 0..FEATURE_DIM {
+                        dst[FEATURE_DIM * b + a] += sign * src[a];
+                    }
+                }
+            }
+            for a in 0..FEATURE_DIM {
+                self.vector[FEATURE_DIM * pj + a] += sign * info.vector[FEATURE_DIM * bj + a];
+            }
+        }
+        Ok(())
+    }
+
+    /// self += sign · other over the union of ids (order-stable like
+    /// [`accumulate`](Self::accumulate)). Both must hold the same origin (every sum of one
+    /// channel does: they are built from the node's own and validated received information).
+    pub(crate) fn add_packed(&mut self, other: &PackedInformation, sign: f64) {
+        debug_assert_eq!(
+            self.origin, other.origin,
+            "channel sums share the node's origin"
+        );
+        let pos: Vec<usize> = other.ids.iter().map(|&id| self.slot(id)).collect();
+        for (q, &pq) in pos.iter().enumerate() {
+            for (p, &pp) in pos.iter().enumerate().take(q + 1) {
+                for b in 0..FEATURE_DIM {
+                    for a in 0..FEATURE_DIM {
+                        let v = other.entry(p, q, a, b);
+                        let (r, c, ra, cb) = if pp <= pq {
+                            (pp, pq, a, b)
+                        } else {
+                            (pq, pp, b, a)
+                        };
+                        self.cols[c][BLOCK * r + FEATURE_DIM * cb + ra] += sign * v;
+                    }
+                }
+            }
+            for a in 0..FEATURE_DIM {
+                self.vector[FEATURE_DIM * pq + a] += sign * other.vector[FEATURE_DIM * q + a];
+            }
+        }
+    }
+
+    /// The packed form of (symmetric) `info`: its upper block triangle and y.
+    pub(crate) fn from_dense(info: &MapInformation) -> Result<Self, InfoError> {
+        let mut out = Self::zero(info.origin);
+        out.accumulate(info, 1.0)?;
+        Ok(out)
+    }
+
+    /// The dense form (both triangles), for the recovery messages that carry a whole sum.
+    pub(crate) fn to_dense(&self) -> MapInformation {
+        let nf = self.ids.len();
+        let n = FEATURE_DIM * nf;
+        let mut matrix = Mat::zeros(n, n);
+        for q in 0..nf {
+            for p in 0..=q {
+                for b in 0..FEATURE_DIM {
+                    for a in 0..FEATURE_DIM {
+                        let v = self.cols[q][BLOCK * p + FEATURE_DIM * b + a];
+                        matrix[(FEATURE_DIM * p + a, FEATURE_DIM * q + b)] = v;
+                        if p != q {
+                            // Diagonal blocks are stored whole.
+                            matrix[(FEATURE_DIM * q + b, FEATURE_DIM * p + a)] = v;
+                        }
+                    }
+                }
+            }
+        }
+        MapInformation {
+            ids: self.ids.clone(),
+            origin: self.origin,
+            matrix,
+            vector: Col::from_fn(n, |r| self.vector[r]),
+        }
+    }
+
+    /// The same information in the key space of `keys` ([`MapInformation::rekeyed`]); rare
+    /// (a merge), so through the dense form.
+    pub(crate) fn rekeyed(&self, keys: &KeyMap) -> Self {
+        if !keys.touches(&self.ids) {
+            return self.clone();
+        }
+        Self::from_dense(&self.to_dense().rekeyed(keys))
+            .expect("a re-keyed dense form has consistent shapes and the same origin")
+    }
+}
+
+fn check_origin(left: Vector3<f64>, right: Vector3<f64>) -> Result<(), InfoError> {
+    if left != right {
+        return Err(InfoError::OriginMismatch {
+            left: left.into(),
+            right: right.into(),
+        });
+    }
+    Ok(())
+}
+
+/// Position of one feature of the union in Y (dense) and in the two packed sums.
+#[derive(Clone, Copy)]
+struct Where {
+    y: Option<usize>,
+    s: Option<usize>,
+    r: Option<usize>,
+}
+
+/// The channel's outgoing delta d = Y − S − R over the union of ids (Y's, then S's new ones,
+/// then R's), with every upper 3 × 3 block whose max-abs is at most `matrix_threshold`, and
+/// every 3-block of y at most `vector_threshold`, left out, and the features that then carry
+/// nothing dropped: exactly `y.sub(S).sub(R).sparsified_with(..)` of the dense forms (same
+/// entries, same rounding: each is (Y − S) − R), without forming the dense difference.
+pub(crate) fn channel_delta(
+    y: &MapInformation,
+    s: &PackedInformation,
+    r: &PackedInformation,
+    matrix_threshold: f64,
+    vector_threshold: f64,
+) -> Result<MapInformation, InfoError> {
+    check_origin(y.origin, s.origin)?;
+    check_origin(y.origin, r.origin)?;
+    let ny = y.ids.len();
+    if y.matrix.nrows() != FEATURE_DIM * ny
+        || y.matrix.ncols() != FEATURE_DIM * ny
+        || y.vector.nrows() != FEATURE_DIM * ny
+    {
+        return Err(InfoError::Dimension {
+            what: "information matrix",
+            expected: FEATURE_DIM * ny,
+            found: y.matrix.nrows(),
+        });
+    }
+    // The union, order-stable.
+    let mut ids: Vec<FeatureId> = y.ids.clone();
+    let mut at: HashMap<FeatureId, usize> = ids.iter().enumerate().map(|(k, &f)| (f, k)).collect();
+    let mut places: Vec<Where> = (0..ny)
+        .map(|k| Where {
+            y: Some(k),
+            s: None,
+            r: None,
+        })
+        .collect();
+    for (sum, is_s) in [(s, true), (r, false)] {
+        for (k, &f) in sum.ids.iter().enumerate() {
+            let u = *at.entry(f).or_insert_with(|| {
+                ids.push(f);
+                places.push(Where {
+                    y: None,
+                    s: None,
+                    r: None,
+                });
+                ids.len() - 1
+            });
+            if is_s {
+                places[u].s = Some(k);
+            } else {
+                places[u].r = Some(k);
+            }
+        }
+    }
+    let nf = ids.len();
+    // Block (p, q) of d in union order, p ≤ q (diagonal blocks whole), into `out`.
+    let block = |p: usize, q: usize, out: &mut [f64; BLOCK]| {
+        let (wp, wq) = (places[p], places[q]);
+        match (wp.y, wq.y) {
+            (Some(yp), Some(yq)) => {
+                for b in 0..FEATURE_DIM {
+                    let col = y.matrix.col_as_slice(FEATURE_DIM * yq + b);
+                    out[FEATURE_DIM * b..FEATURE_DIM * (b + 1)]
+                        .copy_from_slice(&col[FEATURE_DIM * yp..FEATURE_DIM * (yp + 1)]);
+                }
+            }
+            _ => *out = [0.0; BLOCK],
+        }
+        for (sum, (sp, sq)) in [(s, (wp.s, wq.s)), (r, (wp.r, wq.r))] {
+            if let (Some(sp), Some(sq)) = (sp, sq) {
+                if sp <= sq {
+                    let src = &sum.cols[sq][BLOCK * sp..BLOCK * (sp + 1)];
+                    for (o, v) in out.iter_mut().zip(src) {
+                        *o -= v;
+                    }
+                } else {
+                    let src = &sum.cols[sp][BLOCK * sq..BLOCK * (sq + 1)];
+                    for b in 0..FEATURE_DIM {
+                        for a in 0..FEATURE_DIM {
+                            out[FEATURE_DIM * b + a] -= src[FEATURE_DIM * a + b];
+                        }
+                    }
+                }
+            }
+        }
+    };
+    let vblock = |u: usize| -> [f64; FEATURE_DIM] {
+        let w = places[u];
+        let mut v = [0.0; FEATURE_DIM];
+        if let Some(k) = w.y {
+            for (a, x) in v.iter_mut().enumerate() {
+                *x = y.vector[FEATURE_DIM * k + a];
+            }
+        }
+        for (sum, k) in [(s, w.s), (r, w.r)] {
+            if let Some(k) = k {
+                for (a, x) in v.iter_mut().enumerate() {
+                    *x -= sum.vector[FEATURE_DIM * k + a];
+                }
+            }
+        }
+        v
+    };
+    // Pass 1: which blocks and features are kept.
+    let tri = |p: usize, q: usize| q * (q + 1) / 2 + p;
+    let mut kept_block = vec![false; nf * (nf + 1) / 2];
+    let mut keep = vec![false; nf];
+    let mut buf = [0.0; BLOCK];
+    for q in 0..nf {
+        for p in 0..=q {
+            block(p, q, &mut buf);
+            let m = buf.iter().fold(0.0_f64, |m, v| m.max(v.abs()));
+            if m > matrix_threshold {
+                kept_block[tri(p, q)] = true;
+                keep[p] = true;
+                keep[q] = true;
+            }
+        }
+    }
+    let mut vector_kept = vec![false; nf];
+    for (u, k) in vector_kept.iter_mut().enumerate() {
+        if vblock(u).iter().any(|v| v.abs() > vector_threshold) {
+            *k = true;
+            keep[u] = true;
+        }
+    }
+    // Pass 2: the kept blocks into the dense output over the kept features.
+    let kept: Vec<usize> = (0..nf).filter(|&u| keep[u]).collect();
+    let n = FEATURE_DIM * kept.len();
+    let mut matrix = Mat::zeros(n, n);
+    let mut vector = Col::zeros(n);
+    for (tq, &q) in kept.iter().enumerate() {
+        for (tp, &p) in kept.iter().enumerate().take(tq + 1) {
+            if !kept_block[tri(p, q)] {
+                continue;
+            }
+            block(p, q, &mut buf);
+            for b in 0..FEATURE_DIM {
+                for a in 0..FEATURE_DIM {
+                    let v = buf[FEATURE_DIM * b + a];
+                    matrix[(FEATURE_DIM * tp + a, FEATURE_DIM * tq + b)] = v;
+                    if tp != tq {
+                        matrix[(FEATURE_DIM * tq + b, FEATURE_DIM * tp + a)] = v;
+                    }
+                }
+            }
+        }
+        if vector_kept[q] {
+            let v = vblock(q);
+            for (a, x) in v.iter().enumerate() {
+                vector[FEATURE_DIM * tq + a] = *x;
+            }
+        }
+    }
+    Ok(MapInformation {
+        ids: kept.iter().map(|&u| ids[u]).collect(),
+        origin: y.origin,
+        matrix,
+        vector,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::{Rng, SeedableRng};
+    use rand_chacha::ChaCha8Rng;
+
+    /// A random exactly symmetric information over `ids`, with some blocks exactly zero.
+    fn random_info(rng: &mut ChaCha8Rng, ids: &[FeatureId]) -> MapInformation {
+        let n = FEATURE_DIM * ids.len();
+        let mut m = Mat::<f64>::from_fn(n, n, |_, _| rng.random_range(-1.0..1.0));
+        for q in 0..ids.len() {
+            for p in 0..ids.len() {
+                if (p + 2 * q) % 5 == 0 && p != q {
+                    for a in 0..FEATURE_DIM {
+                        for b in 0..FEATURE_DIM {
+                            m[(FEATURE_DIM * p + a, FEATURE_DIM * q + b)] = 0.0;
+                        }
+                    }
+                }
+            }
+        }
+        let sym = Mat::from_fn(n, n, |i, j| {
+            if i / FEATURE_DIM <= j / FEATURE_DIM {
+                m[(i, j)]
+            } else {
+                m[(j, i)]
+            }
+        });
+        MapInformation {
+            ids: ids.to_vec(),
+            origin: Vector3::new(1.0, -2.0, 3.0),
+            matrix: sym,
+            vector: Col::from_fn(n, |_| rng.random_range(-1.0..1.0)),
+        }
+    }
+
+    /// Packed sums equal the dense sums entry for entry (the same additions in the same order),
+    /// the dense round trip is lossless, and the packed form holds about half the numbers.
+    #[test]
+    fn packed_sums_equal_dense_sums_bit_for_bit() {
+        let mut rng = ChaCha8Rng::seed_from_u64(151);
+        let o = Vector3::new(1.0, -2.0, 3.0);
+        let mut dense = MapInformation::zero(o);
+        let mut packed = PackedInformation::zero(o);
+        for step in 0..12 {
+            let ids: Vec<FeatureId> = (0..(2 + step % 5))
+                .map(|k| ((step * 7 + k * 3) % 17) as FeatureId)
+                .collect();
+            let mut ids = ids;
+            ids.dedup();
+            let mut seen = std::collections::HashSet::new();
+            ids.retain(|k| seen.insert(*k));
+            let d = random_info(&mut rng, &ids);
+            let sign = if step % 3 == 2 { -1.0 } else { 1.0 };
+            if sign > 0.0 {
+                dense.add_assign(&d).unwrap();
+            } else {
+                dense.sub_assign(&d).unwrap();
+            }
+            packed.accumulate(&d, sign).unwrap();
+            let back = packed.to_dense();
+            assert_eq!(back.ids, dense.ids);
+            assert_eq!(back.matrix, dense.matrix, "step {step}");
+            assert_eq!(back.vector, dense.vector);
+        }
+        let round = PackedInformation::from_dense(&dense).unwrap().to_dense();
+        assert_eq!(round.matrix, dense.matrix);
+        let nf = dense.ids.len();
+        let full = 8 * (FEATURE_DIM * nf) * (FEATURE_DIM * nf + 1);
+        assert!(
+            packed.heap_bytes() * 10 < full * 6,
+            "{}",
+            packed.heap_bytes()
+        );
+        // add_packed is accumulate of the dense form.
+        let mut twice = packed.clone();
+        twice.add_packed(&packed, 1.0);
+        let mut dense2 = dense.clone();
+        dense2.add_assign(&dense).unwrap();
+        assert_eq!(twice.to_dense().matrix, dense2.matrix);
+        // Origin and shape mismatches are errors and change nothing.
+        let mut other = random_info(&mut rng, &[1, 2]);
+        other.origin = Vector3::zeros();
+        assert!(packed.accumulate(&other, 1.0).is_err());
+        let mut short = random_info(&mut rng, &[1, 2]);
+        short.vector = Col::zeros(5);
+        assert!(packed.accumulate(&short, 1.0).is_err());
+        assert_eq!(packed.to_dense().matrix, dense.matrix);
+    }
+
+    /// The delta formed from the packed sums is the dense Y − S − R, sparsified, bit for bit,
+    /// with the union in the same order; with thresholds that drop blocks too.
+    #[test]
+    fn channel_delta_matches_the_dense_difference() {
+        let mut rng = ChaCha8Rng::seed_from_u64(152);
+        for case in 0..20 {
+            let y_ids: Vec<FeatureId> = (0..(3 + case % 6)).map(|k| k as FeatureId).collect();
+            // S over a subset of Y plus a feature Y no longer holds; R in another order.
+            let s_ids: Vec<FeatureId> = vec![2, 0, 40, 1];
+            let r_ids: Vec<FeatureId> = vec![41, 1, 3, 2];
+            let y = random_info(&mut rng, &y_ids);
+            let s = random_info(&mut rng, &s_ids);
+            let mut r = random_info(&mut rng, &r_ids);
+            // Make a few blocks of the difference vanish or become tiny.
+            if case % 2 == 0 {
+                r.matrix.as_mut().fill(0.0);
+            }
+            let (ps, pr) = (
+                PackedInformation::from_dense(&s).unwrap(),
+                PackedInformation::from_dense(&r).unwrap(),
+            );
+            let threshold = if case % 3 == 0 { 0.0 } else { 0.5 };
+            let got = channel_delta(&y, &ps, &pr, threshold, 0.9 * threshold).unwrap();
+            let mut dense = y.sub(&s).unwrap();
+            dense.sub_assign(&r).unwrap();
+            let want = dense.sparsified_with(threshold, 0.9 * threshold);
+            assert_eq!(got.ids, want.ids, "case {case}");
+            assert_eq!(got.matrix, want.matrix, "case {case}");
+            assert_eq!(got.vector, want.vector, "case {case}");
+        }
+    }
+}
