@@ -87,6 +87,8 @@ pub fn run(c: &RoleCommon) -> Result<()> {
             for (peer, events, msgs) in links.poll() {
                 for ev in events {
                     let out = match ev {
+                        // Failures are counted by reason and logged once by the hub agent
+                        // (`HubAgent::rejections`, in the hub's reports and checks.json).
                         LinkEvent::PeerUp => {
                             agent.on_link_up(now, NodeId(peer)).unwrap_or_default()
                         }
@@ -98,7 +100,7 @@ pub fn run(c: &RoleCommon) -> Result<()> {
                     links.send(now, out);
                 }
                 for msg in msgs {
-                    // Rejected messages are counted by the hub agent.
+                    // Rejected messages are counted by reason by the hub agent.
                     let out = agent.on_message(now, NodeId(peer), msg).unwrap_or_default();
                     links.send(now, out);
                 }
@@ -110,6 +112,7 @@ pub fn run(c: &RoleCommon) -> Result<()> {
                 links.clock.set(t);
                 service(&mut agent, &mut links, t);
                 naive_bytes += naive_round_bytes(agent.store().ids.len());
+                // A failed round sends nothing; counted by reason by the hub agent.
                 let out = agent.on_round(t).unwrap_or_default();
                 links.send(t, out);
                 next_round += round_dt;
@@ -137,6 +140,7 @@ pub fn run(c: &RoleCommon) -> Result<()> {
                 links: reports,
                 rejected: agent.rejected(),
                 access_refused: super::access_refusals(),
+                rejections: agent.rejections().counts.clone(),
             };
             let _ = send_body(&mut monitor, r.kind(), 0, t, &r);
             while next_report <= t + 1e-9 {

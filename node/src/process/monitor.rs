@@ -195,6 +195,10 @@ pub struct RunChecks {
     /// sessions (a session using a host's control link that is not that host's).
     #[serde(default)]
     pub control_access_refused: BTreeMap<String, u64>,
+    /// Hub: every failure on its fusion path, by reason (rejected messages, refused
+    /// information, failed rounds, link events).
+    #[serde(default)]
+    pub hub_rejections: BTreeMap<String, u64>,
     /// The run was interrupted (Ctrl-C).
     pub interrupted: bool,
     /// Why the run failed, if it did.
@@ -420,6 +424,7 @@ struct Monitor {
     hub_rejected: u64,
     /// What the hub's zenoh access control refused (its last report).
     hub_access_refused: BTreeMap<String, u64>,
+    hub_rejections: BTreeMap<String, u64>,
     hub_alive: bool,
     /// Vehicles the world holds its streams for (a scheduled restart).
     restart_requests: BTreeMap<u32, f64>,
@@ -591,10 +596,12 @@ impl Monitor {
                 links,
                 rejected,
                 access_refused,
+                rejections,
             } = r
             {
                 self.hub_rejected = rejected;
                 self.hub_access_refused = access_refused;
+                self.hub_rejections = rejections;
                 for l in links {
                     self.link_streams
                         .entry((from, l.peer))
@@ -759,10 +766,22 @@ impl Monitor {
             self.send_control(*id);
         }
         self.send_control(WORLD_ID);
-        let deadline = Instant::now() + Duration::from_secs(10);
-        while self.running() > 0 && Instant::now() < deadline {
-            self.poll_links();
+        // Processes are given STOP_GRACE to stop, and STOP_GRACE more every time one of them
+        // stops or a final report arrives: a machine that is only slow (66 processes ending at
+        // once under a load of 40 took longer than a fixed 10 s, and the world was killed)
+        // keeps making that progress, while a hung process makes none and is signalled.
+        // The first window also grows with the number of processes: the world closes one
+        // iceoryx2 node per vehicle link on its way out and sends nothing meanwhile.
+        let mut left = self.running();
+        let mut deadline = Instant::now() + STOP_GRACE + STOP_GRACE_PER_PROCESS * left as u32;
+        while left > 0 && Instant::now() < deadline {
+            let reported = self.poll_links();
             self.reap();
+            let now_running = self.running();
+            if now_running < left || reported {
+                deadline = deadline.max(Instant::now() + STOP_GRACE);
+                left = now_running;
+            }
             std::thread::sleep(Duration::from_millis(5));
         }
         for sig in [
@@ -1179,6 +1198,12 @@ impl Monitor {
     }
 }
 
+/// How long the processes of a run get to stop after the Shutdown control message, counted
+/// afresh whenever one of them stops ([`Monitor::shutdown`]); then SIGTERM, then SIGKILL.
+const STOP_GRACE: Duration = Duration::from_secs(10);
+/// Added to the first [`STOP_GRACE`] window per running process (66 processes: 43 s).
+const STOP_GRACE_PER_PROCESS: Duration = Duration::from_millis(500);
+
 /// How long the monitor waits for the host launchers to end their shares: their own shutdown
 /// (10 s for the processes' final reports, then 3 s per signal) and some slack.
 const REMOTE_SHUTDOWN: Duration = Duration::from_secs(30);
@@ -1351,6 +1376,7 @@ pub fn launch(mut s: Scenario, opts: &LaunchOptions) -> Result<LaunchOutcome> {
         remote_procs: Vec::new(),
         hub_rejected: 0,
         hub_access_refused: BTreeMap::new(),
+        hub_rejections: BTreeMap::new(),
         hub_alive: s.fusion.mode == FusionMode::Central,
         restart_requests: Default::default(),
         failure: None,
@@ -1924,6 +1950,7 @@ fn assemble(
         hub_rejected: m.hub_rejected,
         hub_access_refused: m.hub_access_refused.clone(),
         control_access_refused: super::access_refusals(),
+        hub_rejections: m.hub_rejections.clone(),
         interrupted,
         failure: m.failure.clone(),
         prefix: m.prefix.clone(),

@@ -431,6 +431,9 @@ pub enum Report {
         rejected: u64,
         /// What its zenoh access control refused (as [`VehicleCounters::access_refused`]).
         access_refused: std::collections::BTreeMap<String, u64>,
+        /// Every failure on the hub's fusion path, by reason (`HubAgent::rejections`).
+        #[serde(default)]
+        rejections: std::collections::BTreeMap<String, u64>,
     },
     /// Truth (world only), at record times.
     Truth {
