@@ -7,7 +7,8 @@
 #   3. `canopy run` on generated tree teams (`canopy team N`) of 4, 8, 16, 24 vehicle
 #      processes: real-time factor, link bytes / naive dense (Y, y), and the fusion stall
 #      each vehicle measured (docs/benchmarks.md explains every column);
-#   4. the tree-8 bandwidth ratio with f64 and f32 deltas, each plain and zstd-compressed;
+#   4. bandwidth on topologies/tree-8.toml (shortened to BENCH_DURATION), f64 and f32 deltas,
+#      each plain and zstd-compressed: link bytes per second and the ratio to naive dense;
 #   5. the fusion stall at the issue's size (~100 features per vehicle, 4-team, 350-feature
 #      world) paced at wall-clock speed (real_time_factor = 1: 60 s of wall time),
 # and prints ONE markdown table (the raw outputs stay in $OUT, default target/bench).
@@ -29,6 +30,17 @@ BASELINE_FLAG=--no-baseline
 if [[ $QUICK == 1 ]]; then DURATION=${BENCH_DURATION:-30}; fi
 mkdir -p "$OUT"
 START=$(date +%s)
+# The machine, named above the table (with the load before the run: other jobs on the machine
+# slow every absolute figure; the ratios of a row are measured side by side).
+{
+  echo "cpu: $(grep -m1 'model name' /proc/cpuinfo | cut -d: -f2 | sed 's/^ *//')"
+  echo "nproc: $(nproc)"
+  echo "memory: $(awk '/MemTotal/ {printf "%.0f GiB", $2 / 1048576}' /proc/meminfo)"
+  echo "os: $( (. /etc/os-release && echo "$PRETTY_NAME") 2>/dev/null || echo unknown), $(uname -sr)"
+  echo "toolchain: $(rustc --version)"
+  echo "load average before the run: $(cut -d' ' -f1-3 /proc/loadavg)"
+  echo "date: $(date -u +%Y-%m-%d), commit $(git rev-parse --short HEAD 2>/dev/null || echo unknown)"
+} >"$OUT/machine.txt"
 
 echo "building (release)…" >&2
 cargo build --release -p canopy-node >&2
@@ -59,13 +71,15 @@ for n in $TEAMS; do
   "$CANOPY" run "$OUT/team$n.toml" --out "$OUT/run$n" --quiet $BASELINE_FLAG >"$OUT/run$n.txt" 2>&1
 done
 
-echo "4/5 tree-8 bandwidth, f64 and f32 deltas, plain and zstd …" >&2
+echo "4/5 topologies/tree-8.toml bandwidth ($DURATION s), f64 and f32 deltas, plain and zstd …" >&2
 for prec in f64 f32; do
   for comp in none zstd; do
     name="bw-$prec-$comp"
-    "$CANOPY" team 8 --duration "$DURATION" --features "$(features_for 8)" |
-      sed -e "s/^delta_precision = .*/delta_precision = \"$prec\"/" \
-        -e "s/^delta_compression = .*/delta_compression = \"$comp\"/" >"$OUT/$name.toml"
+    # The scenario file itself, shortened, with the delta encoding set in its [fusion] table.
+    sed -e "s/^duration_s = .*/duration_s = $DURATION/" \
+      -e "s/^\[fusion\]/[fusion]\ndelta_precision = \"$prec\"\ndelta_compression = \"$comp\"/" \
+      topologies/tree-8.toml >"$OUT/$name.toml"
+    grep -q "^duration_s = $DURATION" "$OUT/$name.toml"
     grep -q "^delta_precision = \"$prec\"" "$OUT/$name.toml"
     grep -q "^delta_compression = \"$comp\"" "$OUT/$name.toml"
     rm -rf "$OUT/$name"
@@ -111,19 +125,30 @@ def row(what, size, value, ratio="", note=""):
 slam = tables((out / "slam.md").read_text())
 for head, hdr, body in slam:
     if head.startswith("IMU prediction"):
+        # Baseline: the textbook O(n) EKF-SLAM prediction (vehicle block and cross-covariances
+        # updated every sample, `eager`); the dense ∇F P ∇Fᵀ only as a labelled secondary figure.
         for r in body:
+            ratio = float(r[3]) / float(r[2])
             row("IMU prediction per sample (lazy)", f"N={r[0]}", f"{r[2]} µs",
-                f"naive dense / canopy = {r[5]}", "naive: dense ∇F P ∇Fᵀ + ∇G Q ∇Gᵀ")
+                f"textbook O(n) / canopy = {ratio:.1f}",
+                f"textbook (cross-covariances every sample) {r[3]} µs; secondary: naive dense "
+                f"∇F P ∇Fᵀ {r[4]} ms = {r[5]}× canopy")
     elif head.startswith("EKF update per observation"):
         for r in body:
             row("EKF update per observation", f"N={r[0]}", f"{r[3]} ms", "",
                 "10 observations per frame, stacked Joseph")
     elif head.startswith("One fusion round"):
+        # A round's whole cost: the round plus keeping Y current through the 2 frames between
+        # rounds (frame with Y maintained − frame without), amortised per round.
         for r in body:
-            row("fusion round, 10-feature delta", f"N={r[0]}", f"{r[2]} ms",
-                f"/ raw faer Cholesky inverse = {r[3]}", f"inverse {r[1]} ms")
-            row("fusion round, whole-map delta", f"N={r[0]}", f"{r[4]} ms",
-                f"/ raw faer Cholesky inverse = {r[5]}", f"inverse {r[1]} ms")
+            inv = float(r[1])
+            upkeep = 2.0 * max(0.0, float(r[8]) - float(r[9]))
+            for label, t in (("10-feature delta", float(r[2])), ("whole-map delta", float(r[4]))):
+                total = t + upkeep
+                row(f"fusion round incl. keeping Y current, {label}", f"N={r[0]} (3N = {3 * int(r[0])})",
+                    f"{total:.2f} ms", f"/ raw faer Cholesky inverse = {total / inv:.2f}",
+                    f"round {t:.2f} ms + Y upkeep {upkeep:.2f} ms (2 frames); inverse {inv:.2f} ms; "
+                    f"secondary: round with Y re-inverted {r[6]} ms")
 
 for head, hdr, body in tables((out / "links.md").read_text()):
     if head.startswith("Production path"):
@@ -178,10 +203,12 @@ for n in teams.split():
         row(f"end-to-end {n} vehicle processes", "-", "FAILED", "", f"see {out}/run{n}.txt")
         continue
     feats = [v["map_features"] for v in s["vehicles"] if v.get("map_features") is not None]
+    rss = [v["peak_rss_mb"] for v in s["vehicles"] if v.get("peak_rss_mb") is not None]
     ratio = team_ratio(s)
     row(f"end-to-end RTF, {n} vehicle processes", f"~{round(statistics.mean(feats))} features",
         f"{s['real_time_factor']:.2f}", f"sim {s['duration_s']:.0f} s / wall {s['wall_time_s']:.1f} s",
         ("reference off" if baseline_flag else "reference on")
+        + (f"; peak RSS per vehicle {min(rss):.0f}–{max(rss):.0f} MB" if rss else "")
         + (f"; link bytes / naive dense = {ratio:.3f}" if ratio is not None else ""))
     stall_row(f"fusion stall, {n} vehicles", run)
 
@@ -189,15 +216,21 @@ stall_row("fusion stall, 4 vehicles, real-time pacing", out / "stall100")
 
 for prec in ("f64", "f32"):
     for comp in ("none", "zstd"):
-        label = f"bandwidth tree-8, {prec} deltas" + (", zstd" if comp == "zstd" else "")
+        label = f"bandwidth topologies/tree-8.toml, {prec} deltas" + (", zstd" if comp == "zstd" else "")
         try:
             s = json.loads((out / f"bw-{prec}-{comp}" / "summary.json").read_text())
-            row(label, f"{s['duration_s']:.0f} s",
-                f"{team_ratio(s):.3f}", "link bytes / naive dense (Y, y) f64",
-                f"team map ANEES {s['team']['map_anees']:.2f}, pose ANEES {s['team']['pose_anees']:.2f}")
+            sent = sum(l["bytes_ab"] + l["bytes_ba"] for l in s.get("links", []))
+            nlinks = max(1, len(s.get("links", [])))
+            rss = [v["peak_rss_mb"] for v in s["vehicles"] if v.get("peak_rss_mb") is not None]
+            row(label, f"{s['duration_s']:.0f} s simulated",
+                f"{sent / s['duration_s'] / 1e3:.1f} kB/s", f"link bytes / naive dense (Y, y) f64 = {team_ratio(s):.3f}",
+                f"all {nlinks} links, both directions, per simulated second ({sent / s['duration_s'] / nlinks / 1e3:.1f} kB/s per link); "
+                f"team map ANEES {s['team']['map_anees']:.2f}, pose ANEES {s['team']['pose_anees']:.2f}"
+                + (f"; peak RSS per vehicle {min(rss):.0f}–{max(rss):.0f} MB" if rss else ""))
         except FileNotFoundError:
             row(label, "-", "FAILED", "", "")
 
+print("Machine: " + "; ".join((out / "machine.txt").read_text().strip().splitlines()) + "\n")
 print(f"| measurement | size | value | ratio | notes |")
 print("|---|---|---|---|---|")
 for r in rows:
