@@ -1204,6 +1204,71 @@ fn multiview_removes_an_outlier_and_refuses_an_inconsistent_track() {
     assert_eq!(dense_p(&g), p0);
 }
 
+/// `marginal_sigma_ratio`: with a sensor σ' = 4 px standing for a tracker whose own error has
+/// σ = 1 px (ratio 0.25), a stored observation 8 px off (2σ', 8σ) passes the joint test with
+/// the ratio at 1 but is removed as a gross outlier with the ratio at 0.25; and an initialized
+/// feature's observation 8 px off is associated with the ratio at 1 and rejected at 0.25.
+#[test]
+fn marginal_sigma_ratio_catches_outliers_that_the_equivalent_white_sigma_lets_through() {
+    let frame = NavFrame::Local;
+    let wide = SensorModel::Pixel {
+        camera: camera(),
+        sigma_pixel: 4.0,
+    };
+    let pf = PoseFrame::new(frame, &site()).unwrap();
+    let ms = [pf.to_filter(&Vector3::new(50.0, 10.0, 0.0))];
+    let mut removed = Vec::new();
+    let mut outcome = Vec::new();
+    for ratio in [1.0, 0.25] {
+        let mut f = multiview_filter(frame, wide);
+        f.bearing.config.marginal_sigma_ratio = ratio;
+        observe_features(&mut f, &ms, 6);
+        f.flush();
+        let k = f
+            .bearing
+            .tracks
+            .iter()
+            .position(|t| t.descriptor == 7)
+            .unwrap();
+        f.bearing.tracks[k].observations[2].z[0] += 8.0;
+        let id = f.bearing.tracks[k].id;
+        f.bearing.config.min_observations = 4;
+        let fid = f.initialize_track(&pf, id).unwrap().expect("initialized");
+        removed.push(f.bearing_stats().outliers_removed);
+        // The feature's next observation, 8 px off (the filter's σ of it is ≈ 4 px).
+        let z = match measure(&f, &ms[0], 0.0) {
+            Measurement::Pixel(z) => Measurement::Pixel(z + nalgebra::Vector2::new(8.0, 0.0)),
+            m => m,
+        };
+        let report = f
+            .process_frame(
+                0,
+                &ObservationFrame {
+                    time: 6.0,
+                    observations: vec![Observation {
+                        descriptor: fid,
+                        z,
+                        appearance: None,
+                    }],
+                },
+            )
+            .unwrap();
+        outcome.push(report.outcomes[0]);
+    }
+    assert_eq!(removed, [0, 1]);
+    assert!(
+        matches!(outcome[0], ObservationOutcome::Associated { .. }),
+        "{outcome:?}"
+    );
+    assert!(
+        matches!(
+            outcome[1],
+            ObservationOutcome::Rejected(RejectReason::GateFailed { .. })
+        ),
+        "{outcome:?}"
+    );
+}
+
 /// End to end: frames through `process_frame` initialize a feature once the track has
 /// `min_observations` and the parallax, and the feature is then associated like any other.
 #[test]

@@ -19,7 +19,11 @@
 //!    (the stored-pose rows of eq. 21.78). Stacked: r = H_x δx + H_m δm + n.
 //! 3. **Split.** With H_m = Q [R₁; 0] (Householder QR, Q orthogonal so Qᵀn stays white):
 //!    r₁ = R₁ δm + H₁ δx + n₁ (3 rows) and r₂ = H₂ δx + n₂ (2k − 3 rows, free of m).
-//! 4. **Joint test.** γ = r₂ᵀ (H₂ P H₂ᵀ + I)⁻¹ r₂ against χ²(2k − 3) at `gate_probability`
+//! 4. **Joint test.** First, with `marginal_sigma_ratio` below 1, the observation with the
+//!    largest residual at the triangulated point is removed while that residual exceeds the χ²
+//!    gate at `new_feature_probability` in units of its own (marginal) σ: a test against σ'
+//!    has no power against a track that jumped or drifted by several σ (`BearingConfig`).
+//!    Then γ = r₂ᵀ (H₂ P H₂ᵀ + I)⁻¹ r₂ against χ²(2k − 3) at `gate_probability`
 //!    (eq. 21.55 for the whole track). On failure the observation with the largest whitened
 //!    residual is removed and the track is tried again while it keeps `min_observations`
 //!    (2 for a constraint update).
@@ -367,6 +371,34 @@ impl SlamFilter {
                     return None;
                 }
             };
+            // Gross outliers first: a residual at the triangulated point beyond the gate at
+            // `new_feature_probability` of the observation's own (marginal) error
+            // (`BearingConfig::marginal_sigma_ratio`; none when the ratio is 1).
+            let ratio = self.bearing.config.marginal_sigma_ratio;
+            let outlier = (ratio < 1.0)
+                .then(|| {
+                    let (worst, r2) = system
+                        .residuals
+                        .iter()
+                        .enumerate()
+                        .max_by(|a, b| a.1.total_cmp(b.1))?;
+                    let dof = self.stored_model(&obs[worst]).measurement_dim() as f64;
+                    let gate = chi2_quantile(dof, self.config.association.new_feature_probability)
+                        .unwrap_or(f64::INFINITY);
+                    (r2 / (ratio * ratio) > gate).then_some(worst)
+                })
+                .flatten();
+            if let Some(worst) = outlier {
+                if obs.len() - 1 < min_obs.max(2) {
+                    self.bearing.stats.tracks_rejected += 1;
+                    self.drop_track(k);
+                    return None;
+                }
+                let removed = self.bearing.tracks[k].observations.remove(worst);
+                self.release(std::slice::from_ref(&removed));
+                self.bearing.stats.outliers_removed += 1;
+                continue;
+            }
             let dof = system.res2.len();
             let Some(gamma) = self.null_space_nis(&system) else {
                 self.bearing.stats.tracks_rejected += 1;
