@@ -54,7 +54,7 @@ fn euroc_dir() -> Option<PathBuf> {
 }
 
 /// Pose ANEES (6 dof, 1 = ideal) the imported EuRoC V1_01 replay must not exceed, at 20, 10
-/// and 5 Hz: the issue's bar. Measured 2.19, 1.64, 1.38 (docs/benchmarks.md, "Real data");
+/// and 5 Hz: the issue's bar. Measured 2.20, 1.64, 1.38 (docs/benchmarks.md, "Real data");
 /// without the outlier test against the tracker's own σ 3.10 / 3.38 / 2.54 with the
 /// calibration's bias walks, and 2.1 at 20 Hz with the outlier test alone.
 const POSE_ANEES_BOUND: f64 = 3.0;
@@ -249,10 +249,10 @@ fn euroc_import_is_consistent_with_the_recording_and_its_ground_truth() {
         "in-flight bias random walk (Allan deviation of IMU − ground truth at τ = 3.2 s): gyro \
          {k_gyro:.3e} rad/s²/√Hz, accelerometer {k_accel:.3e} m/s³/√Hz"
     );
-    // Within a factor 1.5 of the defaults 1.0e-3 and 3.1e-2 (seven 3.2 s clusters: the Allan
+    // Within a factor 1.5 of the defaults 1.0e-3 and 3.2e-2 (seven 3.2 s clusters: the Allan
     // deviation's own relative σ is ≈ 1/√(2·6) ≈ 0.3), and far above the calibration's.
     assert!((0.67e-3..1.5e-3).contains(&k_gyro), "{k_gyro}");
-    assert!((2.1e-2..4.6e-2).contains(&k_accel), "{k_accel}");
+    assert!((2.1e-2..4.8e-2).contains(&k_accel), "{k_accel}");
 
     // Camera mount: triangulate long tracks from the ground-truth poses, reproject.
     let mount = v.sensor.mount();
@@ -322,7 +322,7 @@ fn in_flight_bias_walk(
     gravity: f64,
 ) -> (f64, f64) {
     let rel = |ns: u64| (ns as f64 - origin as f64) * 1e-9;
-    let exp = |v: Vector3<f64>| nalgebra::Rotation3::new(v).into_inner();
+    let exp = |v: Vector3<f64>| -> Matrix3<f64> { nalgebra::Rotation3::new(v).into_inner() };
     let (mut gyro, mut accel) = (Vec::new(), Vec::new());
     for k in 1..gt.len() - 2 {
         let (ta, tb) = (rel(gt_ns[k]), rel(gt_ns[k + 1]));
@@ -330,7 +330,7 @@ fn in_flight_bias_walk(
             continue; // flight only
         }
         let dt = tb - ta;
-        let (mut c, mut dv) = (Matrix3::identity(), Vector3::zeros());
+        let (mut c, mut dv) = (Matrix3::<f64>::identity(), Vector3::<f64>::zeros());
         for s in log
             .imu
             .iter()
@@ -721,5 +721,114 @@ fn euroc_at_10_and_5_hz_stays_accurate_and_consistent() {
         );
         assert!(ate <= 0.10, "{hz} Hz: ATE {ate} m");
         assert!(anees <= POSE_ANEES_BOUND, "{hz} Hz: pose ANEES {anees}");
+    }
+}
+
+/// A copy of the recording's files in `out` from `start_s` seconds on (IMU samples, track rows
+/// and ground-truth poses at or after it): a recording that starts mid-flight.
+fn segment_from(dir: &Path, out: &Path, start_s: u64) {
+    std::fs::create_dir_all(out).unwrap();
+    std::fs::copy(dir.join("cam0.yaml"), out.join("cam0.yaml")).unwrap();
+    let cut = recording_imu_times(dir)[0] + start_s * 1_000_000_000;
+    for f in ["imu.csv", "tracks.csv"] {
+        let text = std::fs::read_to_string(dir.join(f)).unwrap();
+        let kept: Vec<&str> = text
+            .lines()
+            .filter(|l| {
+                l.starts_with('#') || l.split(',').next().unwrap().parse::<u64>().unwrap() >= cut
+            })
+            .collect();
+        std::fs::write(out.join(f), kept.join("\n") + "\n").unwrap();
+    }
+    let text = std::fs::read_to_string(dir.join("groundtruth.tum")).unwrap();
+    let kept: Vec<&str> = text
+        .lines()
+        .filter(|l| {
+            l.starts_with('#')
+                || ns(&format!(
+                    "{:.9}",
+                    l.split_whitespace().next().unwrap().parse::<f64>().unwrap()
+                )) + 1000
+                    >= cut
+        })
+        .collect();
+    std::fs::write(out.join("groundtruth.tum"), kept.join("\n") + "\n").unwrap();
+}
+
+/// Starts mid-flight (10 s and 15 s into the recording), initialized from the ground-truth
+/// pose with the biases unknown (zero with their turn-on σ): with no rest to measure the IMU
+/// noise on, the densities the full import measured are given as the calibration (as a user
+/// would give figures measured on another recording of the vehicle). Asserted: the estimate
+/// does not diverge (before the linearization bound of the multi-view tracks the 10 s start
+/// ended 0.2–460 m off) and stays within the ATE goal. Not asserted: pose ANEES ≤ 3 (measured
+/// 5.71 and 3.38: the yaw is over-confident, docs/benchmarks.md, "What remains").
+#[test]
+fn euroc_mid_flight_starts_from_the_ground_truth_do_not_diverge() {
+    let Some(dir) = euroc_dir() else { return };
+    let tmp = tempfile::tempdir().unwrap();
+    let full = tmp.path().join("full");
+    import(&dir, &full);
+    let s = Scenario::load(&full.join("scenario.toml")).unwrap();
+    let n = s.vehicles[0]
+        .imu
+        .noise
+        .expect("the import writes the noise");
+    let calib = tmp.path().join("imu_measured.yaml");
+    std::fs::write(
+        &calib,
+        format!(
+            "sensor_type: imu\nrate_hz: 200\ngyroscope_noise_density: {:e}\n\
+             gyroscope_random_walk: 1.9393e-05\naccelerometer_noise_density: {:e}\n\
+             accelerometer_random_walk: 3.0e-3\n",
+            n.gyro_noise_density, n.accel_noise_density
+        ),
+    )
+    .unwrap();
+    for start in [10, 15] {
+        let rec = tmp.path().join(format!("rec{start}"));
+        segment_from(&dir, &rec, start);
+        let out = tmp.path().join(format!("scenario{start}"));
+        let (ok, stdout, stderr) = run_bounded(
+            &[
+                "import",
+                rec.to_str().unwrap(),
+                "--out",
+                out.to_str().unwrap(),
+                "--initial",
+                "groundtruth",
+                "--imu-calib",
+                calib.to_str().unwrap(),
+                "--latitude",
+                "47.376",
+                "--longitude",
+                "8.548",
+                "--height",
+                "500",
+            ],
+            Duration::from_secs(120),
+        );
+        assert!(ok, "canopy import: {stdout}{stderr}");
+        let sim_dir = out.join("sim");
+        let (ok, stdout, stderr) = run_bounded(
+            &[
+                "sim",
+                out.join("scenario.toml").to_str().unwrap(),
+                "--out",
+                sim_dir.to_str().unwrap(),
+                "--quiet",
+            ],
+            Duration::from_secs(300),
+        );
+        assert!(ok, "canopy sim: {stdout}{stderr}");
+        let summary: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(sim_dir.join("summary.json")).unwrap())
+                .unwrap();
+        let v = &summary["vehicles"][0];
+        let ate = v["ate"]["se3_m"].as_f64().expect("an ATE");
+        let anees = v["pose_anees"].as_f64().expect("a pose ANEES");
+        println!("{start}–30 s from the ground truth: ATE SE(3) {ate:.3} m, pose ANEES {anees:.2}");
+        assert!(ate <= 0.10, "{start} s: ATE {ate} m");
+        // Not diverging: measured 5.71 (10 s) and 3.38 (15 s); a diverged start gave 36–4200.
+        assert!(anees <= 8.0, "{start} s: pose ANEES {anees}");
     }
 }

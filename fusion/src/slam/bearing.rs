@@ -245,6 +245,9 @@ pub struct BearingStats {
     /// Multi-view: single observations removed from a track as outliers (largest residual of a
     /// track that failed the joint test).
     pub outliers_removed: u64,
+    /// Multi-view: tracks finished early because the relative attitude σ between their first
+    /// stored pose and the current pose passed the linearization bound (module `multiview`).
+    pub tracks_finished_linearization: u64,
 }
 
 /// A read-only view of an uninitialized track.

@@ -36,6 +36,15 @@
 //!    multi-state constraint of Mourikis & Roumeliotis (2007). The feature never enters the
 //!    state. A restarted track continues with the next observation of its descriptor.
 //!
+//! 7. **Linearization bound** (before the current pose is stored): a track whose first stored
+//!    pose has a relative attitude σ to the current pose beyond √(2 σ_θ) — σ_θ one ray's own
+//!    angular σ, so that the projection's second-order term δ²/2 stays below the ray's noise —
+//!    is finished now like a track holding the oldest pose at the cap (initialized if it can,
+//!    else a constraint update) and restarts. In a filter whose attitude is known to a fraction
+//!    of a degree (σ_θ = 1 px / 458 px: bound 3.8°) this never triggers; after a start with an
+//!    unknown gyro bias it keeps the rays from waiting until the attitude has drifted by many
+//!    degrees (`tracks_finished_linearization`).
+//!
 //! Association to tracks is by descriptor (the tracker's ids); an observation of a feature
 //! already in the map is associated and gated before this step like any other (§21.3.4).
 
@@ -160,6 +169,12 @@ impl SlamFilter {
             self.remove_unreferenced_poses();
             return;
         }
+        // Linearization bound: a track whose rays would be linearized across too uncertain a
+        // relative attitude is used now (initialized or a constraint update) and restarts.
+        for id in self.tracks_past_linearization_bound(vehicle) {
+            self.finish_track(&frame, id, true);
+            self.bearing.stats.tracks_finished_linearization += 1;
+        }
         // Keep the stored poses under the cap: the tracks holding the oldest pose are finished
         // (initialized if they can, else a constraint update) and restart empty.
         while self.bearing.poses.len() >= self.bearing.config.max_stored_poses {
@@ -255,6 +270,42 @@ impl SlamFilter {
             }
         }
         self.remove_unreferenced_poses();
+    }
+
+    /// Tracks of `vehicle` (in state order) whose first stored pose's attitude, relative to
+    /// the vehicle's current attitude, has a σ (√ of the largest eigenvalue of the 3×3
+    /// covariance of Ψ_now − Ψ_first, from the joint P) beyond √(2 σ_θ), σ_θ the angular σ of
+    /// one ray (the sensor's σ × `marginal_sigma_ratio`, over the focal length for pixels). The
+    /// projection's second-order term under an attitude error δ is ≈ δ²/2 in angle, so past
+    /// this bound the EKF's linearization error of the track's rays is larger than their
+    /// noise (module docs, step 7).
+    pub(super) fn tracks_past_linearization_bound(&self, vehicle: usize) -> Vec<u64> {
+        let model = &self.vehicles[vehicle].model;
+        let r = model.noise_covariance();
+        let sigma = r.diagonal().iter().copied().fold(0.0, f64::max).sqrt()
+            * self.bearing.config.marginal_sigma_ratio;
+        let sigma_theta = match model.sensor {
+            crate::sensor::SensorModel::Pixel { camera, .. } => sigma / camera.fu.max(camera.fv),
+            _ => sigma,
+        };
+        // σ_rel² ≤ 2 σ_θ.
+        let variance_bound = 2.0 * sigma_theta;
+        let voff = self.layout.vehicle_block(vehicle) + crate::state::ATT;
+        self.bearing
+            .tracks
+            .iter()
+            .filter(|t| t.observations.first().is_some_and(|o| o.vehicle == vehicle))
+            .filter_map(|t| {
+                let off = self.layout.pose_offset(t.observations[0].pose)? + crate::state::POSE_ATT;
+                let rel = Matrix3::from_fn(|i, j| {
+                    self.p[(voff + i, voff + j)] + self.p[(off + i, off + j)]
+                        - self.p[(voff + i, off + j)]
+                        - self.p[(off + i, voff + j)]
+                });
+                let largest = rel.symmetric_eigenvalues().max();
+                (largest > variance_bound).then_some(t.id)
+            })
+            .collect()
     }
 
     /// Tries to initialize track `id` as a feature (module docs, steps 1–5). `Ok(None)`: not yet

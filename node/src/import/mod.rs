@@ -173,8 +173,8 @@ pub struct ImportArgs {
     #[arg(long, default_value_t = 1.0e-3)]
     pub gyro_bias_walk: f64,
     /// Accelerometer bias random walk in flight [m/s³/√Hz] (as `--gyro-bias-walk`). Default
-    /// 3.1e-2: measured the same way on EuRoC V1_01 (specific force less the ground truth's).
-    #[arg(long, default_value_t = 3.1e-2)]
+    /// 3.2e-2: measured the same way on EuRoC V1_01 (specific force less the ground truth's).
+    #[arg(long, default_value_t = 3.2e-2)]
     pub accel_bias_walk: f64,
     /// Feature initialization: rays of a track must span this angle [deg]. Default 10°, the
     /// filter's own default: a triangulation's relative depth error is ≈ σ_θ/parallax (σ_θ =
