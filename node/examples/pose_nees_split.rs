@@ -89,12 +89,12 @@ fn main() -> Result<()> {
             nees(e.as_slice(), &p, &[ATT + 2]),
             1.0,
         ];
-        for k in 0..5 {
-            sums[k] += n[k];
+        for (sum, x) in sums.iter_mut().zip(n) {
+            *sum += x;
         }
         let seg = (t / 5.0).floor() * 5.0;
         match segments.last_mut() {
-            Some((s0, acc)) if *s0 == seg => (0..5).for_each(|k| acc[k] += n[k]),
+            Some((s0, acc)) if *s0 == seg => acc.iter_mut().zip(n).for_each(|(a, x)| *a += x),
             _ => segments.push((seg, n)),
         }
         if t + eps >= next_print {
