@@ -797,6 +797,11 @@ pub struct BearingOptions {
     /// A track with this many stored rays that still cannot initialize is dropped. Default 40.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub max_track_observations: Option<usize>,
+    /// σ of one observation's own error over the sensor's (equivalent white) σ, in (0, 1]:
+    /// the outlier tests of single observations use it ([`BearingConfig::marginal_sigma_ratio`];
+    /// `canopy import` writes σ/σ' of a time-correlated tracker error). Default 1.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub marginal_sigma_ratio: Option<f64>,
 }
 
 impl BearingOptions {
@@ -826,6 +831,7 @@ impl BearingOptions {
             constraint_parallax: self
                 .constraint_parallax_deg
                 .map_or(d.constraint_parallax, f64::to_radians),
+            marginal_sigma_ratio: self.marginal_sigma_ratio.unwrap_or(d.marginal_sigma_ratio),
         }
     }
 

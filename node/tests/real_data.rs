@@ -54,12 +54,10 @@ fn euroc_dir() -> Option<PathBuf> {
 }
 
 /// Pose ANEES (6 dof, 1 = ideal) the imported EuRoC V1_01 replay must not exceed, at 20, 10
-/// and 5 Hz. Measured 3.10, 3.38, 2.54 (docs/benchmarks.md, "Real data"): the replay is
-/// deterministic, so the margin only absorbs floating-point differences between builds and
-/// small filter changes; undoing any one of the issue-11 fixes brings the 20 Hz figure to
-/// ≥ 4.8 (tracks as independent 7.98, calibration IMU noise × 4 4.81, × 1 17.9, 5° parallax
-/// 5.65). 3 is the issue's goal; 20 Hz and 10 Hz miss it by 3 % and 13 %.
-const POSE_ANEES_BOUND: f64 = 3.6;
+/// and 5 Hz: the issue's bar. Measured 2.20, 1.64, 1.38 (docs/benchmarks.md, "Real data");
+/// without the outlier test against the tracker's own σ 3.10 / 3.38 / 2.54 with the
+/// calibration's bias walks, and 2.1 at 20 Hz with the outlier test alone.
+const POSE_ANEES_BOUND: f64 = 3.0;
 
 /// Imports the recording into `out`.
 fn import(dir: &Path, out: &Path) {
@@ -240,6 +238,22 @@ fn euroc_import_is_consistent_with_the_recording_and_its_ground_truth() {
     // vibration and 10 µs ground-truth timestamps leave a fraction of it.
     assert!(rms_err < 0.3 * rms_sig, "{rms_err} vs {rms_sig}");
 
+    // The import's in-flight bias random walks (`--gyro-bias-walk`, `--accel-bias-walk`),
+    // measured here: the IMU less the ground truth over each 50 ms interval of the flight, its
+    // Allan deviation at τ = 3.2 s read as a rate random walk K = σ(τ)·√(3/τ), RMS over the
+    // axes (measured: gyro 1.0e-3 rad/s²/√Hz, accelerometer 3.2e-2 m/s³/√Hz, 50× and 10× the
+    // calibration's 1.9393e-5 and 3.0e-3, which are for a still sensor).
+    let (k_gyro, k_accel) =
+        in_flight_bias_walk(&log, &gt, &gt_ns, origin, bias, s.world.local_gravity());
+    println!(
+        "in-flight bias random walk (Allan deviation of IMU − ground truth at τ = 3.2 s): gyro \
+         {k_gyro:.3e} rad/s²/√Hz, accelerometer {k_accel:.3e} m/s³/√Hz"
+    );
+    // Within a factor 1.5 of the defaults 1.0e-3 and 3.2e-2 (seven 3.2 s clusters: the Allan
+    // deviation's own relative σ is ≈ 1/√(2·6) ≈ 0.3), and far above the calibration's.
+    assert!((0.67e-3..1.5e-3).contains(&k_gyro), "{k_gyro}");
+    assert!((2.1e-2..4.8e-2).contains(&k_accel), "{k_accel}");
+
     // Camera mount: triangulate long tracks from the ground-truth poses, reproject.
     let mount = v.sensor.mount();
     let model = v.sensor.model();
@@ -290,6 +304,67 @@ fn euroc_import_is_consistent_with_the_recording_and_its_ground_truth() {
     // track's mean biases ρ slightly down).
     assert!(own.iter().all(|s| (0.6..1.4).contains(s)), "{own}");
     assert!(tau.iter().all(|t| (0.22..0.5).contains(t)), "{tau:?}");
+}
+
+/// Rate random walk densities (gyro [rad/s²/√Hz], accelerometer [m/s³/√Hz]) of the IMU in
+/// flight, against the ground truth: per ground-truth interval (50 ms) the body rotation
+/// integrated from the gyro (less `gyro_bias`) against the ground truth's, and the velocity
+/// change integrated from the specific force (rotated by the ground-truth attitude, plus
+/// gravity) against the ground truth's (central differences), both as mean residual rates in
+/// body axes; then the Allan deviation of each residual series over the flight (t ≥ 6.5 s) at
+/// τ = 64 intervals = 3.2 s, K = σ(τ)·√(3/τ), RMS over the axes.
+fn in_flight_bias_walk(
+    log: &ReplayLog,
+    gt: &[(String, Vector3<f64>, Matrix3<f64>)],
+    gt_ns: &[u64],
+    origin: u64,
+    gyro_bias: Vector3<f64>,
+    gravity: f64,
+) -> (f64, f64) {
+    let rel = |ns: u64| (ns as f64 - origin as f64) * 1e-9;
+    let exp = |v: Vector3<f64>| -> Matrix3<f64> { nalgebra::Rotation3::new(v).into_inner() };
+    let (mut gyro, mut accel) = (Vec::new(), Vec::new());
+    for k in 1..gt.len() - 2 {
+        let (ta, tb) = (rel(gt_ns[k]), rel(gt_ns[k + 1]));
+        if ta < 6.5 {
+            continue; // flight only
+        }
+        let dt = tb - ta;
+        let (mut c, mut dv) = (Matrix3::<f64>::identity(), Vector3::<f64>::zeros());
+        for s in log
+            .imu
+            .iter()
+            .filter(|s| s.time > ta + 1e-6 && s.time <= tb + 1e-6)
+        {
+            let w = (s.angular_rate - gyro_bias) * s.dt;
+            dv += c * exp(w * 0.5) * s.specific_force * s.dt;
+            c *= exp(w);
+        }
+        let c_a = gt[k].2;
+        let rot = c.transpose() * c_a.transpose() * gt[k + 1].2;
+        let r = nalgebra::Rotation3::from_matrix_unchecked(rot).scaled_axis();
+        gyro.push(r / dt);
+        let v =
+            |j: usize| (gt[j + 1].1 - gt[j - 1].1) / ((gt_ns[j + 1] - gt_ns[j - 1]) as f64 * 1e-9);
+        let imu_dv = c_a * dv + Vector3::new(0.0, 0.0, gravity) * dt;
+        accel.push(c_a.transpose() * (v(k + 1) - v(k) - imu_dv) / dt);
+    }
+    let k_rms = |y: &[Vector3<f64>]| {
+        let m = 64;
+        let means: Vec<Vector3<f64>> = y
+            .chunks_exact(m)
+            .map(|c| c.iter().sum::<Vector3<f64>>() / m as f64)
+            .collect();
+        assert!(means.len() >= 5, "{} clusters", means.len());
+        let avar = means
+            .windows(2)
+            .map(|w| (w[1] - w[0]).component_mul(&(w[1] - w[0])))
+            .sum::<Vector3<f64>>()
+            / (2.0 * (means.len() - 1) as f64);
+        let tau = m as f64 * 0.05;
+        (avar.sum() / 3.0 * 3.0 / tau).sqrt()
+    };
+    (k_rms(&gyro), k_rms(&accel))
 }
 
 /// One sighting of a track: sensor origin (navigation frame), C_n^s, pixel.
@@ -530,7 +605,7 @@ fn euroc_replays_in_check_sim_and_run() {
         let v = &summary["vehicles"][0];
         // The estimate against the motion capture (the scenario names the imported ground
         // truth): ATE after SE(3) alignment within the 0.10 m that good open-source
-        // visual-inertial estimators reach on V1_01 (measured 0.028 m), and not over-confident:
+        // visual-inertial estimators reach on V1_01 (measured 0.058 m), and not over-confident:
         // pose ANEES ≤ POSE_ANEES_BOUND (below).
         let ate = v["ate"]["se3_m"]
             .as_f64()
@@ -646,5 +721,114 @@ fn euroc_at_10_and_5_hz_stays_accurate_and_consistent() {
         );
         assert!(ate <= 0.10, "{hz} Hz: ATE {ate} m");
         assert!(anees <= POSE_ANEES_BOUND, "{hz} Hz: pose ANEES {anees}");
+    }
+}
+
+/// A copy of the recording's files in `out` from `start_s` seconds on (IMU samples, track rows
+/// and ground-truth poses at or after it): a recording that starts mid-flight.
+fn segment_from(dir: &Path, out: &Path, start_s: u64) {
+    std::fs::create_dir_all(out).unwrap();
+    std::fs::copy(dir.join("cam0.yaml"), out.join("cam0.yaml")).unwrap();
+    let cut = recording_imu_times(dir)[0] + start_s * 1_000_000_000;
+    for f in ["imu.csv", "tracks.csv"] {
+        let text = std::fs::read_to_string(dir.join(f)).unwrap();
+        let kept: Vec<&str> = text
+            .lines()
+            .filter(|l| {
+                l.starts_with('#') || l.split(',').next().unwrap().parse::<u64>().unwrap() >= cut
+            })
+            .collect();
+        std::fs::write(out.join(f), kept.join("\n") + "\n").unwrap();
+    }
+    let text = std::fs::read_to_string(dir.join("groundtruth.tum")).unwrap();
+    let kept: Vec<&str> = text
+        .lines()
+        .filter(|l| {
+            l.starts_with('#')
+                || ns(&format!(
+                    "{:.9}",
+                    l.split_whitespace().next().unwrap().parse::<f64>().unwrap()
+                )) + 1000
+                    >= cut
+        })
+        .collect();
+    std::fs::write(out.join("groundtruth.tum"), kept.join("\n") + "\n").unwrap();
+}
+
+/// Starts mid-flight (10 s and 15 s into the recording), initialized from the ground-truth
+/// pose with the biases unknown (zero with their turn-on σ): with no rest to measure the IMU
+/// noise on, the densities the full import measured are given as the calibration (as a user
+/// would give figures measured on another recording of the vehicle). Asserted: the estimate
+/// does not diverge (before the linearization bound of the multi-view tracks the 10 s start
+/// ended 0.2–460 m off) and stays within the ATE goal. Not asserted: pose ANEES ≤ 3 (measured
+/// 5.71 and 3.38: the yaw is over-confident, docs/benchmarks.md, "What remains").
+#[test]
+fn euroc_mid_flight_starts_from_the_ground_truth_do_not_diverge() {
+    let Some(dir) = euroc_dir() else { return };
+    let tmp = tempfile::tempdir().unwrap();
+    let full = tmp.path().join("full");
+    import(&dir, &full);
+    let s = Scenario::load(&full.join("scenario.toml")).unwrap();
+    let n = s.vehicles[0]
+        .imu
+        .noise
+        .expect("the import writes the noise");
+    let calib = tmp.path().join("imu_measured.yaml");
+    std::fs::write(
+        &calib,
+        format!(
+            "sensor_type: imu\nrate_hz: 200\ngyroscope_noise_density: {:e}\n\
+             gyroscope_random_walk: 1.9393e-05\naccelerometer_noise_density: {:e}\n\
+             accelerometer_random_walk: 3.0e-3\n",
+            n.gyro_noise_density, n.accel_noise_density
+        ),
+    )
+    .unwrap();
+    for start in [10, 15] {
+        let rec = tmp.path().join(format!("rec{start}"));
+        segment_from(&dir, &rec, start);
+        let out = tmp.path().join(format!("scenario{start}"));
+        let (ok, stdout, stderr) = run_bounded(
+            &[
+                "import",
+                rec.to_str().unwrap(),
+                "--out",
+                out.to_str().unwrap(),
+                "--initial",
+                "groundtruth",
+                "--imu-calib",
+                calib.to_str().unwrap(),
+                "--latitude",
+                "47.376",
+                "--longitude",
+                "8.548",
+                "--height",
+                "500",
+            ],
+            Duration::from_secs(120),
+        );
+        assert!(ok, "canopy import: {stdout}{stderr}");
+        let sim_dir = out.join("sim");
+        let (ok, stdout, stderr) = run_bounded(
+            &[
+                "sim",
+                out.join("scenario.toml").to_str().unwrap(),
+                "--out",
+                sim_dir.to_str().unwrap(),
+                "--quiet",
+            ],
+            Duration::from_secs(300),
+        );
+        assert!(ok, "canopy sim: {stdout}{stderr}");
+        let summary: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(sim_dir.join("summary.json")).unwrap())
+                .unwrap();
+        let v = &summary["vehicles"][0];
+        let ate = v["ate"]["se3_m"].as_f64().expect("an ATE");
+        let anees = v["pose_anees"].as_f64().expect("a pose ANEES");
+        println!("{start}–30 s from the ground truth: ATE SE(3) {ate:.3} m, pose ANEES {anees:.2}");
+        assert!(ate <= 0.10, "{start} s: ATE {ate} m");
+        // Not diverging: measured 5.71 (10 s) and 3.38 (15 s); a diverged start gave 36–4200.
+        assert!(anees <= 8.0, "{start} s: pose ANEES {anees}");
     }
 }

@@ -5,6 +5,7 @@ use super::{AssociationMode, ObservationOutcome, RejectReason, SlamFilter};
 use crate::consistency::chi2_quantile;
 use crate::observation::{ObservationError, ObservationModel, SensorPose};
 use crate::sensor::FeatureId;
+use crate::sensor::SensorModel;
 use crate::state::{ATT, POS};
 use nalgebra::{DMatrix, DVector, SMatrix, Vector3};
 use std::collections::HashSet;
@@ -180,6 +181,12 @@ impl SlamFilter {
         };
         match self.config.association.mode {
             AssociationMode::Descriptor => {
+                // The marginal-error outlier test applies to bearing and pixel sensors.
+                let marginal_ratio = if matches!(model.sensor, SensorModel::RangeBearing { .. }) {
+                    1.0
+                } else {
+                    self.bearing.config.marginal_sigma_ratio
+                };
                 let mut seen = HashSet::new();
                 for (i, z) in zs.iter().enumerate() {
                     let id = descriptors[i];
@@ -196,19 +203,36 @@ impl SlamFilter {
                             plan.outcomes[i] =
                                 ObservationOutcome::Rejected(RejectReason::DegenerateGeometry)
                         }
-                        Ok(c) if c.nis <= gate => {
-                            plan.outcomes[i] = ObservationOutcome::Associated {
-                                feature: id,
-                                nis: c.nis,
-                            };
-                            plan.updates.push(c);
-                        }
                         Ok(c) => {
-                            plan.outcomes[i] =
-                                ObservationOutcome::Rejected(RejectReason::GateFailed {
-                                    feature: id,
-                                    nis: c.nis,
-                                })
+                            // A gross outlier against the observation's own (marginal) error
+                            // (`BearingConfig::marginal_sigma_ratio`), reported with that NIS.
+                            let marginal = (marginal_ratio < 1.0).then(|| {
+                                let shrink = 1.0 - marginal_ratio * marginal_ratio;
+                                nis(&c.innovation, &(&c.s - &ctx.r * shrink))
+                            });
+                            match marginal {
+                                Some(m) if m > new_gate => {
+                                    plan.outcomes[i] =
+                                        ObservationOutcome::Rejected(RejectReason::GateFailed {
+                                            feature: id,
+                                            nis: m,
+                                        })
+                                }
+                                _ if c.nis <= gate => {
+                                    plan.outcomes[i] = ObservationOutcome::Associated {
+                                        feature: id,
+                                        nis: c.nis,
+                                    };
+                                    plan.updates.push(c);
+                                }
+                                _ => {
+                                    plan.outcomes[i] =
+                                        ObservationOutcome::Rejected(RejectReason::GateFailed {
+                                            feature: id,
+                                            nis: c.nis,
+                                        })
+                                }
+                            }
                         }
                     }
                 }

@@ -110,6 +110,17 @@ pub struct BearingConfig {
     /// [`BearingInit::MultiView`]: minimum separation of two rays of a track for its
     /// constraint update (lost tracks) [rad]. Default 1°.
     pub constraint_parallax: f64,
+    /// σ of one observation's own error over the sensor's σ (in (0, 1]; default 1). A tracker's
+    /// error is correlated along a track, and the sensor's R is then the *equivalent white*
+    /// noise σ' > σ that weighs a sequence of such observations correctly
+    /// (`docs/arch/import.md`); a test of one observation against its marginal error must use
+    /// σ = ratio · σ', or a gross outlier (a track that jumped or drifted onto another point)
+    /// passes a gate scaled by σ'. With a ratio below 1: an initialized feature's observation
+    /// whose NIS against S = H P Hᵀ + ratio² R exceeds the χ² gate at
+    /// `new_feature_probability` is rejected (`GateFailed`) besides the usual gate (21.55), and
+    /// [`BearingInit::MultiView`] removes a stored observation whose residual at the
+    /// triangulated point exceeds the same gate in units of ratio · σ' before its joint test.
+    pub marginal_sigma_ratio: f64,
 }
 
 /// How an uninitialized track becomes a map feature.
@@ -145,6 +156,7 @@ impl Default for BearingConfig {
             initialization: BearingInit::Pair,
             min_observations: 5,
             constraint_parallax: 1f64.to_radians(),
+            marginal_sigma_ratio: 1.0,
         }
     }
 }
@@ -180,6 +192,9 @@ impl BearingConfig {
         }
         if self.min_observations < 2 {
             return bad("min_observations must be at least 2");
+        }
+        if !(self.marginal_sigma_ratio > 0.0 && self.marginal_sigma_ratio <= 1.0) {
+            return bad("marginal_sigma_ratio must be in (0, 1]");
         }
         Ok(())
     }
@@ -230,6 +245,9 @@ pub struct BearingStats {
     /// Multi-view: single observations removed from a track as outliers (largest residual of a
     /// track that failed the joint test).
     pub outliers_removed: u64,
+    /// Multi-view: tracks finished early because the relative attitude σ between their first
+    /// stored pose and the current pose passed the linearization bound (module `multiview`).
+    pub tracks_finished_linearization: u64,
 }
 
 /// A read-only view of an uninitialized track.

@@ -7,7 +7,7 @@ use super::*;
 use crate::geodesy::{Geodetic, geodetic_to_ecef};
 use crate::imu::ImuGrade;
 use crate::sensor::{CameraIntrinsics, Measurement, Observation};
-use crate::state::{POS, POSE_DIM, POSE_POS};
+use crate::state::{ATT, POS, POSE_ATT, POSE_DIM, POSE_POS};
 use nalgebra::{DMatrix, DVector};
 
 fn camera() -> CameraIntrinsics {
@@ -1202,6 +1202,110 @@ fn multiview_removes_an_outlier_and_refuses_an_inconsistent_track() {
     assert_eq!(g.bearing_stats().tracks_rejected, 1);
     assert_eq!(dense_x(&g), x0);
     assert_eq!(dense_p(&g), p0);
+}
+
+/// `marginal_sigma_ratio`: with a sensor σ' = 4 px standing for a tracker whose own error has
+/// σ = 1 px (ratio 0.25), a stored observation 8 px off (2σ', 8σ) passes the joint test with
+/// the ratio at 1 but is removed as a gross outlier with the ratio at 0.25; and a
+/// well-determined feature's observation 8 px off is associated with the ratio at 1 and
+/// rejected at 0.25.
+#[test]
+fn marginal_sigma_ratio_catches_outliers_that_the_equivalent_white_sigma_lets_through() {
+    let frame = NavFrame::Local;
+    let wide = SensorModel::Pixel {
+        camera: camera(),
+        sigma_pixel: 4.0,
+    };
+    let pf = PoseFrame::new(frame, &site()).unwrap();
+    let ms = [pf.to_filter(&Vector3::new(50.0, 10.0, 0.0))];
+    let mut removed = Vec::new();
+    let mut outcome = Vec::new();
+    for ratio in [1.0, 0.25] {
+        let mut f = multiview_filter(frame, wide);
+        f.bearing.config.marginal_sigma_ratio = ratio;
+        observe_features(&mut f, &ms, 5);
+        f.flush();
+        let k = f
+            .bearing
+            .tracks
+            .iter()
+            .position(|t| t.descriptor == 7)
+            .unwrap();
+        f.bearing.tracks[k].observations[2].z[0] += 8.0;
+        let id = f.bearing.tracks[k].id;
+        f.bearing.config.min_observations = 4;
+        let fid = f.initialize_track(&pf, id).unwrap().expect("initialized");
+        removed.push(f.bearing_stats().outliers_removed);
+        // A well-determined feature and pose (P scaled by 0.1, still PD: H P Hᵀ ≈ 0.7 px²
+        // instead of ≈ 7 px² after five rays), as after many observations; then its next
+        // observation 8 px off: NIS ≈ 64/16.7 against σ' (inside the 95 % gate), ≈ 64/1.7
+        // against σ (beyond the 0.9999 gate, 18.4).
+        f.flush();
+        let n = f.dim();
+        for i in 0..n {
+            for j in 0..n {
+                f.p[(i, j)] *= 0.1;
+            }
+        }
+        f.forget_map_information();
+        let z = match measure(&f, &ms[0], 0.0) {
+            Measurement::Pixel(z) => Measurement::Pixel(z + nalgebra::Vector2::new(8.0, 0.0)),
+            m => m,
+        };
+        let report = f
+            .process_frame(
+                0,
+                &ObservationFrame {
+                    time: 5.0,
+                    observations: vec![Observation {
+                        descriptor: fid,
+                        z,
+                        appearance: None,
+                    }],
+                },
+            )
+            .unwrap();
+        outcome.push(report.outcomes[0]);
+    }
+    assert_eq!(removed, [0, 1]);
+    assert!(
+        matches!(outcome[0], ObservationOutcome::Associated { .. }),
+        "{outcome:?}"
+    );
+    assert!(
+        matches!(
+            outcome[1],
+            ObservationOutcome::Rejected(RejectReason::GateFailed { .. })
+        ),
+        "{outcome:?}"
+    );
+}
+
+/// The linearization bound: tracks are reported once the relative attitude variance between
+/// their first stored pose and the vehicle passes 2 σ_θ (1 px / 600 px here: a σ of 3.3°),
+/// and not with the filter's own small attitude uncertainty.
+#[test]
+fn tracks_past_the_linearization_bound_are_the_ones_with_an_uncertain_relative_attitude() {
+    let frame = NavFrame::Local;
+    let mut f = multiview_filter(frame, pixel_sensor());
+    let pf = PoseFrame::new(frame, &site()).unwrap();
+    let ms = [pf.to_filter(&Vector3::new(50.0, 10.0, 0.0))];
+    observe_features(&mut f, &ms, 3);
+    f.flush();
+    assert!(f.tracks_past_linearization_bound(0).is_empty());
+    // The vehicle's yaw variance alone grows (its cross-covariances unchanged: P stays PD):
+    // just under and just over the bound 2 σ_θ, σ_θ = 1/600 rad, on top of the relative
+    // variance the filter already has.
+    let yaw = f.layout.vehicle_block(0) + ATT + 2;
+    let id = f.bearing.tracks[0].id;
+    let first = f.bearing.tracks[0].observations[0].pose;
+    let off = f.layout.pose_offset(first).unwrap() + POSE_ATT + 2;
+    let rel = f.p[(yaw, yaw)] + f.p[(off, off)] - 2.0 * f.p[(yaw, off)];
+    let bound = 2.0 / 600.0;
+    f.p[(yaw, yaw)] += 0.99 * bound - rel;
+    assert!(f.tracks_past_linearization_bound(0).is_empty());
+    f.p[(yaw, yaw)] += 0.02 * bound;
+    assert_eq!(f.tracks_past_linearization_bound(0), vec![id]);
 }
 
 /// End to end: frames through `process_frame` initialize a feature once the track has

@@ -19,7 +19,11 @@
 //!    (the stored-pose rows of eq. 21.78). Stacked: r = H_x δx + H_m δm + n.
 //! 3. **Split.** With H_m = Q [R₁; 0] (Householder QR, Q orthogonal so Qᵀn stays white):
 //!    r₁ = R₁ δm + H₁ δx + n₁ (3 rows) and r₂ = H₂ δx + n₂ (2k − 3 rows, free of m).
-//! 4. **Joint test.** γ = r₂ᵀ (H₂ P H₂ᵀ + I)⁻¹ r₂ against χ²(2k − 3) at `gate_probability`
+//! 4. **Joint test.** First, with `marginal_sigma_ratio` below 1, the observation with the
+//!    largest residual at the triangulated point is removed while that residual exceeds the χ²
+//!    gate at `new_feature_probability` in units of its own (marginal) σ: a test against σ'
+//!    has no power against a track that jumped or drifted by several σ (`BearingConfig`).
+//!    Then γ = r₂ᵀ (H₂ P H₂ᵀ + I)⁻¹ r₂ against χ²(2k − 3) at `gate_probability`
 //!    (eq. 21.55 for the whole track). On failure the observation with the largest whitened
 //!    residual is removed and the track is tried again while it keeps `min_observations`
 //!    (2 for a constraint update).
@@ -31,6 +35,15 @@
 //!    cap is reached, before it could initialize): the update with (r₂, H₂, I) alone — the
 //!    multi-state constraint of Mourikis & Roumeliotis (2007). The feature never enters the
 //!    state. A restarted track continues with the next observation of its descriptor.
+//!
+//! 7. **Linearization bound** (before the current pose is stored): a track whose first stored
+//!    pose has a relative attitude σ to the current pose beyond √(2 σ_θ) — σ_θ one ray's own
+//!    angular σ, so that the projection's second-order term δ²/2 stays below the ray's noise —
+//!    is finished now like a track holding the oldest pose at the cap (initialized if it can,
+//!    else a constraint update) and restarts. In a filter whose attitude is known to a fraction
+//!    of a degree (σ_θ = 1 px / 458 px: bound 3.8°) this never triggers; after a start with an
+//!    unknown gyro bias it keeps the rays from waiting until the attitude has drifted by many
+//!    degrees (`tracks_finished_linearization`).
 //!
 //! Association to tracks is by descriptor (the tracker's ids); an observation of a feature
 //! already in the map is associated and gated before this step like any other (§21.3.4).
@@ -156,6 +169,12 @@ impl SlamFilter {
             self.remove_unreferenced_poses();
             return;
         }
+        // Linearization bound: a track whose rays would be linearized across too uncertain a
+        // relative attitude is used now (initialized or a constraint update) and restarts.
+        for id in self.tracks_past_linearization_bound(vehicle) {
+            self.finish_track(&frame, id, true);
+            self.bearing.stats.tracks_finished_linearization += 1;
+        }
         // Keep the stored poses under the cap: the tracks holding the oldest pose are finished
         // (initialized if they can, else a constraint update) and restart empty.
         while self.bearing.poses.len() >= self.bearing.config.max_stored_poses {
@@ -251,6 +270,42 @@ impl SlamFilter {
             }
         }
         self.remove_unreferenced_poses();
+    }
+
+    /// Tracks of `vehicle` (in state order) whose first stored pose's attitude, relative to
+    /// the vehicle's current attitude, has a σ (√ of the largest eigenvalue of the 3×3
+    /// covariance of Ψ_now − Ψ_first, from the joint P) beyond √(2 σ_θ), σ_θ the angular σ of
+    /// one ray (the sensor's σ × `marginal_sigma_ratio`, over the focal length for pixels). The
+    /// projection's second-order term under an attitude error δ is ≈ δ²/2 in angle, so past
+    /// this bound the EKF's linearization error of the track's rays is larger than their
+    /// noise (module docs, step 7).
+    pub(super) fn tracks_past_linearization_bound(&self, vehicle: usize) -> Vec<u64> {
+        let model = &self.vehicles[vehicle].model;
+        let r = model.noise_covariance();
+        let sigma = r.diagonal().iter().copied().fold(0.0, f64::max).sqrt()
+            * self.bearing.config.marginal_sigma_ratio;
+        let sigma_theta = match model.sensor {
+            crate::sensor::SensorModel::Pixel { camera, .. } => sigma / camera.fu.max(camera.fv),
+            _ => sigma,
+        };
+        // σ_rel² ≤ 2 σ_θ.
+        let variance_bound = 2.0 * sigma_theta;
+        let voff = self.layout.vehicle_block(vehicle) + crate::state::ATT;
+        self.bearing
+            .tracks
+            .iter()
+            .filter(|t| t.observations.first().is_some_and(|o| o.vehicle == vehicle))
+            .filter_map(|t| {
+                let off = self.layout.pose_offset(t.observations[0].pose)? + crate::state::POSE_ATT;
+                let rel = Matrix3::from_fn(|i, j| {
+                    self.p[(voff + i, voff + j)] + self.p[(off + i, off + j)]
+                        - self.p[(voff + i, off + j)]
+                        - self.p[(off + i, voff + j)]
+                });
+                let largest = rel.symmetric_eigenvalues().max();
+                (largest > variance_bound).then_some(t.id)
+            })
+            .collect()
     }
 
     /// Tries to initialize track `id` as a feature (module docs, steps 1–5). `Ok(None)`: not yet
@@ -367,6 +422,34 @@ impl SlamFilter {
                     return None;
                 }
             };
+            // Gross outliers first: a residual at the triangulated point beyond the gate at
+            // `new_feature_probability` of the observation's own (marginal) error
+            // (`BearingConfig::marginal_sigma_ratio`; none when the ratio is 1).
+            let ratio = self.bearing.config.marginal_sigma_ratio;
+            let outlier = (ratio < 1.0)
+                .then(|| {
+                    let (worst, r2) = system
+                        .residuals
+                        .iter()
+                        .enumerate()
+                        .max_by(|a, b| a.1.total_cmp(b.1))?;
+                    let dof = self.stored_model(&obs[worst]).measurement_dim() as f64;
+                    let gate = chi2_quantile(dof, self.config.association.new_feature_probability)
+                        .unwrap_or(f64::INFINITY);
+                    (r2 / (ratio * ratio) > gate).then_some(worst)
+                })
+                .flatten();
+            if let Some(worst) = outlier {
+                if obs.len() - 1 < min_obs.max(2) {
+                    self.bearing.stats.tracks_rejected += 1;
+                    self.drop_track(k);
+                    return None;
+                }
+                let removed = self.bearing.tracks[k].observations.remove(worst);
+                self.release(std::slice::from_ref(&removed));
+                self.bearing.stats.outliers_removed += 1;
+                continue;
+            }
             let dof = system.res2.len();
             let Some(gamma) = self.null_space_nis(&system) else {
                 self.bearing.stats.tracks_rejected += 1;

@@ -158,10 +158,24 @@ pub struct ImportArgs {
     /// recording's own rest period (`--calibration-noise` to skip the measurement).
     #[arg(long, default_value_t = 1.0)]
     pub imu_noise_scale: f64,
-    /// Use only the calibration's IMU noise densities (× `--imu-noise-scale`), not the ones
-    /// measured over the rest period ([`canopy_fusion::alignment::rest_noise_density`]).
+    /// Use only the calibration's IMU noise densities (× `--imu-noise-scale`) and bias random
+    /// walks, not the white noise measured over the rest period
+    /// ([`canopy_fusion::alignment::rest_noise_density`]) nor the in-flight bias walks below.
     #[arg(long)]
     pub calibration_noise: bool,
+    /// Gyro bias random walk of the IMU in flight [rad/s²/√Hz]; the scenario gets the larger of
+    /// this and the calibration's. A calibration's figure is for a still sensor at constant
+    /// temperature; on a running multirotor the bias wanders far more (vibration, temperature,
+    /// g-sensitivity). Default 1.0e-3: measured on EuRoC V1_01 (ADIS16448 on the AscTec
+    /// Firefly) against the motion capture, the Allan deviation of the IMU's rate less the
+    /// ground truth's over the flight at τ = 3.2 s as a rate random walk, K = σ(τ)·√(3/τ), RMS
+    /// over the axes (`real_data.rs`; docs/arch/import.md). Give your platform's figure.
+    #[arg(long, default_value_t = 1.0e-3)]
+    pub gyro_bias_walk: f64,
+    /// Accelerometer bias random walk in flight [m/s³/√Hz] (as `--gyro-bias-walk`). Default
+    /// 3.2e-2: measured the same way on EuRoC V1_01 (specific force less the ground truth's).
+    #[arg(long, default_value_t = 3.2e-2)]
+    pub accel_bias_walk: f64,
     /// Feature initialization: rays of a track must span this angle [deg]. Default 10°, the
     /// filter's own default: a triangulation's relative depth error is ≈ σ_θ/parallax (σ_θ =
     /// σ/f, the equivalent white σ above: 0.45° on EuRoC at 20 Hz), ≈ 9 % at 5° and 4.5 % at 10°,
@@ -666,11 +680,31 @@ pub fn import(args: &ImportArgs) -> Result<ImportSummary, ImportError> {
             )
         }
     };
+    for (flag, v) in [
+        ("--gyro-bias-walk", args.gyro_bias_walk),
+        ("--accel-bias-walk", args.accel_bias_walk),
+    ] {
+        if !(v.is_finite() && v >= 0.0) {
+            return Err(ImportError::Missing(format!(
+                "{flag} {v}: must be a finite number ≥ 0"
+            )));
+        }
+    }
+    // Bias random walks: the calibration's (a still sensor), or the in-flight figures when
+    // larger.
+    let (accel_rw, gyro_rw) = if args.calibration_noise {
+        (imu_calib.accel_random_walk, imu_calib.gyro_random_walk)
+    } else {
+        (
+            imu_calib.accel_random_walk.max(args.accel_bias_walk),
+            imu_calib.gyro_random_walk.max(args.gyro_bias_walk),
+        )
+    };
     let noise = ImuNoiseConfig {
         accel_noise_density: accel_nd,
         gyro_noise_density: gyro_nd,
-        accel_bias_rw_density: imu_calib.accel_random_walk,
-        gyro_bias_rw_density: imu_calib.gyro_random_walk,
+        accel_bias_rw_density: accel_rw,
+        gyro_bias_rw_density: gyro_rw,
         accel_bias_sigma: args.accel_bias_sigma,
         gyro_bias_sigma: args.gyro_bias_sigma,
     };
@@ -686,7 +720,20 @@ pub fn import(args: &ImportArgs) -> Result<ImportSummary, ImportError> {
             args.track_correlation_s
         )));
     }
+    let walk_source = if args.calibration_noise {
+        "bias random walks: the calibration's".to_string()
+    } else {
+        format!(
+            "bias random walks: the larger of the calibration's and the in-flight figures \
+             (--gyro-bias-walk {}, --accel-bias-walk {}: measured on EuRoC V1_01 against the \
+             motion capture)",
+            args.gyro_bias_walk, args.accel_bias_walk
+        )
+    };
     let sigma_px = equivalent_white_sigma(args.sigma_px, frame_interval, args.track_correlation_s);
+    // One observation's own error over the equivalent white σ: the outlier tests of single
+    // observations use it (`BearingConfig::marginal_sigma_ratio`).
+    let marginal_ratio = (args.sigma_px / sigma_px).min(1.0);
     notes.push(format!(
         "pixel σ {} px per observation, correlated over {} s along a track: {:.3} px as independent \
          observations every {:.4} s",
@@ -893,9 +940,12 @@ pub fn import(args: &ImportArgs) -> Result<ImportSummary, ImportError> {
         "\n[vehicle.imu]\nrate_hz = {}\n# {}\nnoise = {{ accel_noise_density = {}, gyro_noise_density = {}, accel_bias_rw_density = {}, gyro_bias_rw_density = {}, accel_bias_sigma = {}, gyro_bias_sigma = {} }}",
         num(imu_rate),
         match &files.imu_calib {
-            Some(p) => format!("noise figures from {}; {noise_source}", source(p)),
+            Some(p) => format!(
+                "noise figures from {}; {noise_source}; {walk_source}",
+                source(p)
+            ),
             None => format!(
-                "noise figures of the ADIS16448 (EuRoC's IMU; no IMU calibration given); {noise_source}"
+                "noise figures of the ADIS16448 (EuRoC's IMU; no IMU calibration given); {noise_source}; {walk_source}"
             ),
         },
         num(noise.accel_noise_density),
@@ -953,13 +1003,17 @@ pub fn import(args: &ImportArgs) -> Result<ImportSummary, ImportError> {
         "\n[vehicle.bearing]\n\
          # Every stored ray of a track at once (tracker ids are the descriptors), after {}° of\n\
          # parallax; features between {} and {} m.\n\
-         initialization = \"multi_view\"\nmin_parallax_deg = {}\nmin_range_m = {}\nmax_range_m = {}",
+         initialization = \"multi_view\"\nmin_parallax_deg = {}\nmin_range_m = {}\nmax_range_m = {}\n\
+         # One observation's own error σ over the sensor's equivalent white σ (above): single\n\
+         # observations are tested for gross outliers (a track that jumped or drifted) against it.\n\
+         marginal_sigma_ratio = {}",
         num(args.min_parallax),
         num(args.min_depth),
         num(args.max_depth),
         num(args.min_parallax),
         num(args.min_depth),
-        num(args.max_depth)
+        num(args.max_depth),
+        num(marginal_ratio)
     );
     let scenario_path = args.out.join("scenario.toml");
     // The scenario must load as written (it is parsed exactly as `canopy check` will).
