@@ -49,6 +49,10 @@ pub enum FuseMethod {
     MapInformation,
 }
 
+/// A fusion refused: the error, and the delta when nothing had changed yet (in the filter's
+/// order; see [`SlamFilter::fuse_map_information_owned`]). Boxed: the error path is rare.
+pub type Refused = Box<(SlamError, Option<MapInformation>)>;
+
 /// What a fusion did.
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct FuseReport {
@@ -220,7 +224,7 @@ impl SlamFilter {
     ) -> Result<FuseReport, SlamError> {
         let exact = self.validate_information(delta)?;
         let delta = self.in_filter_order(delta.clone());
-        self.fuse_validated(delta, exact).map_err(|(e, _)| e)
+        self.fuse_validated(delta, exact).map_err(|r| r.0)
     }
 
     /// [`SlamFilter::fuse_map_information`] taking the delta by value: a delta on the whole map
@@ -231,10 +235,10 @@ impl SlamFilter {
     pub fn fuse_map_information_owned(
         &mut self,
         delta: MapInformation,
-    ) -> Result<FuseReport, (SlamError, Option<MapInformation>)> {
+    ) -> Result<FuseReport, Refused> {
         let exact = match self.validate_information(&delta) {
             Ok(e) => e,
-            Err(e) => return Err((e, Some(delta))),
+            Err(e) => return Err(Box::new((e, Some(delta)))),
         };
         let delta = self.in_filter_order(delta);
         self.fuse_validated(delta, exact)
@@ -246,7 +250,7 @@ impl SlamFilter {
         &mut self,
         mut delta: MapInformation,
         exact: bool,
-    ) -> Result<FuseReport, (SlamError, Option<MapInformation>)> {
+    ) -> Result<FuseReport, Refused> {
         let o = self.config.origin;
         // Partition the delta's 3-blocks into known (in the filter) and new features: known
         // ones first (filter order).
@@ -309,10 +313,10 @@ impl SlamFilter {
             let y_uk = gather_sym(delta.matrix.as_ref(), &new_pos, &known_pos);
             let dy_u = Col::from_fn(nu, |i| delta.vector[new_pos[i]]);
             let Ok(llt) = y_uu.llt(Side::Lower) else {
-                return Err((
+                return Err(Box::new((
                     SlamError::NotPositiveDefinite("information on new features ΔY_uu"),
                     give_back(delta, None),
-                ));
+                )));
             };
             let y_uu_inv = llt.inverse();
             let b = llt.solve(&y_uk); // ΔY_uu⁻¹ ΔY_uk
@@ -329,10 +333,10 @@ impl SlamFilter {
                 || !all_finite(y_uu_inv.as_ref())
                 || !(0..nu).all(|i| x_u[i].is_finite()))
         {
-            return Err((
+            return Err(Box::new((
                 SlamError::NumericalFailure("new-feature conditional"),
                 give_back(delta, None),
-            ));
+            )));
         }
 
         // Everything that can fail for the known-feature part is computed before any mutation
@@ -350,7 +354,7 @@ impl SlamFilter {
             match prepared {
                 Ok(r) => Some(r),
                 Err((e, schur)) => {
-                    return Err((e, give_back(delta, moved.then_some(schur))));
+                    return Err(Box::new((e, give_back(delta, moved.then_some(schur)))));
                 }
             }
         };
@@ -430,7 +434,7 @@ impl SlamFilter {
                 self.layout.remove(SlotKind::Feature(*id));
             }
             self.truncate_to(n0);
-            return Err((e, None));
+            return Err(Box::new((e, None)));
         }
         // New features were appended behind any stored poses: restore vehicles, features, poses.
         self.settle_poses_last();
@@ -848,8 +852,10 @@ impl SlamFilter {
                     ..Default::default()
                 });
             }
-            Err((e @ SlamError::NotPositiveDefinite(_), Some(delta))) => (e, delta),
-            Err((e, _)) => return Err(e),
+            Err(r) => match *r {
+                (e @ SlamError::NotPositiveDefinite(_), Some(delta)) => (e, delta),
+                (e, _) => return Err(e),
+            },
         };
         let y = self.map_information()?;
         let scale = y.matrix_norm_max().max(delta.matrix_norm_max());
@@ -897,9 +903,7 @@ impl SlamFilter {
             .copied()
             .filter(|id| vanished.contains(id) && !self.layout.has_feature(*id))
             .collect();
-        let fused = self
-            .fuse_map_information_owned(reduced)
-            .map_err(|(e, _)| e)?;
+        let fused = self.fuse_map_information_owned(reduced).map_err(|r| r.0)?;
         self.forget_features(&forgotten);
         Ok(ForgetReport {
             fused,

@@ -39,7 +39,7 @@ mod update;
 
 pub use bearing::{BearingConfig, BearingInit, BearingStats, TrackGate, TrackId, TrackInfo};
 pub use ci_fuse::CiReport;
-pub use fuse::{ForgetReport, FuseMethod, FuseReport, VANISHED_RTOL};
+pub use fuse::{ForgetReport, FuseMethod, FuseReport, Refused, VANISHED_RTOL};
 pub use layout::{Layout, PoseId, Slot, SlotKind};
 
 use crate::consistency::chi2_quantile;

@@ -1842,7 +1842,7 @@ fn fusing_by_value_equals_fusing_by_reference() {
         vector: Col::from_fn(k, |i| -2.0 * y.vector[order[i]]),
     };
     let before = (col_to_dense(&f.x), to_dense(&f.p));
-    let (e, back) = f.fuse_map_information_owned(d.clone()).unwrap_err();
+    let (e, back) = *f.fuse_map_information_owned(d.clone()).unwrap_err();
     assert!(matches!(e, SlamError::NotPositiveDefinite(_)), "{e:?}");
     let back = back.expect("refused before any change: the delta comes back");
     assert_eq!(back.ids, y.ids, "in the filter's order");

@@ -169,8 +169,19 @@ impl FusionThread {
                             }
                         }
                     };
+                    let round = match &msg {
+                        Done::Round { filter, .. } => Some(filter.num_features()),
+                        Done::Replies { .. } => None,
+                    };
                     if done_tx.send(msg).is_err() {
                         break;
+                    }
+                    // The heap's idle high-water mark back to the kernel (after the round is
+                    // handed back, so the estimator does not wait for it).
+                    if let Some(features) = round {
+                        canopy_fusion::runtime::trim_heap(canopy_fusion::runtime::heap_slack(
+                            features,
+                        ));
                     }
                 }
             })?;
