@@ -216,7 +216,7 @@ const TILE: usize = 32;
 
 /// Largest |a_ij − a_ji| and where (i > j), visiting the matrix tile pair by tile pair so that
 /// the transposed accesses stay in cache.
-fn max_asymmetry(m: &Mat<f64>) -> (f64, usize, usize) {
+pub(crate) fn max_asymmetry(m: &Mat<f64>) -> (f64, usize, usize) {
     let n = m.nrows();
     let mut worst = (0.0_f64, 0, 0);
     for tj in (0..n).step_by(TILE) {
@@ -288,8 +288,52 @@ fn check_finite_col(what: &'static str, c: &Col<f64>) -> Result<(), InfoError> {
     }
 }
 
+/// Whether every entry of `m` is finite, and its largest |entry| (NaN ignored): one pass
+/// instead of [`check_finite_mat`] and [`mat_norm_max`] each reading the whole matrix.
+pub(crate) fn finite_and_norm_max(m: &Mat<f64>) -> (bool, f64) {
+    const EXP: u64 = 0x7ff0_0000_0000_0000;
+    let mut finite = true;
+    let mut best = [0.0_f64; 4];
+    let mut tail = 0.0_f64;
+    for j in 0..m.ncols() {
+        let col = m.col_as_slice(j);
+        let chunks = col.chunks_exact(4);
+        let rest = chunks.remainder();
+        for c in chunks {
+            for k in 0..4 {
+                finite &= c[k].to_bits() & EXP != EXP;
+                let a = c[k].abs();
+                if a > best[k] {
+                    best[k] = a;
+                }
+            }
+        }
+        for &x in rest {
+            finite &= x.to_bits() & EXP != EXP;
+            let a = x.abs();
+            if a > tail {
+                tail = a;
+            }
+        }
+    }
+    let norm = best
+        .into_iter()
+        .fold(tail, |a, b| if b > a { b } else { a });
+    (finite, norm)
+}
+
 /// Checks squareness against `n` and symmetry to [`SYMMETRY_RTOL`] relative to the largest entry.
 fn check_square_symmetric(what: &'static str, m: &Mat<f64>, n: usize) -> Result<(), InfoError> {
+    check_square_symmetric_scaled(what, m, n, mat_norm_max(m))
+}
+
+/// [`check_square_symmetric`] with the largest |entry| known.
+fn check_square_symmetric_scaled(
+    what: &'static str,
+    m: &Mat<f64>,
+    n: usize,
+    norm_max: f64,
+) -> Result<(), InfoError> {
     if m.nrows() != n {
         return Err(InfoError::Dimension {
             what,
@@ -304,7 +348,7 @@ fn check_square_symmetric(what: &'static str, m: &Mat<f64>, n: usize) -> Result<
             found: m.ncols(),
         });
     }
-    let tolerance = SYMMETRY_RTOL * mat_norm_max(m);
+    let tolerance = SYMMETRY_RTOL * norm_max;
     let worst = max_asymmetry(m);
     if worst.0 > tolerance {
         return Err(InfoError::NotSymmetric {
@@ -364,13 +408,39 @@ pub(crate) fn symmetrize(m: &mut Mat<f64>) {
 /// freed before the product is formed (peak: a, L⁻¹ and the result, instead of a, L, L⁻¹ and
 /// the result). At 615 features one such buffer is 27 MB.
 pub(crate) fn spd_inverse(a: faer::MatRef<'_, f64>) -> Result<Mat<f64>, LltError> {
+    let n = a.nrows();
+    let mut l = Mat::<f64>::zeros(n, n);
+    l.copy_from_triangular_lower(a);
+    spd_inverse_in(l)
+}
+
+/// (A + B)⁻¹ of symmetric `a` and `b` whose sum is positive definite (lower triangles read):
+/// [`spd_inverse`] of the sum, bit for bit, with the sum formed straight into the factor's
+/// buffer (no k × k buffer for it, and neither input changes).
+pub(crate) fn spd_inverse_of_sum(
+    a: faer::MatRef<'_, f64>,
+    b: faer::MatRef<'_, f64>,
+) -> Result<Mat<f64>, LltError> {
+    let n = a.nrows();
+    assert!(b.nrows() == n && a.ncols() == n && b.ncols() == n);
+    let mut l = Mat::<f64>::zeros(n, n);
+    for j in 0..n {
+        let (ca, cb) = (a.col(j), b.col(j));
+        let dst = &mut l.col_as_slice_mut(j)[j..];
+        for (k, d) in dst.iter_mut().enumerate() {
+            *d = ca[j + k] + cb[j + k];
+        }
+    }
+    spd_inverse_in(l)
+}
+
+/// [`spd_inverse`] from `l` holding the matrix's lower triangle (its upper one ignored).
+fn spd_inverse_in(mut l: Mat<f64>) -> Result<Mat<f64>, LltError> {
     use faer::dyn_stack::{MemBuffer, MemStack};
     use faer::linalg::cholesky::llt::factor;
     use faer::linalg::matmul::triangular::{self, BlockStructure};
-    let n = a.nrows();
+    let n = l.nrows();
     let par = faer::get_global_parallelism();
-    let mut l = Mat::<f64>::zeros(n, n);
-    l.copy_from_triangular_lower(a);
     let mut mem = MemBuffer::new(factor::cholesky_in_place_scratch::<f64>(
         n,
         par,
@@ -589,8 +659,12 @@ impl MapInformation {
             });
         }
         check_finite_col("information vector", &self.vector)?;
-        check_finite_mat("information matrix", &self.matrix)?;
-        check_square_symmetric("information matrix", &self.matrix, n)
+        // Finiteness and the scale in one pass (the error, if any, from the column scan).
+        let (finite, norm_max) = finite_and_norm_max(&self.matrix);
+        if !finite {
+            check_finite_mat("information matrix", &self.matrix)?;
+        }
+        check_square_symmetric_scaled("information matrix", &self.matrix, n, norm_max)
     }
 
     fn check_origin(&self, other: &MapInformation) -> Result<(), InfoError> {
@@ -1353,6 +1427,38 @@ mod tests {
         let mut bad = random_spd(&mut rng, 3);
         bad[(4, 4)] = -1.0;
         assert!(spd_inverse(bad.as_ref()).is_err());
+    }
+
+    /// The inverse of a sum formed in the factor's buffer is the inverse of the summed matrix,
+    /// bit for bit (the same additions), and a sum that is not positive definite is refused.
+    #[test]
+    fn spd_inverse_of_sum_equals_the_inverse_of_the_sum() {
+        let mut rng = ChaCha8Rng::seed_from_u64(16);
+        for nf in [1, 7, 40] {
+            let (a, b) = (random_spd(&mut rng, nf), random_spd(&mut rng, nf));
+            let sum = &a + &b;
+            let want = spd_inverse(sum.as_ref()).unwrap();
+            assert_eq!(spd_inverse_of_sum(a.as_ref(), b.as_ref()).unwrap(), want);
+        }
+        let a = random_spd(&mut rng, 3);
+        let minus = Mat::from_fn(9, 9, |i, j| -2.0 * a[(i, j)]);
+        assert!(spd_inverse_of_sum(a.as_ref(), minus.as_ref()).is_err());
+    }
+
+    /// One pass for finiteness and the largest entry agrees with the separate checks.
+    #[test]
+    fn finite_and_norm_max_agree_with_the_separate_scans() {
+        let mut rng = ChaCha8Rng::seed_from_u64(17);
+        let mut m = random_spd(&mut rng, 5);
+        m[(13, 2)] = -77.0;
+        assert_eq!(finite_and_norm_max(&m), (true, mat_norm_max(&m)));
+        assert_eq!(mat_norm_max(&m), 77.0);
+        for bad in [f64::NAN, f64::INFINITY, f64::NEG_INFINITY] {
+            let mut n = m.clone();
+            n[(14, 14)] = bad;
+            assert!(!finite_and_norm_max(&n).0);
+            assert!(check_finite_mat("m", &n).is_err());
+        }
     }
 
     #[test]

@@ -85,9 +85,70 @@ pub fn tune_allocator() {
     }
 }
 
+/// Free heap memory the arenas may keep beyond what the next fusion round reuses
+/// ([`heap_slack`]).
+pub const HEAP_SLACK: usize = 8 << 20;
+
+/// How much free heap memory to keep after a fusion round on a map of `features` features:
+/// [`HEAP_SLACK`], plus, while a k × k matrix (k = 3 × features) is below
+/// [`MMAP_THRESHOLD`] and so comes from the arenas, room for the dozen k × k temporaries of
+/// the next round (kept warm: trimming them would make every round fault them in again).
+pub fn heap_slack(features: usize) -> usize {
+    let k = 3 * features;
+    let block = 8 * k * k;
+    if block < MMAP_THRESHOLD {
+        HEAP_SLACK + 12 * block
+    } else {
+        HEAP_SLACK
+    }
+}
+
+/// Returns the free memory of every heap arena to the kernel (glibc `malloc_trim`) when they
+/// hold more than `slack` bytes free (`mallinfo2`); true when it trimmed. No effect on other C
+/// libraries.
+///
+/// Why: heap memory is kept mapped when freed ([`tune_allocator`]), so that a round's k × k
+/// temporaries are warm the next round. Once the map is large enough for those temporaries to be
+/// `mmap`ped ([`MMAP_THRESHOLD`]) the arenas still hold the high-water mark of the rounds
+/// before, which nothing reuses: at 324 features a vehicle with three neighbours held 93 MB in
+/// its two arenas for ~38 MB of live matrices (docs/benchmarks.md). Called after each fusion
+/// round with [`heap_slack`], it keeps what the next round reuses and returns the rest.
+pub fn trim_heap(slack: usize) -> bool {
+    #[cfg(all(target_os = "linux", target_env = "gnu"))]
+    {
+        #[allow(unsafe_code)]
+        // SAFETY: mallinfo2 only reads the allocator's statistics (taking each arena's lock);
+        // malloc_trim only releases free pages of the arenas; both are thread-safe.
+        unsafe {
+            let free = libc::mallinfo2().fordblks;
+            if free > slack {
+                libc::malloc_trim(0);
+                return true;
+            }
+        }
+    }
+    let _ = slack;
+    false
+}
+
 #[cfg(test)]
 mod tests {
-    use super::{flush_subnormals_to_zero, subnormals_flushed};
+    use super::*;
+
+    /// The slack keeps a round's temporaries while they come from the arenas, and only the
+    /// fixed slack once they are `mmap`ped; trimming with no slack at all is harmless.
+    #[test]
+    fn heap_slack_follows_the_mmap_threshold() {
+        // 100 features: k × k = 0.72 MB, from the arenas.
+        assert_eq!(heap_slack(100), HEAP_SLACK + 12 * 8 * 300 * 300);
+        // 324 features: 7.6 MB, mmapped.
+        assert_eq!(heap_slack(324), HEAP_SLACK);
+        let held: Vec<Vec<u8>> = (0..64).map(|i| vec![i as u8; 1 << 16]).collect();
+        drop(held);
+        let _ = trim_heap(0);
+        let v = vec![1u8; 1 << 20];
+        assert_eq!(v.iter().map(|&b| usize::from(b)).sum::<usize>(), 1 << 20);
+    }
 
     /// The mode takes effect on the calling thread and is inherited by the threads it starts
     /// (the process roles start tokio and worker threads after setting it); a thread that did

@@ -8,7 +8,7 @@
 //! map information (Y_i, y_i) (eqs. 21.86, 21.87), lets the DDF node form the per-link deltas,
 //! and fuses a CI change (eqs. 21.92, 21.93 as corrected by the channel filters, design.md §4).
 //! [`VehicleAgent`] runs both halves on one thread (`canopy sim`); the vehicle process runs
-//! them on two, the fusion half on copies of the filter the estimator lends it.
+//! them on two, the fusion half on the filter the estimator hands it for each round.
 
 use canopy_fusion::ci::{CiCriterion, Submap};
 use canopy_fusion::ddf::{
@@ -16,12 +16,13 @@ use canopy_fusion::ddf::{
 };
 use canopy_fusion::info::MapInformation;
 use canopy_fusion::keys::Merge;
+use canopy_fusion::sensor::FeatureId;
 use canopy_fusion::sensor::{ImuSample, ObservationFrame};
 use canopy_fusion::slam::{
     FrameReport, ObservationOutcome, SlamConfig, SlamError, SlamFilter, VehicleSetup,
 };
 use canopy_fusion::topology::{NodeId, Topology};
-use nalgebra::Vector3;
+use nalgebra::{Matrix3, Vector3};
 
 /// Counters of a vehicle agent.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
@@ -251,9 +252,8 @@ pub struct FusionCounters {
 
 /// The fusion half of a vehicle: its DDF node and the information received but not yet fused
 /// into the EKF. It works on whichever filter it is handed: the vehicle's own
-/// ([`VehicleAgent`], one thread, as in `canopy sim`) or the snapshot that the vehicle
-/// process lends to its fusion thread (`crate::process::vehicle`, with
-/// [`canopy_fusion::slam::SlamFilter::carry_predictions`] bringing it back).
+/// ([`VehicleAgent`], one thread, as in `canopy sim`) or the one the vehicle process hands to
+/// its fusion thread for a round (`crate::process::vehicle`, [`VehicleEstimator::lend`]).
 #[derive(Debug)]
 pub struct VehicleFusion {
     ddf: Option<DdfNode>,
@@ -332,7 +332,8 @@ impl VehicleFusion {
             // Features whose information the batch cancels exactly (a resynchronisation after a
             // neighbour restarted) are removed, not refused
             // (`SlamFilter::fuse_map_information_forgetting`).
-            match filter.fuse_map_information_forgetting(&sum) {
+            // By value: the batch is fused in its own buffer (k × k less at the round's peak).
+            match filter.fuse_map_information_forgetting_owned(sum) {
                 Ok(r) => {
                     self.counters.fused += n;
                     self.counters.features_forgotten += r.forgotten.len() as u64;
@@ -473,14 +474,27 @@ impl VehicleFusion {
 /// The estimator half of a vehicle: its M = 1 filter and what it counted.
 #[derive(Debug)]
 pub struct VehicleEstimator {
+    /// The filter; while it is lent out ([`VehicleEstimator::lend`]), its vehicle part.
     filter: SlamFilter,
     counters: AgentCounters,
     rejections: Rejections,
-    /// The vehicle part taken when a copy was lent out.
-    lent: Option<SlamFilter>,
+    /// While the filter is lent out: what is replayed on it when it comes back.
+    lent: Option<Lent>,
     /// Zero-velocity updates over a known rest period.
     rest: Option<RestUpdates>,
 }
+
+/// A filter lent out for a fusion round ([`VehicleEstimator::lend`]).
+#[derive(Debug)]
+struct Lent {
+    /// The IMU samples applied (to the vehicle part) since: applied again to the fused filter.
+    samples: Vec<ImuSample>,
+    /// The map as it was lent (prediction does not change it), for map reports meanwhile.
+    map: Vec<MapFeature>,
+}
+
+/// One map feature of an estimate: id, mean and 3 × 3 covariance.
+pub type MapFeature = (FeatureId, Vector3<f64>, Matrix3<f64>);
 
 /// Zero-velocity updates while the vehicle is known to rest
 /// ([`crate::replay::ZeroVelocityConfig`]).
@@ -570,6 +584,9 @@ impl VehicleEstimator {
         match self.filter.predict(0, imu) {
             Ok(()) => {
                 self.counters.imu_samples += 1;
+                if let Some(l) = self.lent.as_mut() {
+                    l.samples.push(*imu);
+                }
                 Ok(())
             }
             Err(e) => {
@@ -580,47 +597,88 @@ impl VehicleEstimator {
         }
     }
 
-    /// A copy of the filter for fusion work elsewhere (deferred fusion,
-    /// `canopy_fusion::slam::SlamFilter::carry_predictions`). IMU samples go on meanwhile;
-    /// frames must wait for [`give_back`](Self::give_back) (a frame in between makes the give
-    /// back fail safe: the fused copy is dropped).
-    pub fn lend(&mut self) -> SlamFilter {
-        self.lent = Some(self.filter.vehicle_part());
-        self.filter.fusion_snapshot()
+    /// Hands the filter over for fusion work elsewhere (the vehicle process's fusion thread)
+    /// instead of copying it (a copy of P per round was the largest transient of a vehicle's
+    /// memory and an O(n²) stall of this thread). Until [`give_back`](Self::give_back) the
+    /// estimator keeps the vehicle part ([`SlamFilter::vehicle_only`]): IMU samples go on
+    /// (reports read the vehicle's estimate from it, [`map`](Self::map) the map as lent) and
+    /// are applied again to the fused filter when it comes back; frames must wait (they are
+    /// refused meanwhile). An error if the filter is already out.
+    pub fn lend(&mut self) -> Result<SlamFilter, SlamError> {
+        if self.lent.is_some() {
+            return Err(SlamError::InvalidConfig(
+                "the filter is already lent out".into(),
+            ));
+        }
+        let map = map_of(&self.filter);
+        let part = self.filter.vehicle_only();
+        self.lent = Some(Lent {
+            samples: Vec::new(),
+            map,
+        });
+        Ok(std::mem::replace(&mut self.filter, part))
     }
 
-    /// Whether a copy is out ([`lend`](Self::lend)).
+    /// Whether the filter is out ([`lend`](Self::lend)).
     pub fn is_lent(&self) -> bool {
         self.lent.is_some()
     }
 
-    /// Takes the fused copy back, with the predictions made since it was lent carried over.
-    /// On an error the filter stays as it is (the fusion's result is lost, never applied
-    /// twice).
+    /// Takes the fused filter back and applies to it the IMU samples predicted since it was
+    /// lent: the estimate one thread fusing at the round time and predicting afterwards would
+    /// have (the predictions are O(1) each, `canopy_fusion::slam` module docs). A sample the
+    /// fused filter refuses (a state-dependent failure; the vehicle part took it) is counted
+    /// under `fusion.give_back.<error>` and skipped. An error, with the filter unchanged, if
+    /// nothing was lent.
     pub fn give_back(&mut self, mut fused: SlamFilter) -> Result<(), SlamError> {
-        let r = self
-            .lent
-            .take()
-            .ok_or_else(|| SlamError::InvalidConfig("give_back without a lent filter".into()))
-            .and_then(|before| fused.carry_predictions(&before, &self.filter));
-        match r {
-            Ok(()) => {
-                self.filter = fused;
-                Ok(())
-            }
-            Err(e) => {
+        let Some(lent) = self.lent.take() else {
+            let e = SlamError::InvalidConfig("give_back without a lent filter".into());
+            self.rejections.add(
+                format!("fusion.give_back.{}", variant_key(&format!("{e:?}"))),
+                1,
+                &e,
+            );
+            return Err(e);
+        };
+        for imu in &lent.samples {
+            if let Err(e) = fused.predict(0, imu) {
                 self.rejections.add(
                     format!("fusion.give_back.{}", variant_key(&format!("{e:?}"))),
                     1,
                     &e,
                 );
-                Err(e)
             }
+        }
+        self.filter = fused;
+        Ok(())
+    }
+
+    /// Every map feature with its mean and 3 × 3 covariance: the filter's, or while it is lent
+    /// out the map as it was lent (prediction does not change the map).
+    pub fn map(&self) -> std::borrow::Cow<'_, [MapFeature]> {
+        match &self.lent {
+            Some(l) => std::borrow::Cow::Borrowed(&l.map),
+            None => std::borrow::Cow::Owned(map_of(&self.filter)),
         }
     }
 
-    /// One terrain-sensor frame (association, update, initialization).
+    /// Number of map features (of the map as lent while the filter is out).
+    pub fn num_features(&self) -> usize {
+        match &self.lent {
+            Some(l) => l.map.len(),
+            None => self.filter.num_features(),
+        }
+    }
+
+    /// One terrain-sensor frame (association, update, initialization). Refused while the
+    /// filter is lent out (the frame would change a map that is being fused elsewhere).
     pub fn on_frame(&mut self, frame: &ObservationFrame) -> Result<FrameReport, SlamError> {
+        if self.lent.is_some() {
+            let e = SlamError::InvalidConfig("a frame while the filter is lent out".into());
+            self.counters.frames_rejected += 1;
+            self.rejections.frame(&e, frame.observations.len());
+            return Err(e);
+        }
         self.rest_update(frame.time);
         match self.filter.process_frame(0, frame) {
             Ok(report) => {
@@ -639,6 +697,14 @@ impl VehicleEstimator {
             }
         }
     }
+}
+
+/// Every map feature of `f` with its mean and 3 × 3 covariance, in map order.
+fn map_of(f: &SlamFilter) -> Vec<MapFeature> {
+    f.features()
+        .into_iter()
+        .filter_map(|(id, m)| f.feature_covariance(id).map(|c| (id, m, c)))
+        .collect()
 }
 
 /// One vehicle in one thread: the estimator and the fusion half side by side (`canopy sim`).
@@ -927,6 +993,82 @@ mod rejection_tests {
         assert!(key.starts_with("fusion.message."), "{key}");
         assert_eq!(*n, 2);
         assert_eq!(f.counters().messages_rejected, 2);
+    }
+
+    /// The vehicle process's hand-over (`VehicleEstimator::lend`/`give_back`): the filter
+    /// handed over and fused elsewhere comes back with the IMU samples of the meantime applied
+    /// again, bit for bit what one thread fusing at the round time and predicting afterwards
+    /// computes (`canopy sim`); meanwhile the estimate is the vehicle part's, reports read the
+    /// map as lent, frames and a second lend are refused (counted), and a give-back with
+    /// nothing out is an error that changes nothing.
+    #[test]
+    fn a_lent_filter_comes_back_with_the_predictions_of_the_meantime() {
+        let s = crate::scenario::Scenario::builtin_default();
+        let (world, mut sources) = crate::replay::SensorSource::for_scenario(&s).unwrap();
+        let est = sources[0].initial_estimate();
+        let build = || {
+            crate::sim::vehicle_agent(&s, &s.vehicles[0], &world, &est, 7)
+                .unwrap()
+                .into_parts()
+                .0
+        };
+        let (mut handed, mut sequential) = (build(), build());
+        // 4 s of the stream on both (frames build a map), then a round.
+        let mut steps = std::iter::from_fn(|| sources[0].step());
+        for st in steps.by_ref().take(400) {
+            for e in [&mut handed, &mut sequential] {
+                e.on_imu(&st.imu).unwrap();
+                if let Some((f, _)) = &st.frame {
+                    let _ = e.on_frame(f);
+                }
+            }
+        }
+        assert!(handed.num_features() > 0, "the stream built a map");
+        let map_at_lend = handed.map().into_owned();
+        let mut lent = handed.lend().unwrap();
+        assert!(handed.lend().is_err(), "one filter, lent once");
+        // Fused elsewhere (here: a round's worth of a neighbour's information, the map itself).
+        let info = lent.map_information().unwrap();
+        let round = |f: &mut SlamFilter| {
+            let mut d = info.clone();
+            d.matrix *= 0.5;
+            d.vector *= 0.5;
+            f.fuse_map_information(&d).unwrap();
+        };
+        round(&mut lent);
+        round(sequential.filter_mut());
+        // IMU samples only (the vehicle process holds frames back until the filter is back).
+        let mut refused = 0;
+        for st in steps.take(60) {
+            handed.on_imu(&st.imu).unwrap();
+            sequential.on_imu(&st.imu).unwrap();
+            if let Some((f, _)) = &st.frame
+                && refused == 0
+            {
+                let before = handed.counters().frames_rejected;
+                assert!(handed.on_frame(f).is_err(), "a frame while lent is refused");
+                assert_eq!(handed.counters().frames_rejected, before + 1);
+                refused += 1;
+            }
+            assert_eq!(&*handed.map(), &map_at_lend[..], "the map as lent");
+        }
+        assert_eq!(refused, 1, "60 samples at 100 Hz span a 2 Hz frame");
+        handed.give_back(lent).unwrap();
+        assert!(!handed.is_lent());
+        let (a, b) = (handed.filter(), sequential.filter());
+        assert_eq!(a.state_vector(), b.state_vector());
+        assert_eq!(a.joint_covariance(), b.joint_covariance());
+        // Nothing out: refused, counted, the filter kept.
+        let before = handed.filter().state_vector();
+        assert!(handed.give_back(sequential.filter().clone()).is_err());
+        assert_eq!(handed.filter().state_vector(), before);
+        assert!(
+            handed
+                .rejections()
+                .counts
+                .keys()
+                .any(|k| k.starts_with("fusion.give_back."))
+        );
     }
 
     #[test]

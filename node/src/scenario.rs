@@ -142,6 +142,20 @@ impl Scenario {
 
     /// Reads, parses and validates a scenario file.
     pub fn load(path: &Path) -> Result<Self, ScenarioError> {
+        Self::load_with(path, true)
+    }
+
+    /// Reads and parses the resolved scenario of a run that its launcher has already
+    /// validated in full ([`Scenario::load`]), as a role process does: every field check
+    /// except building every vehicle's trajectory. Building them (arc-length tables, the
+    /// bank-angle check) in each of N role processes made a run's start O(N²) in trigonometry
+    /// (a sizable share of a 24- or 64-vehicle run's CPU); the world process builds each
+    /// trajectory anyway, and fails with the same error if one cannot be built.
+    pub fn load_prevalidated(path: &Path) -> Result<Self, ScenarioError> {
+        Self::load_with(path, false)
+    }
+
+    fn load_with(path: &Path, trajectories: bool) -> Result<Self, ScenarioError> {
         let text = std::fs::read_to_string(path).map_err(|source| ScenarioError::Io {
             path: path.to_path_buf(),
             source,
@@ -160,7 +174,7 @@ impl Scenario {
                 if let Some(t) = s.zenoh.tls.as_mut() {
                     t.resolve(base);
                 }
-                s.validate()?;
+                s.validate_with(trajectories)?;
                 Ok(s)
             });
         parsed.map_err(|error| ScenarioError::File {
@@ -256,6 +270,11 @@ impl Scenario {
     /// Checks every field and cross-field constraint (including ones that need the trajectory
     /// built, such as the bank angle its turns require).
     pub fn validate(&self) -> Result<(), ScenarioError> {
+        self.validate_with(true)
+    }
+
+    /// [`Scenario::validate`], building the trajectories only when `trajectories`.
+    fn validate_with(&self, trajectories: bool) -> Result<(), ScenarioError> {
         self.world.validate().map_err(|e| e.within("world"))?;
         if self.vehicles.is_empty() {
             return Err(ScenarioError::invalid(
@@ -266,7 +285,12 @@ impl Scenario {
         let world_frame = self.world.earth_model.frame();
         for (i, v) in self.vehicles.iter().enumerate() {
             let prefix = format!("vehicle[{i}]");
-            v.validate(world_frame).map_err(|e| e.within(&prefix))?;
+            if trajectories {
+                v.validate(world_frame)
+            } else {
+                v.validate_except_trajectory(world_frame)
+            }
+            .map_err(|e| e.within(&prefix))?;
             for (j, other) in self.vehicles[..i].iter().enumerate() {
                 if other.id == v.id {
                     return Err(ScenarioError::invalid(

@@ -14,8 +14,10 @@
 //! parallel runs and tests with distinct prefixes never see each other.
 //!
 //! Stale resources: each link creates its own iceoryx2 node named `canopy-{local}-{peer}`; the
-//! node's creation and then an explicit `try_cleanup_dead_nodes` remove what crashed processes
-//! left behind (node monitors, ports, connections).
+//! first link a process opens under a run prefix removes what crashed processes left behind
+//! (`try_cleanup_dead_nodes`: node monitors, ports, connections), and a link that sees its
+//! peer die cleans that node. iceoryx2's own cleanup on every node creation and service open
+//! is off: each lists every node of the run (O(nodes²) to start a team).
 //!
 //! Peer liveness: the peer is up while the incoming data service has a publisher port named
 //! `n{peer}` whose iceoryx2 node also subscribes to our outgoing data service and is alive
@@ -136,8 +138,17 @@ fn iox_config(prefix: &str) -> Result<Config, LinkError> {
     let mut cfg = Config::default();
     cfg.global.prefix = FileName::new(format!("{prefix}_").as_bytes())
         .map_err(|e| LinkError::Config(format!("iceoryx2 prefix: {e:?}")))?;
+    // Dead nodes are cleaned once per process and prefix (`create_node`), not on every node
+    // creation and service open: each of those lists every node of the run and parses its
+    // details file, which made starting a team O(nodes²) (6 listings per link).
+    cfg.global.node.cleanup_dead_nodes_on_creation = false;
+    cfg.global.node.cleanup_dead_nodes_on_destruction = false;
+    cfg.global.service.cleanup_dead_nodes_on_open = false;
     Ok(cfg)
 }
+
+/// Run prefixes whose dead nodes this process has cleaned ([`create_node`]).
+static CLEANED_PREFIXES: std::sync::Mutex<Vec<String>> = std::sync::Mutex::new(Vec::new());
 
 fn data_service_name(from: NodeId, to: NodeId) -> String {
     format!("canopy/link/{from}-{to}/data")
@@ -189,13 +200,26 @@ fn create_node(ix: &IceoryxConfig, name: &str) -> Result<Node<Svc>, LinkError> {
         .signal_handling_mode(SignalHandlingMode::Disabled)
         .create::<Svc>()
         .map_err(err)?;
-    let cleaned = node.try_cleanup_dead_nodes();
-    if cleaned.cleanups > 0 || cleaned.failed_cleanups > 0 {
-        tracing::info!(
-            cleanups = cleaned.cleanups,
-            failed = cleaned.failed_cleanups,
-            "iceoryx2: removed stale resources of dead nodes"
-        );
+    // What crashed processes left behind (a restarted vehicle's predecessor) is removed by
+    // the first link this process opens under the prefix, before it opens any service; a
+    // peer that dies later is cleaned by the link that sees it die (`clean_dead`).
+    let first = {
+        let mut done = CLEANED_PREFIXES.lock().unwrap_or_else(|e| e.into_inner());
+        let first = !done.contains(&ix.run_prefix);
+        if first {
+            done.push(ix.run_prefix.clone());
+        }
+        first
+    };
+    if first {
+        let cleaned = node.try_cleanup_dead_nodes();
+        if cleaned.cleanups > 0 || cleaned.failed_cleanups > 0 {
+            tracing::info!(
+                cleanups = cleaned.cleanups,
+                failed = cleaned.failed_cleanups,
+                "iceoryx2: removed stale resources of dead nodes"
+            );
+        }
     }
     Ok(node)
 }
@@ -263,6 +287,8 @@ pub struct IceoryxLink {
     lent: Arc<AtomicUsize>,
     tracker: PeerTracker,
     last_liveness: Option<Instant>,
+    /// A sample was taken since the last liveness check.
+    heard_since_check: bool,
     iox_config: Config,
     /// Where iceoryx2 keeps the node monitors of this run.
     monitoring_config: <NodeMonitoring as NamedConceptMgmt>::Configuration,
@@ -327,6 +353,7 @@ impl IceoryxLink {
             lent: Arc::new(AtomicUsize::new(0)),
             tracker: PeerTracker::new(),
             last_liveness: None,
+            heard_since_check: false,
             iox_config,
             monitoring_config,
             peer_monitor: None,
@@ -362,6 +389,19 @@ impl IceoryxLink {
         });
         candidates.retain(|id| subscribed.contains(id));
         let mut present = None;
+        // A sample from the peer node that is up since the last check shows it alive; its
+        // monitor is read (two file opens and a lock query) only when nothing came or the
+        // candidates changed. Death is still seen within one interval of the last sample.
+        let heard = std::mem::take(&mut self.heard_since_check);
+        if heard
+            && let ([id], Some((known, _))) = (candidates.as_slice(), &self.peer_monitor)
+            && id == known
+            && self.tracker.state() == PeerState::Up
+        {
+            self.tracker
+                .observe(Some(id.value() as u64 ^ (id.value() >> 64) as u64));
+            return;
+        }
         for id in candidates {
             match self.node_state(id) {
                 MonitorState::Alive => {
@@ -429,6 +469,7 @@ impl IceoryxLink {
             } else {
                 admit(sample.payload().to_vec(), &self.cfg, &self.stats)
             };
+            self.heard_since_check = true;
             if let Some(r) = admitted {
                 return Ok(Some(r));
             }
@@ -576,10 +617,25 @@ impl IceoryxRawSender {
     }
 }
 
-/// Removes what iceoryx2 keeps per prefix after the last node of a run is gone (a 16-byte
-/// global management segment in `/dev/shm`). Call it once a run is over and none of its
-/// processes is alive (the launcher, or a test); returns the number of files removed.
+/// Removes what iceoryx2 keeps per prefix after the last node of a run is gone: the resources
+/// of nodes whose process was killed (nodes do not clean dead ones when they end, see
+/// [`iox_config`]) and a 16-byte global management segment in `/dev/shm`. Call it once a run
+/// is over and none of its processes is alive (the launcher, or a test); returns the number of
+/// `/dev/shm` files removed.
 pub fn remove_run_leftovers(run_prefix: &str) -> usize {
+    if let Ok(cfg) = iox_config(run_prefix) {
+        let listed = Node::<Svc>::list(&cfg, |state| {
+            if let NodeState::Dead(view) = state
+                && let Err(e) = view.try_remove_stale_resources()
+            {
+                tracing::warn!(error = ?e, "iceoryx2: stale resource cleanup failed");
+            }
+            CallbackProgression::Continue
+        });
+        if let Err(e) = listed {
+            tracing::debug!(error = ?e, "iceoryx2: cannot list the run's nodes");
+        }
+    }
     let Ok(dir) = std::fs::read_dir("/dev/shm") else {
         return 0;
     };

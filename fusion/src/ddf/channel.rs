@@ -159,12 +159,19 @@ pub(crate) struct Channel {
     pub(crate) stats: ChannelStats,
 }
 
-/// The node's map information, formed on first use in a round (only exact links need it).
+/// The node's map information, formed on first use in a round (only exact links need it),
+/// with its largest entries (the thresholds of every link's delta). What the source handed
+/// out goes back to it when the round is done ([`MapSource::restore_information`]: a source
+/// may lend its maintained matrix instead of copying it).
 pub(crate) struct LazyInformation<'a> {
     source: &'a mut dyn MapSource,
     origin: Vector3<f64>,
     keys: &'a KeyMap,
     value: Option<MapInformation>,
+    /// max |Y|, max |y| of `value`.
+    norms: (f64, f64),
+    /// `value` is what the source handed out (not a re-keyed copy): it goes back.
+    returnable: bool,
 }
 
 impl<'a> LazyInformation<'a> {
@@ -178,39 +185,64 @@ impl<'a> LazyInformation<'a> {
             origin,
             keys,
             value: None,
+            norms: (0.0, 0.0),
+            returnable: false,
         }
     }
 
-    /// The information, validated and in the node's origin.
-    pub(crate) fn get(&mut self) -> Result<&MapInformation, DdfError> {
+    /// The information, validated and in the node's origin, with its largest matrix and
+    /// vector entries.
+    pub(crate) fn get_with_norms(&mut self) -> Result<(&MapInformation, f64, f64), DdfError> {
         if self.value.is_none() {
             let info = self
                 .source
                 .information()
                 .map_err(DdfError::InvalidEstimate)?;
-            info.validate().map_err(DdfError::InvalidEstimate)?;
-            if info.origin != self.origin {
-                return Err(DdfError::InvalidEstimate(InfoError::OriginMismatch {
-                    left: self.origin.into(),
-                    right: info.origin.into(),
-                }));
+            let checked = info.validate().and_then(|()| {
+                if info.origin != self.origin {
+                    Err(InfoError::OriginMismatch {
+                        left: self.origin.into(),
+                        right: info.origin.into(),
+                    })
+                } else {
+                    Ok(())
+                }
+            });
+            if let Err(e) = checked {
+                self.source.restore_information(info);
+                return Err(DdfError::InvalidEstimate(e));
             }
             // In the node's key space (an estimate that could not apply a merge yet still
             // shares its information under the merged keys).
             // (Moved, not copied, when no merge touches it: it is the size of the map.)
             let info = if self.keys.touches(&info.ids) {
-                info.rekeyed(self.keys)
+                let rekeyed = info.rekeyed(self.keys);
+                self.source.restore_information(info);
+                rekeyed
             } else {
+                self.returnable = true;
                 info
             };
+            self.norms = (info.matrix_norm_max(), info.vector_norm_max());
             self.value = Some(info);
         }
-        Ok(self.value.as_ref().expect("just set"))
+        let (m, v) = self.norms;
+        Ok((self.value.as_ref().expect("just set"), m, v))
     }
 
     /// The source itself (covariance-form reads).
     pub(crate) fn source(&self) -> &dyn MapSource {
         &*self.source
+    }
+}
+
+impl Drop for LazyInformation<'_> {
+    fn drop(&mut self) {
+        if let Some(info) = self.value.take()
+            && self.returnable
+        {
+            self.source.restore_information(info);
+        }
     }
 }
 
@@ -932,15 +964,15 @@ impl Channel {
         ctx: &NodeCtx<'_>,
         out: &mut Vec<DdfMessage>,
     ) -> Result<(), DdfError> {
-        let current = lazy.get()?;
+        let (current, y_max, v_max) = lazy.get_with_norms()?;
         // d = Y_i − C_ik with C_ik = S + R (design.md §4), only its blocks above the threshold.
         let rel = ctx.config.block_threshold_rel;
         let d = store::channel_delta(
             current,
             &self.sent,
             &self.received,
-            rel * current.matrix_norm_max(),
-            rel * current.vector_norm_max(),
+            rel * y_max,
+            rel * v_max,
         )
         .map_err(DdfError::Internal)?;
         if d.is_empty() {

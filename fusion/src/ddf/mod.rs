@@ -177,6 +177,12 @@ pub trait FuseTarget {
 pub trait MapSource {
     /// The map information (Y, y) (eqs. 21.86, 21.87) in the node's origin.
     fn information(&mut self) -> Result<MapInformation, InfoError>;
+    /// Takes back, unchanged, what [`information`](Self::information) returned, once the
+    /// round is done with it: a source that keeps Y up to date can hand that matrix out
+    /// instead of a copy (k × k per round) and keep it. The default drops it.
+    fn restore_information(&mut self, info: MapInformation) {
+        drop(info);
+    }
     /// Every map feature with its 3 × 3 covariance block (submap priorities).
     fn feature_covariances(&self) -> Vec<(FeatureId, Matrix3<f64>)>;
     /// The marginal (x_S, P_S) of `ids` (in that order; unknown ids are skipped).

@@ -323,9 +323,12 @@ pub(crate) fn channel_delta(
         }
         v
     };
-    // Pass 1: which blocks and features are kept.
-    let tri = |p: usize, q: usize| q * (q + 1) / 2 + p;
-    let mut kept_block = vec![false; nf * (nf + 1) / 2];
+    // One pass: every block above the threshold written at its place in the union (both
+    // triangles), the features it joins kept. A block is kept only between kept features, so
+    // dropping the features that carry nothing afterwards moves no kept entry.
+    let n_all = FEATURE_DIM * nf;
+    let mut matrix = Mat::<f64>::zeros(n_all, n_all);
+    let mut vector = Col::<f64>::zeros(n_all);
     let mut keep = vec![false; nf];
     let mut buf = [0.0; BLOCK];
     for q in 0..nf {
@@ -333,47 +336,50 @@ pub(crate) fn channel_delta(
             block(p, q, &mut buf);
             let m = buf.iter().fold(0.0_f64, |m, v| m.max(v.abs()));
             if m > matrix_threshold {
-                kept_block[tri(p, q)] = true;
                 keep[p] = true;
                 keep[q] = true;
-            }
-        }
-    }
-    let mut vector_kept = vec![false; nf];
-    for (u, k) in vector_kept.iter_mut().enumerate() {
-        if vblock(u).iter().any(|v| v.abs() > vector_threshold) {
-            *k = true;
-            keep[u] = true;
-        }
-    }
-    // Pass 2: the kept blocks into the dense output over the kept features.
-    let kept: Vec<usize> = (0..nf).filter(|&u| keep[u]).collect();
-    let n = FEATURE_DIM * kept.len();
-    let mut matrix = Mat::zeros(n, n);
-    let mut vector = Col::zeros(n);
-    for (tq, &q) in kept.iter().enumerate() {
-        for (tp, &p) in kept.iter().enumerate().take(tq + 1) {
-            if !kept_block[tri(p, q)] {
-                continue;
-            }
-            block(p, q, &mut buf);
-            for b in 0..FEATURE_DIM {
-                for a in 0..FEATURE_DIM {
-                    let v = buf[FEATURE_DIM * b + a];
-                    matrix[(FEATURE_DIM * tp + a, FEATURE_DIM * tq + b)] = v;
-                    if tp != tq {
-                        matrix[(FEATURE_DIM * tq + b, FEATURE_DIM * tp + a)] = v;
+                for b in 0..FEATURE_DIM {
+                    let col = matrix.col_as_slice_mut(FEATURE_DIM * q + b);
+                    col[FEATURE_DIM * p..FEATURE_DIM * (p + 1)]
+                        .copy_from_slice(&buf[FEATURE_DIM * b..FEATURE_DIM * (b + 1)]);
+                }
+                if p != q {
+                    for b in 0..FEATURE_DIM {
+                        for a in 0..FEATURE_DIM {
+                            matrix[(FEATURE_DIM * q + b, FEATURE_DIM * p + a)] =
+                                buf[FEATURE_DIM * b + a];
+                        }
                     }
                 }
             }
         }
-        if vector_kept[q] {
-            let v = vblock(q);
+    }
+    for (u, k) in keep.iter_mut().enumerate() {
+        let v = vblock(u);
+        if v.iter().any(|v| v.abs() > vector_threshold) {
+            *k = true;
             for (a, x) in v.iter().enumerate() {
-                vector[FEATURE_DIM * tq + a] = *x;
+                vector[FEATURE_DIM * u + a] = *x;
             }
         }
     }
+    if keep.iter().all(|k| *k) {
+        return Ok(MapInformation {
+            ids,
+            origin: y.origin,
+            matrix,
+            vector,
+        });
+    }
+    // Some features carry nothing: the kept rows and columns only (their blocks as written).
+    let kept: Vec<usize> = (0..nf).filter(|&u| keep[u]).collect();
+    let rows: Vec<usize> = kept
+        .iter()
+        .flat_map(|&u| FEATURE_DIM * u..FEATURE_DIM * (u + 1))
+        .collect();
+    let n = rows.len();
+    let matrix = Mat::from_fn(n, n, |i, j| matrix[(rows[i], rows[j])]);
+    let vector = Col::from_fn(n, |i| vector[rows[i]]);
     Ok(MapInformation {
         ids: kept.iter().map(|&u| ids[u]).collect(),
         origin: y.origin,

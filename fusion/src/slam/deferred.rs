@@ -2,6 +2,13 @@
 //! the estimator keeps applying IMU samples, and the predictions made meanwhile are carried
 //! over to the fused filter afterwards.
 //!
+//! Two ways, both here. The vehicle process hands its whole filter to its fusion thread and
+//! keeps only [`SlamFilter::vehicle_only`] to predict and report from; when the fused filter
+//! comes back it applies the same IMU samples to it again (exactly what one thread doing the
+//! fusion at the round time and predicting afterwards computes, at O(1) per sample; no copy
+//! of P). [`SlamFilter::carry_predictions`] instead carries the predictions made on a filter
+//! over to a fused *copy* of it, to first order:
+//!
 //! Between two frames the filter changes only by prediction (eqs. 21.46, 21.47), which is
 //! linear in the prior: over samples k = 1…m with transitions F_k (linearised along the
 //! trajectory the estimator followed) and noise Q_k,
@@ -33,18 +40,6 @@ use crate::rotation::wrap_angle;
 use crate::state::{ATT, VEHICLE_DIM};
 
 impl SlamFilter {
-    /// A copy of this filter for a deferred fusion, which takes the maintained map information
-    /// Y_mm (`info_cache`) along instead of copying it: one k × k matrix less per round. Until
-    /// the fused copy comes back this filter only predicts, which never reads Y_mm, and then it
-    /// adopts the copy; if the copy is lost, this filter inverts P_mm afresh at its next round
-    /// (the estimate is the same either way).
-    pub fn fusion_snapshot(&mut self) -> SlamFilter {
-        let cache = std::mem::take(&mut self.info_cache);
-        let mut copy = self.clone();
-        copy.info_cache = cache;
-        copy
-    }
-
     /// The vehicles of this filter without its map or stored poses: what
     /// [`SlamFilter::predict`] reads and writes. Flushes the pending transitions first (this
     /// changes only the representation of P), so the part starts with none and this filter's
@@ -52,6 +47,16 @@ impl SlamFilter {
     /// the fusion thread after this call.
     pub fn vehicle_part(&mut self) -> SlamFilter {
         self.flush();
+        self.vehicle_only()
+    }
+
+    /// The vehicles of this filter (means, 15 × 15 blocks, IMU models) without its map, stored
+    /// poses or pending transitions, as a filter of its own that can go on predicting: what
+    /// stands in for the whole filter while that is handed to another thread for a fusion
+    /// round (the vehicle process reports its estimate from it; the IMU samples it predicts are
+    /// then applied again to the fused filter). O(vehicles): the vehicle blocks P_vv are
+    /// current without a flush (prediction updates them at once, module `slam` docs).
+    pub fn vehicle_only(&self) -> SlamFilter {
         let layout = super::Layout::new(self.vehicles.len());
         let n = layout.dim();
         let mut x = faer::Col::zeros(n);

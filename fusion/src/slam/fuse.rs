@@ -49,6 +49,10 @@ pub enum FuseMethod {
     MapInformation,
 }
 
+/// A fusion refused: the error, and the delta when nothing had changed yet (in the filter's
+/// order; see [`SlamFilter::fuse_map_information_owned`]). Boxed: the error path is rare.
+pub type Refused = Box<(SlamError, Option<MapInformation>)>;
+
 /// What a fusion did.
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct FuseReport {
@@ -138,7 +142,10 @@ fn asymmetry_beyond(a: MatRef<'_, f64>, tol: f64) -> Option<(usize, usize)> {
 }
 
 impl SlamFilter {
-    fn validate_information(&self, delta: &MapInformation) -> Result<(), SlamError> {
+    /// Checks a received delta before anything changes: sizes, unique ids, finite values, the
+    /// origin, symmetry to round-off. Returns whether the matrix is *exactly* symmetric (then
+    /// its symmetric part is itself and no pass needs to form it).
+    fn validate_information(&self, delta: &MapInformation) -> Result<bool, SlamError> {
         let k = 3 * delta.ids.len();
         if delta.matrix.nrows() != k || delta.matrix.ncols() != k || delta.vector.nrows() != k {
             return Err(SlamError::InvalidInformation(format!(
@@ -155,7 +162,9 @@ impl SlamFilter {
                 "duplicate feature id {d}"
             )));
         }
-        if !all_finite(delta.matrix.as_ref())
+        // One pass for finiteness and the scale, one (tiled) for the symmetry.
+        let (finite, scale) = crate::info::finite_and_norm_max(&delta.matrix);
+        if !finite
             || !(0..k).all(|i| delta.vector[i].is_finite())
             || !delta.origin.iter().all(|v| v.is_finite())
         {
@@ -165,14 +174,46 @@ impl SlamFilter {
         if (delta.origin - self.config.origin).norm() > 1e-6 {
             return Err(SlamError::OriginMismatch);
         }
-        let scale = delta.matrix.norm_max();
         // Symmetric up to round-off of the sender's own arithmetic (1e-9 relative).
-        if let Some((i, j)) = asymmetry_beyond(delta.matrix.as_ref(), 1e-9 * scale) {
+        let tol = 1e-9 * scale;
+        let worst = crate::info::max_asymmetry(&delta.matrix).0;
+        if worst > tol
+            && let Some((i, j)) = asymmetry_beyond(delta.matrix.as_ref(), tol)
+        {
             return Err(SlamError::InvalidInformation(format!(
                 "matrix is not symmetric at ({i}, {j})"
             )));
         }
-        Ok(())
+        Ok(worst == 0.0)
+    }
+
+    /// `delta` with its features in this filter's order: the ones the filter holds in map
+    /// order, then the new ones in the delta's order (the order they are added in). A
+    /// permutation of rows and columns (exact); no copy when it is in that order already.
+    /// Fusing in the filter's order lets the maintained map information be used as it is
+    /// (no permuted copy of Y_mm) and be updated by a plain sum.
+    fn in_filter_order(&self, delta: MapInformation) -> MapInformation {
+        let nf = delta.ids.len();
+        let mut order: Vec<(usize, usize)> = delta
+            .ids
+            .iter()
+            .enumerate()
+            .map(|(b, &id)| match self.layout.feature_offset(id) {
+                Some(off) => (off, b),
+                None => (usize::MAX, b),
+            })
+            .collect();
+        order.sort_unstable();
+        if order.iter().enumerate().all(|(i, &(_, b))| i == b) {
+            return delta;
+        }
+        let rows: Vec<usize> = order.iter().flat_map(|&(_, b)| 3 * b..3 * b + 3).collect();
+        MapInformation {
+            ids: (0..nf).map(|i| delta.ids[order[i].1]).collect(),
+            origin: delta.origin,
+            matrix: gather(delta.matrix.as_ref(), &rows, &rows),
+            vector: Col::from_fn(rows.len(), |i| delta.vector[rows[i]]),
+        }
     }
 
     /// Adds received map information (ΔY, Δy) to the joint filter (module docs). On any error the
@@ -181,26 +222,50 @@ impl SlamFilter {
         &mut self,
         delta: &MapInformation,
     ) -> Result<FuseReport, SlamError> {
-        self.validate_information(delta)?;
+        let exact = self.validate_information(delta)?;
+        let delta = self.in_filter_order(delta.clone());
+        self.fuse_validated(delta, exact).map_err(|r| r.0)
+    }
+
+    /// [`SlamFilter::fuse_map_information`] taking the delta by value: a delta on the whole map
+    /// in the filter's order (the round's batch of received deltas) is fused in its own buffer
+    /// instead of a copy of it (k × k less at the peak of a round). On an error before the
+    /// filter changed, the delta comes back with it (in the filter's order; `None` after a
+    /// failure that rolled a change back).
+    pub fn fuse_map_information_owned(
+        &mut self,
+        delta: MapInformation,
+    ) -> Result<FuseReport, Refused> {
+        let exact = match self.validate_information(&delta) {
+            Ok(e) => e,
+            Err(e) => return Err(Box::new((e, Some(delta)))),
+        };
+        let delta = self.in_filter_order(delta);
+        self.fuse_validated(delta, exact)
+    }
+
+    /// The fusion of a validated delta in the filter's order ([`SlamFilter::in_filter_order`];
+    /// `exact`: its matrix is exactly symmetric).
+    fn fuse_validated(
+        &mut self,
+        mut delta: MapInformation,
+        exact: bool,
+    ) -> Result<FuseReport, Refused> {
         let o = self.config.origin;
-        // Partition the delta's 3-blocks into known (in the filter) and new features.
-        let mut known_pos = Vec::new(); // delta indices
+        // Partition the delta's 3-blocks into known (in the filter) and new features: known
+        // ones first (filter order).
         let mut known_state = Vec::new(); // state indices
-        let mut new_pos = Vec::new();
         let mut new_ids = Vec::new();
-        for (b, &id) in delta.ids.iter().enumerate() {
+        for &id in &delta.ids {
             match self.layout.feature_offset(id) {
-                Some(off) => {
-                    known_pos.extend(3 * b..3 * b + 3);
-                    known_state.extend(off..off + 3);
-                }
-                None => {
-                    new_pos.extend(3 * b..3 * b + 3);
-                    new_ids.push(id);
-                }
+                Some(off) => known_state.extend(off..off + 3),
+                None => new_ids.push(id),
             }
         }
-        let (nk, nu) = (known_pos.len(), new_pos.len());
+        let nk = known_state.len();
+        let nu = 3 * new_ids.len();
+        let known_pos: Vec<usize> = (0..nk).collect();
+        let new_pos: Vec<usize> = (nk..nk + nu).collect();
         let mut report = FuseReport {
             known_features: nk / 3,
             ..Default::default()
@@ -209,17 +274,50 @@ impl SlamFilter {
             return Ok(report);
         }
         let xk_minus_o = Col::from_fn(nk, |i| self.x[known_state[i]] - o[i % 3]);
-        let y_kk = gather_sym(delta.matrix.as_ref(), &known_pos, &known_pos);
-        let dy_k = Col::from_fn(nk, |i| delta.vector[known_pos[i]]);
+        let dy_k = Col::from_fn(nk, |i| delta.vector[i]);
+        // Deltas on at least half the state go through the map information (module docs).
+        let map_route = nk > 0 && 2 * nk >= self.dim() + nu;
+        // The whole map in map order (the usual batch): Y + ΔY is then the fused marginal
+        // information itself, and ΔY is not needed after it is formed.
+        let whole_map = map_route && nu == 0 && known_state == self.map_state_indices();
+        // ΔY_kk: the delta's own matrix when it is the whole map (no copy), else its leading
+        // block; its symmetric part only when it is not exactly symmetric.
+        let (y_kk, moved) = if whole_map {
+            let mut m = std::mem::replace(&mut delta.matrix, Mat::new());
+            if !exact {
+                crate::info::symmetrize(&mut m);
+            }
+            (m, true)
+        } else if exact {
+            (
+                delta.matrix.as_ref().submatrix(0, 0, nk, nk).to_owned(),
+                false,
+            )
+        } else {
+            (
+                gather_sym(delta.matrix.as_ref(), &known_pos, &known_pos),
+                false,
+            )
+        };
+        // On an error before anything changed, the delta goes back to the caller whole.
+        let give_back = |mut delta: MapInformation, y_kk: Option<Mat<f64>>| {
+            if let Some(m) = y_kk {
+                delta.matrix = m;
+            }
+            Some(delta)
+        };
 
         // Step 1 quantities (no mutation yet).
         let (schur, schur_vec, new_block) = if nu > 0 {
             let y_uu = gather_sym(delta.matrix.as_ref(), &new_pos, &new_pos);
             let y_uk = gather_sym(delta.matrix.as_ref(), &new_pos, &known_pos);
             let dy_u = Col::from_fn(nu, |i| delta.vector[new_pos[i]]);
-            let llt = y_uu
-                .llt(Side::Lower)
-                .map_err(|_| SlamError::NotPositiveDefinite("information on new features ΔY_uu"))?;
+            let Ok(llt) = y_uu.llt(Side::Lower) else {
+                return Err(Box::new((
+                    SlamError::NotPositiveDefinite("information on new features ΔY_uu"),
+                    give_back(delta, None),
+                )));
+            };
             let y_uu_inv = llt.inverse();
             let b = llt.solve(&y_uk); // ΔY_uu⁻¹ ΔY_uk
             let a = llt.solve(dy_u.as_mat()); // ΔY_uu⁻¹ Δy_u
@@ -235,7 +333,10 @@ impl SlamFilter {
                 || !all_finite(y_uu_inv.as_ref())
                 || !(0..nu).all(|i| x_u[i].is_finite()))
         {
-            return Err(SlamError::NumericalFailure("new-feature conditional"));
+            return Err(Box::new((
+                SlamError::NumericalFailure("new-feature conditional"),
+                give_back(delta, None),
+            )));
         }
 
         // Everything that can fail for the known-feature part is computed before any mutation
@@ -244,10 +345,17 @@ impl SlamFilter {
             None
         } else {
             let g = &schur_vec - &schur * &xk_minus_o;
-            if 2 * nk >= self.dim() + nu {
-                Some(self.prepare_map_route(&known_state, schur, g)?)
+            let prepared = if map_route {
+                self.prepare_map_route(&known_state, schur, g)
             } else {
-                Some(self.prepare_pseudo_route(&known_state, &schur, g)?)
+                self.prepare_pseudo_route(&known_state, &schur, g)
+                    .map_err(|e| (e, schur))
+            };
+            match prepared {
+                Ok(r) => Some(r),
+                Err((e, schur)) => {
+                    return Err(Box::new((e, give_back(delta, moved.then_some(schur)))));
+                }
             }
         };
 
@@ -315,8 +423,7 @@ impl SlamFilter {
                     Some(y_aa) => self.apply_map_route(&known_state, &p_aa_post, y_aa, &dx_a),
                     None => Err(SlamError::NumericalFailure("map-information cache")),
                 };
-                // Y_aa⁺ in delta order: the whole map's new information when the delta covers
-                // every feature in map order (no permutation needed).
+                // Y_aa⁺: the whole map's new information when the delta is the whole map.
                 map_route_post = Some(post);
                 r
             }
@@ -327,14 +434,17 @@ impl SlamFilter {
                 self.layout.remove(SlotKind::Feature(*id));
             }
             self.truncate_to(n0);
-            return Err(e);
+            return Err(Box::new((e, None)));
         }
         // New features were appended behind any stored poses: restore vehicles, features, poses.
         self.settle_poses_last();
-        let whole_map_in_order = nu == 0 && known_state == self.map_state_indices();
-        let info_next = info_before.map(|y| {
-            if whole_map_in_order && let Some(post) = map_route_post {
-                return post;
+        let info_next = info_before.and_then(|y| {
+            if whole_map {
+                return map_route_post;
+            }
+            if moved {
+                // ΔY went into the route (cannot happen: `moved` only for the whole map).
+                return None;
             }
             let pos: std::collections::HashMap<FeatureId, usize> = self
                 .layout
@@ -342,10 +452,9 @@ impl SlamFilter {
                 .enumerate()
                 .map(|(i, (id, _))| (id, i))
                 .collect();
-            let k = 3 * pos.len();
-            let k0 = y.nrows();
-            let mut out = Mat::zeros(k, k);
-            out.as_mut().submatrix_mut(0, 0, k0, k0).copy_from(&y);
+            // Y grown in place (spare capacity: no k × k copy per new feature), then + ΔY.
+            let mut out = y;
+            super::info_cache::grow_square(&mut out, 3 * pos.len());
             let at: Vec<usize> = delta
                 .ids
                 .iter()
@@ -354,12 +463,26 @@ impl SlamFilter {
                     b..b + 3
                 })
                 .collect();
-            for (jj, &j) in at.iter().enumerate() {
-                for (ii, &i) in at.iter().enumerate() {
-                    out[(i, j)] += delta.matrix[(ii, jj)];
+            match contiguous(&at) {
+                // The known features in map order, then the new ones: one run of columns.
+                Some(a0) => {
+                    for (jj, j) in (a0..a0 + at.len()).enumerate() {
+                        let src = delta.matrix.col_as_slice(jj);
+                        let dst = &mut out.col_as_slice_mut(j)[a0..a0 + at.len()];
+                        for (d, s) in dst.iter_mut().zip(src) {
+                            *d += s;
+                        }
+                    }
+                }
+                None => {
+                    for (jj, &j) in at.iter().enumerate() {
+                        for (ii, &i) in at.iter().enumerate() {
+                            out[(i, j)] += delta.matrix[(ii, jj)];
+                        }
+                    }
                 }
             }
-            out
+            Some(out)
         });
         self.store_info(info_next);
         Ok(report)
@@ -456,12 +579,14 @@ impl SlamFilter {
     /// the other states b given a: with C = P_ba Y_aa, P_ba⁺ = C P_aa⁺,
     /// P_bb⁺ = P_bb + C (P_aa⁺ − P_aa) Cᵀ, x_a⁺ = x_a + P_aa⁺ g, x_b⁺ = x_b + C (x_a⁺ − x_a).
     /// Cost ≈ two k×k Cholesky inverses + O(n_b·k² + n_b²·k).
+    ///
+    /// On an error Ȳ (`schur`) comes back unchanged with it.
     fn prepare_map_route(
         &self,
         known_state: &[usize],
         schur: Mat<f64>,
         g: Col<f64>,
-    ) -> Result<Route, SlamError> {
+    ) -> Result<Route, (SlamError, Mat<f64>)> {
         let cached = self
             .info_cache
             .y
@@ -517,31 +642,41 @@ impl SlamFilter {
         // `None`: Y_aa is the maintained cache itself (whole map, map order).
         let y_aa: Option<Mat<f64>> = match from_cache {
             Some(y) => y,
-            None => Some(
-                gather(self.p.as_ref(), known_state, known_state)
-                    .llt(Side::Lower)
-                    .map_err(|_| SlamError::NotPositiveDefinite("filter map covariance"))?
-                    .inverse(),
-            ),
+            None => match gather(self.p.as_ref(), known_state, known_state).llt(Side::Lower) {
+                Ok(llt) => Some(llt.inverse()),
+                Err(_) => {
+                    return Err((
+                        SlamError::NotPositiveDefinite("filter map covariance"),
+                        schur,
+                    ));
+                }
+            },
         };
         let y_aa_ref = match (&y_aa, cached) {
             (Some(y), _) => y,
             (None, Some(c)) => c,
-            (None, None) => return Err(SlamError::NumericalFailure("map-information cache")),
+            (None, None) => {
+                return Err((SlamError::NumericalFailure("map-information cache"), schur));
+            }
         };
-        // In place: a fresh k×k allocation per round costs page faults comparable to the sum.
-        let mut post = schur;
-        post += y_aa_ref;
-        // One k×k buffer fewer at once than `llt().inverse()` (the peak of a vehicle's memory).
-        let p_aa_post = crate::info::spd_inverse(post.as_ref())
-            .map_err(|_| SlamError::NotPositiveDefinite("fused information"))?;
+        // P_aa⁺ = (Ȳ + Y_aa)⁻¹, the sum formed straight into the factor's buffer (its Cholesky
+        // is the PD check); Ȳ stays as it is until everything that can fail has passed.
+        let p_aa_post = match crate::info::spd_inverse_of_sum(schur.as_ref(), y_aa_ref.as_ref()) {
+            Ok(p) => p,
+            Err(_) => {
+                return Err((SlamError::NotPositiveDefinite("fused information"), schur));
+            }
+        };
         let dx_a = &p_aa_post * &g;
         if !all_finite(p_aa_post.as_ref())
             || !all_finite(y_aa_ref.as_ref())
             || !all_finite(dx_a.as_mat())
         {
-            return Err(SlamError::NumericalFailure("map-information fusion"));
+            return Err((SlamError::NumericalFailure("map-information fusion"), schur));
         }
+        // Y_aa + Ȳ in Ȳ's buffer: the same sums the factor was formed from.
+        let mut post = schur;
+        post += y_aa_ref;
         Ok(Route::Map {
             p_aa_post,
             y_aa,
@@ -701,15 +836,26 @@ impl SlamFilter {
         &mut self,
         delta: &MapInformation,
     ) -> Result<ForgetReport, SlamError> {
-        let err = match self.fuse_map_information(delta) {
+        self.fuse_map_information_forgetting_owned(delta.clone())
+    }
+
+    /// [`SlamFilter::fuse_map_information_forgetting`] taking the delta by value (see
+    /// [`SlamFilter::fuse_map_information_owned`]).
+    pub fn fuse_map_information_forgetting_owned(
+        &mut self,
+        delta: MapInformation,
+    ) -> Result<ForgetReport, SlamError> {
+        let (err, delta) = match self.fuse_map_information_owned(delta) {
             Ok(fused) => {
                 return Ok(ForgetReport {
                     fused,
                     ..Default::default()
                 });
             }
-            Err(e @ SlamError::NotPositiveDefinite(_)) => e,
-            Err(e) => return Err(e),
+            Err(r) => match *r {
+                (e @ SlamError::NotPositiveDefinite(_), Some(delta)) => (e, delta),
+                (e, _) => return Err(e),
+            },
         };
         let y = self.map_information()?;
         let scale = y.matrix_norm_max().max(delta.matrix_norm_max());
@@ -757,7 +903,7 @@ impl SlamFilter {
             .copied()
             .filter(|id| vanished.contains(id) && !self.layout.has_feature(*id))
             .collect();
-        let fused = self.fuse_map_information(&reduced)?;
+        let fused = self.fuse_map_information_owned(reduced).map_err(|r| r.0)?;
         self.forget_features(&forgotten);
         Ok(ForgetReport {
             fused,

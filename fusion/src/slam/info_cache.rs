@@ -70,24 +70,27 @@ impl SlamFilter {
     }
 
     /// Y⁺ for an EKF update with gain rows M = P Hᵀ and innovation covariance S, if the cache is
-    /// current (computed before P changes; `None` when it is not current or fails).
+    /// current (computed before P changes; `None` when it is not current or fails). The cache is
+    /// taken and updated in place (no k × k copy per update): the caller stores the result
+    /// ([`SlamFilter::store_info`]), and `None` leaves no cache, as storing `None` does.
     pub(super) fn info_after_update(
-        &self,
+        &mut self,
         m: MatRef<'_, f64>,
         s: MatRef<'_, f64>,
     ) -> Option<Mat<f64>> {
         if !self.info_cache_current() {
             return None;
         }
-        let y = self.info_cache.y.as_ref()?;
         let idx = self.map_state_indices();
+        let mut y = self.info_cache.y.take()?;
+        let y_old = &y;
         let r = m.ncols();
         let m_m = Mat::from_fn(idx.len(), r, |i, j| m[(idx[i], j)]);
         let mut w = Mat::zeros(idx.len(), r);
         matmul(
             w.as_mut(),
             Accum::Replace,
-            y.as_ref(),
+            y_old.as_ref(),
             m_m.as_ref(),
             1.0,
             Par::Seq,
@@ -105,32 +108,34 @@ impl SlamFilter {
         let sigma = Mat::from_fn(r, r, |i, j| 0.5 * (sigma[(i, j)] + sigma[(j, i)]));
         let llt = sigma.llt(Side::Lower).ok()?;
         let sol = llt.solve(w.transpose()); // Σ⁻¹ Wᵀ
-        let mut y_new = y.clone();
         matmul(
-            y_new.as_mut(),
+            y.as_mut(),
             Accum::Add,
             w.as_ref(),
             sol.as_ref(),
             1.0,
             Par::Seq,
         );
-        crate::info::symmetrize(&mut y_new);
-        all_finite(&y_new).then_some(y_new)
+        crate::info::symmetrize(&mut y);
+        all_finite(&y).then_some(y)
     }
 
     /// Y of the map augmented with one feature whose cross-covariance with the state is `cross`
     /// (3 × n, state order) and whose covariance is `p_ff`; `None` when not current or failing.
+    /// The cache is taken and bordered in place (grown with spare capacity, [`grow_square`]),
+    /// like [`SlamFilter::info_after_update`].
     pub(super) fn info_after_augment(
-        &self,
+        &mut self,
         cross: MatRef<'_, f64>,
         p_ff: MatRef<'_, f64>,
     ) -> Option<Mat<f64>> {
         if !self.info_cache_current() {
             return None;
         }
-        let y = self.info_cache.y.as_ref()?;
         let idx = self.map_state_indices();
         let k = idx.len();
+        let mut out = self.info_cache.y.take()?;
+        let y = &out;
         let p_mf = Mat::from_fn(k, 3, |i, j| cross[(j, idx[i])]);
         let mut w = Mat::zeros(k, 3);
         matmul(
@@ -152,9 +157,8 @@ impl SlamFilter {
         );
         let sigma = Mat::from_fn(3, 3, |i, j| 0.5 * (sigma[(i, j)] + sigma[(j, i)]));
         let sigma_inv = sigma.llt(Side::Lower).ok()?.inverse();
-        let mut out = Mat::zeros(k + 3, k + 3);
-        out.as_mut().submatrix_mut(0, 0, k, k).copy_from(y);
         let w_si = &w * &sigma_inv;
+        grow_square(&mut out, k + 3);
         let mut top = out.as_mut().submatrix_mut(0, 0, k, k);
         matmul(
             top.as_mut(),
@@ -212,6 +216,60 @@ impl SlamFilter {
     }
 }
 
+/// Grows a square matrix to `n` × `n` in place, the new rows and columns zero, reserving ×1.5
+/// spare capacity when it must re-allocate (the map grows by a feature at a time: without
+/// spare room every new feature would copy the whole k × k matrix). The entries kept are
+/// unchanged.
+pub(super) fn grow_square(m: &mut Mat<f64>, n: usize) {
+    if n <= m.nrows() {
+        return;
+    }
+    // faer re-allocates only when the capacity is short; the columns then keep a stride of the
+    // reserved row capacity (every access here is by column or through views).
+    let cap = n.max(m.nrows() + m.nrows() / 2);
+    if n > capacity(m) {
+        m.reserve(cap, cap);
+    }
+    m.resize_with(n, n, |_, _| 0.0);
+}
+
+/// Rows the columns of `m` have room for (its column stride).
+fn capacity(m: &Mat<f64>) -> usize {
+    usize::try_from(m.col_stride()).unwrap_or(0).max(m.nrows())
+}
+
 fn all_finite(m: &Mat<f64>) -> bool {
-    (0..m.ncols()).all(|j| (0..m.nrows()).all(|i| m[(i, j)].is_finite()))
+    super::update::all_finite(m.as_ref())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Growing keeps every entry, adds zero rows and columns, and leaves room to grow again
+    /// without moving (the column stride does not change while the capacity lasts).
+    #[test]
+    fn grow_square_keeps_entries_and_reserves_room() {
+        let mut m = Mat::from_fn(30, 30, |i, j| (i * 100 + j) as f64);
+        grow_square(&mut m, 33);
+        assert_eq!((m.nrows(), m.ncols()), (33, 33));
+        for j in 0..33 {
+            for i in 0..33 {
+                let want = if i < 30 && j < 30 {
+                    (i * 100 + j) as f64
+                } else {
+                    0.0
+                };
+                assert_eq!(m[(i, j)], want, "({i}, {j})");
+            }
+        }
+        let stride = m.col_stride();
+        assert!(capacity(&m) >= 45);
+        grow_square(&mut m, 36);
+        assert_eq!(m.col_stride(), stride, "grown within the capacity");
+        assert_eq!(m[(29, 29)], 2929.0);
+        assert_eq!(m[(35, 35)], 0.0);
+        grow_square(&mut m, 20); // never shrinks
+        assert_eq!(m.nrows(), 36);
+    }
 }

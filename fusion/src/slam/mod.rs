@@ -39,7 +39,7 @@ mod update;
 
 pub use bearing::{BearingConfig, BearingInit, BearingStats, TrackGate, TrackId, TrackInfo};
 pub use ci_fuse::CiReport;
-pub use fuse::{ForgetReport, FuseMethod, FuseReport, VANISHED_RTOL};
+pub use fuse::{ForgetReport, FuseMethod, FuseReport, Refused, VANISHED_RTOL};
 pub use layout::{Layout, PoseId, Slot, SlotKind};
 
 use crate::consistency::chi2_quantile;
@@ -595,6 +595,17 @@ impl SlamFilter {
     /// origin convention of `info`, keyed by feature id in state order. The inverse is cached
     /// until the map changes, and a later fusion of a whole-map delta reuses it.
     pub fn map_information(&mut self) -> Result<MapInformation, SlamError> {
+        let info = self.take_map_information()?;
+        let out = info.clone();
+        self.restore_map_information(info);
+        Ok(out)
+    }
+
+    /// [`SlamFilter::map_information`] with the maintained Y itself as its matrix instead of a
+    /// copy: the filter holds no map information until it gets it back
+    /// ([`SlamFilter::restore_map_information`]); without that, the next round inverts P_mm
+    /// afresh (the estimate is the same either way).
+    pub fn take_map_information(&mut self) -> Result<MapInformation, SlamError> {
         let feats: Vec<(FeatureId, usize)> = self.layout.features().collect();
         let k = feats.len() * 3;
         let idx: Vec<usize> = feats.iter().flat_map(|&(_, off)| off..off + 3).collect();
@@ -612,14 +623,16 @@ impl SlamFilter {
                 gathered.as_ref()
             }
         };
-        let y = match self.checked_info(p_mm) {
-            Some(y) if y.nrows() == k => y.clone(),
+        let cached = self.checked_info(p_mm).is_some_and(|y| y.nrows() == k);
+        let y = match self.info_cache.y.take() {
+            Some(y) if cached => y,
             _ => {
                 let y = crate::info::spd_inverse(p_mm)
                     .map_err(|_| SlamError::NotPositiveDefinite("map covariance"))?;
+                // Fresh: handed out now, kept when it comes back.
                 self.info_cache = info_cache::InfoCache {
                     generation: self.map_generation,
-                    y: Some(y.clone()),
+                    y: None,
                     steps: 0,
                 };
                 y
@@ -634,6 +647,26 @@ impl SlamFilter {
             matrix: y,
             vector,
         })
+    }
+
+    /// Takes back what [`SlamFilter::take_map_information`] handed out, as the maintained map
+    /// information, if the map has not changed since (same map generation, the same features
+    /// in the same order); otherwise drops it.
+    pub fn restore_map_information(&mut self, info: MapInformation) {
+        let k = 3 * self.layout.num_features();
+        if self.info_cache.y.is_none()
+            && self.info_cache.generation == self.map_generation
+            && info.matrix.nrows() == k
+            && info.matrix.ncols() == k
+            && info.ids.len() == self.layout.num_features()
+            && self
+                .layout
+                .features()
+                .zip(&info.ids)
+                .all(|((id, _), other)| id == *other)
+        {
+            self.info_cache.y = Some(info.matrix);
+        }
     }
 
     /// Drops the maintained map information, so the next [`SlamFilter::map_information`]

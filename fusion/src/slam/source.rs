@@ -14,8 +14,13 @@ use nalgebra::Matrix3;
 
 impl MapSource for SlamFilter {
     fn information(&mut self) -> Result<MapInformation, InfoError> {
-        self.map_information()
+        // The maintained Y itself, given back by `restore_information` (no k × k copy).
+        self.take_map_information()
             .map_err(|e| InfoError::Estimator(e.to_string()))
+    }
+
+    fn restore_information(&mut self, info: MapInformation) {
+        self.restore_map_information(info);
     }
 
     fn feature_covariances(&self) -> Vec<(FeatureId, Matrix3<f64>)> {

@@ -1709,3 +1709,145 @@ fn merging_features_equals_the_dense_re_keying() {
     assert_eq!(f.layout().feature_offset(50), Some(off));
     assert!(f.layout().feature_offset(104).is_none());
 }
+
+/// The vehicle process hands its filter to the fusion thread and predicts on
+/// [`SlamFilter::vehicle_only`] meanwhile, then applies the same samples to the fused filter:
+/// bit for bit what fusing at the round time and predicting afterwards on one filter gives, and
+/// the part's vehicle estimate is the unfused filter's while it stands in.
+#[test]
+fn handing_over_and_replaying_predictions_is_sequential_bit_for_bit() {
+    let mut rng = ChaCha8Rng::seed_from_u64(151);
+    let mut f = random_local_filter(6, &mut rng);
+    f.predict(0, &imu(0.0)).unwrap(); // a pending transition stays with the filter handed over
+    let ids: Vec<FeatureId> = vec![100, 101, 900, 103, 104, 105, 901];
+    let k = 3 * ids.len();
+    let d = delta(
+        ids,
+        random_spd(k, 2.0, &mut rng),
+        &DVector::from_fn(k, |_, _| rng.random_range(-50.0..50.0)),
+        f.origin(),
+    );
+    let samples: Vec<ImuSample> = (1..=25).map(|s| imu(0.01 * f64::from(s))).collect();
+    let mut sequential = f.clone();
+    let mut unfused = f.clone();
+    sequential.fuse_map_information(&d).unwrap();
+    for s in &samples {
+        sequential.predict(0, s).unwrap();
+        unfused.predict(0, s).unwrap();
+    }
+    let mut part = f.vehicle_only();
+    let mut handed = f;
+    for s in &samples {
+        part.predict(0, s).unwrap();
+    }
+    assert_eq!(
+        part.vehicle_state(0).unwrap().to_vector(),
+        unfused.vehicle_state(0).unwrap().to_vector()
+    );
+    assert_eq!(
+        part.vehicle_covariance(0).unwrap(),
+        unfused.vehicle_covariance(0).unwrap()
+    );
+    handed.fuse_map_information(&d).unwrap();
+    for s in &samples {
+        handed.predict(0, s).unwrap();
+    }
+    assert_eq!(col_to_dense(&handed.x), col_to_dense(&sequential.x));
+    assert_eq!(
+        to_dense(&handed.joint_covariance()),
+        to_dense(&sequential.joint_covariance())
+    );
+}
+
+/// The round's map information lent out of the filter ([`SlamFilter::take_map_information`])
+/// is the copy [`SlamFilter::map_information`] returns, bit for bit; given back unchanged it is
+/// the maintained Y again (no re-inversion: the next copy is the same bits); given back after
+/// the map changed (or with other features) it is dropped.
+#[test]
+fn map_information_lent_and_given_back() {
+    let mut rng = ChaCha8Rng::seed_from_u64(152);
+    let mut f = random_local_filter(5, &mut rng);
+    let copy = f.map_information().unwrap();
+    let taken = f.take_map_information().unwrap();
+    assert!(f.info_cache.y.is_none());
+    assert_eq!(taken.ids, copy.ids);
+    assert_eq!(to_dense(&taken.matrix), to_dense(&copy.matrix));
+    assert_eq!(col_to_dense(&taken.vector), col_to_dense(&copy.vector));
+    f.restore_map_information(taken);
+    assert!(f.info_cache_current());
+    let again = f.map_information().unwrap();
+    assert_eq!(to_dense(&again.matrix), to_dense(&copy.matrix));
+    // The map changed while Y was out: what comes back is stale and dropped.
+    let taken = f.take_map_information().unwrap();
+    f.forget_features(&[102]);
+    f.restore_map_information(taken);
+    assert!(f.info_cache.y.is_none());
+    // Other features than the map's: dropped.
+    let mut wrong = f.take_map_information().unwrap();
+    wrong.ids.swap(0, 1);
+    f.restore_map_information(wrong);
+    assert!(f.info_cache.y.is_none());
+}
+
+/// Fusing a delta by value is fusing it by reference, bit for bit, whatever its order (it is
+/// put in the filter's order either way); a delta refused before anything changed comes back
+/// with the error, the same information in the filter's order.
+#[test]
+fn fusing_by_value_equals_fusing_by_reference() {
+    let mut rng = ChaCha8Rng::seed_from_u64(153);
+    let base = random_local_filter(6, &mut rng);
+    // The whole map in another order (the batch path), and the whole map plus new features.
+    for ids in [
+        vec![105u64, 100, 103, 101, 104, 102],
+        vec![100, 101, 102, 103, 104, 105],
+        vec![104, 900, 100, 101, 102, 103, 105, 901],
+    ] {
+        let k = 3 * ids.len();
+        let d = delta(
+            ids.clone(),
+            random_spd(k, 2.0, &mut rng),
+            &DVector::from_fn(k, |_, _| rng.random_range(-50.0..50.0)),
+            base.origin(),
+        );
+        let (mut by_ref, mut by_value) = (base.clone(), base.clone());
+        by_ref.map_information().unwrap(); // both with the maintained Y
+        by_value.map_information().unwrap();
+        let a = by_ref.fuse_map_information(&d).unwrap();
+        let b = by_value.fuse_map_information_owned(d).unwrap();
+        assert_eq!(a, b);
+        assert_eq!(col_to_dense(&by_ref.x), col_to_dense(&by_value.x));
+        assert_eq!(to_dense(&by_ref.p), to_dense(&by_value.p));
+        let (ya, yb) = (
+            by_ref.map_information().unwrap(),
+            by_value.map_information().unwrap(),
+        );
+        assert_eq!(to_dense(&ya.matrix), to_dense(&yb.matrix), "{ids:?}");
+    }
+    // Taking away more than the filter holds: not positive definite, refused, handed back.
+    let mut f = base.clone();
+    let y = f.map_information().unwrap();
+    let ids = vec![102u64, 100, 101, 103, 104, 105];
+    let order: Vec<usize> = ids
+        .iter()
+        .flat_map(|id| {
+            let b = y.index_of(*id).unwrap();
+            3 * b..3 * b + 3
+        })
+        .collect();
+    let k = order.len();
+    let d = MapInformation {
+        ids,
+        origin: y.origin,
+        matrix: Mat::from_fn(k, k, |i, j| -2.0 * y.matrix[(order[i], order[j])]),
+        vector: Col::from_fn(k, |i| -2.0 * y.vector[order[i]]),
+    };
+    let before = (col_to_dense(&f.x), to_dense(&f.p));
+    let (e, back) = *f.fuse_map_information_owned(d.clone()).unwrap_err();
+    assert!(matches!(e, SlamError::NotPositiveDefinite(_)), "{e:?}");
+    let back = back.expect("refused before any change: the delta comes back");
+    assert_eq!(back.ids, y.ids, "in the filter's order");
+    let expect = d.restrict(&y.ids);
+    assert_eq!(to_dense(&back.matrix), to_dense(&expect.matrix));
+    assert_eq!(col_to_dense(&back.vector), col_to_dense(&expect.vector));
+    assert_eq!((col_to_dense(&f.x), to_dense(&f.p)), before);
+}

@@ -4,12 +4,12 @@
 //! processing.
 //!
 //! The estimator thread keeps the links (iceoryx2 ports stay on the thread that opened them)
-//! and forwards what they deliver as [`Job`]s; for a round it lends the fusion thread a copy of
-//! its filter ([`VehicleEstimator::lend`](crate::agent::VehicleEstimator::lend)) and keeps
-//! predicting; the fusion thread fuses the batch into the copy, forms the map information and
-//! the deltas, and hands the copy back ([`Done::Round`]), which the estimator takes back with
-//! the predictions made meanwhile carried over
-//! ([`SlamFilter::carry_predictions`](canopy_fusion::slam::SlamFilter::carry_predictions)).
+//! and forwards what they deliver as [`Job`]s; for a round it hands the fusion thread its
+//! filter ([`VehicleEstimator::lend`](crate::agent::VehicleEstimator::lend)) and keeps
+//! predicting the vehicle's part of it; the fusion thread fuses the batch into the filter,
+//! forms the map information and the deltas, and hands it back ([`Done::Round`]), and the
+//! estimator applies the IMU samples of the meantime to it again
+//! ([`VehicleEstimator::give_back`](crate::agent::VehicleEstimator::give_back)).
 //! Messages for the links come back as [`Done`] too, with the DDF's counters and channel
 //! views for the reports.
 
@@ -47,11 +47,11 @@ pub enum Job {
         /// The neighbour.
         peer: NodeId,
     },
-    /// A fusion round on a lent copy of the filter.
+    /// A fusion round on the filter handed over.
     Round {
         /// Round time [s].
         now: f64,
-        /// The copy.
+        /// The filter.
         filter: Box<SlamFilter>,
         /// Submap budgets of the capacity-limited links for this round
         /// ([`crate::radio::capacity_budgets`]).
@@ -103,11 +103,11 @@ pub enum Done {
         /// Counters and channels now.
         view: FusionView,
     },
-    /// A round done: the fused copy and the round's messages.
+    /// A round done: the fused filter and the round's messages.
     Round {
         /// Round time [s].
         now: f64,
-        /// The lent copy, fused.
+        /// The filter, fused.
         filter: Box<SlamFilter>,
         /// Messages to send.
         out: Vec<Outgoing>,
@@ -169,8 +169,19 @@ impl FusionThread {
                             }
                         }
                     };
+                    let round = match &msg {
+                        Done::Round { filter, .. } => Some(filter.num_features()),
+                        Done::Replies { .. } => None,
+                    };
                     if done_tx.send(msg).is_err() {
                         break;
+                    }
+                    // The heap's idle high-water mark back to the kernel (after the round is
+                    // handed back, so the estimator does not wait for it).
+                    if let Some(features) = round {
+                        canopy_fusion::runtime::trim_heap(canopy_fusion::runtime::heap_slack(
+                            features,
+                        ));
                     }
                 }
             })?;

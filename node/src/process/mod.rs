@@ -165,7 +165,8 @@ pub(crate) fn stop_flag() -> Arc<AtomicBool> {
 
 /// Loads the run's resolved scenario.
 pub(crate) fn load_resolved(c: &RoleCommon) -> Result<Scenario> {
-    let mut s = Scenario::load(&c.scenario)
+    // The launcher validated it in full before writing it (`monitor::resolve`).
+    let mut s = Scenario::load_prevalidated(&c.scenario)
         .with_context(|| format!("loading the run's scenario {}", c.scenario.display()))?;
     if let Ok(p) = std::env::var(ENV_ZENOH_PASSWORD) {
         s.secrets.zenoh_password = Some(p);

@@ -3,10 +3,10 @@
 //! configured links.
 //!
 //! Threads: the estimator thread (this one) applies IMU samples and frames, owns the links and
-//! reports; at each round time it lends a copy of its filter to the fusion thread and goes on
-//! predicting, and takes the fused copy back when it is done (`fusion_thread` module docs). A
-//! frame that arrives while a round is out waits for it (a frame changes the map, which the
-//! round's copy must not miss). Rounds of the vehicles of a team are spread over the round
+//! reports; at each round time it hands its filter to the fusion thread and goes on predicting
+//! the vehicle's part of it, and takes the fused filter back when it is done, applying the IMU
+//! samples of the meantime to it again (`fusion_thread` module docs). A frame that arrives
+//! while a round is out waits for it (a frame changes the map, which is being fused). Rounds of the vehicles of a team are spread over the round
 //! period (`round_phase`).
 //!
 //! Time is the vehicle's simulation time: the time of the last IMU sample applied. It drives
@@ -30,7 +30,7 @@ use canopy_fusion::state::VEHICLE_DIM;
 use canopy_fusion::topology::NodeId;
 use canopy_transport::link::{Link, LinkEvent};
 use canopy_transport::{MessageKind, NodeId as WireId};
-use nalgebra::{SMatrix, Vector3};
+use nalgebra::SMatrix;
 
 use super::fusion_thread::{Done, FusionThread, FusionView, Job};
 use super::protocol::{
@@ -80,14 +80,16 @@ struct Vehicle<'s> {
     give_back_failed: u64,
     /// A round found due at the last IMU sample, not yet sent to the fusion thread.
     round_due: Option<f64>,
+    /// The fusion thread ended while it held the filter (a bug): the process fails.
+    fusion_lost: bool,
 }
 
 /// How long fusion work holds up the estimator thread: the time spent on it between two
 /// consecutive IMU samples, one figure per IMU interval that saw any, as wall time (includes
 /// waiting for a core while other processes run, and waiting for the fusion thread) and as this
 /// thread's CPU time (the work itself). The estimator thread's share of fusion is moving
-/// messages between the links and the fusion thread, lending a copy of the filter and taking
-/// the fused copy back, and waiting for a round a frame needs. Printed to the vehicle's log at
+/// messages between the links and the fusion thread, handing the filter over and taking the
+/// fused filter back, and waiting for a round a frame needs. Printed to the vehicle's log at
 /// the end (`fusion stall: …`, read by `scripts/bench.sh`).
 #[derive(Debug, Default)]
 struct StallMeter {
@@ -104,7 +106,7 @@ struct StallMeter {
 enum Work {
     /// Link events and DDF messages to and from the fusion thread (decoding, encoding).
     Messages = 0,
-    /// Lending a copy of the filter for a round, and taking the fused copy back.
+    /// Handing the filter over for a round, and taking the fused filter back.
     Lend = 1,
     /// Waiting for a round that a frame (or the end of the stream) needs.
     Wait = 2,
@@ -311,8 +313,12 @@ impl Vehicle<'_> {
             self.stall.add(start, Work::Wait);
             match done {
                 Some(d) => self.on_done(d),
-                // The fusion thread is gone (it cannot be, short of a bug): keep estimating.
-                None => break,
+                // The fusion thread is gone (it cannot be, short of a bug), and the filter
+                // lent to it with it: the run loop ends this process with that reason.
+                None => {
+                    self.fusion_lost = true;
+                    break;
+                }
             }
         }
     }
@@ -368,24 +374,22 @@ impl Vehicle<'_> {
     }
 
     fn map_report(&mut self, last: bool) {
-        let f = self.estimator.filter();
-        let features = f
-            .features()
-            .into_iter()
-            .filter_map(|(id, m): (u64, Vector3<f64>)| {
-                let c = f.feature_covariance(id)?;
-                Some(FeatureReport {
-                    id,
-                    mean: [m.x, m.y, m.z],
-                    cov: [
-                        c[(0, 0)],
-                        c[(0, 1)],
-                        c[(0, 2)],
-                        c[(1, 1)],
-                        c[(1, 2)],
-                        c[(2, 2)],
-                    ],
-                })
+        // The map as lent while a round is out (prediction does not change it).
+        let features = self
+            .estimator
+            .map()
+            .iter()
+            .map(|(id, m, c)| FeatureReport {
+                id: *id,
+                mean: [m.x, m.y, m.z],
+                cov: [
+                    c[(0, 0)],
+                    c[(0, 1)],
+                    c[(0, 2)],
+                    c[(1, 1)],
+                    c[(1, 2)],
+                    c[(2, 2)],
+                ],
             })
             .collect();
         let r = Report::Map(MapReport {
@@ -397,15 +401,19 @@ impl Vehicle<'_> {
         self.report(&r);
     }
 
-    /// Sends the round due at `now` to the fusion thread with a copy of the filter.
+    /// Hands the filter to the fusion thread for the round due at `now`.
     fn dispatch_round(&mut self, now: f64) {
         // Rounds closer than the fusion thread takes: one at a time.
         self.wait_for_round();
         self.links.clock.set(now.max(self.t));
         self.service_links();
-        self.naive_bytes += naive_round_bytes(self.estimator.filter().num_features());
+        self.naive_bytes += naive_round_bytes(self.estimator.num_features());
         let start = StallMeter::mark();
-        let filter = Box::new(self.estimator.lend());
+        let filter = match self.estimator.lend() {
+            Ok(f) => Box::new(f),
+            // Out already: only if the fusion thread is gone (`fusion_lost`, a bug); counted.
+            Err(_) => return,
+        };
         let budgets = crate::radio::capacity_budgets(
             self.links.links.iter().map(|(&p, l)| (NodeId(p), l)),
             self.s.fusion.rate_hz,
@@ -483,10 +491,8 @@ impl Vehicle<'_> {
         self.report(&Report::Finished { t });
         eprintln!(
             "{}",
-            self.stall.summary(
-                1.0 / self.cfg_imu_rate,
-                self.estimator.filter().num_features()
-            )
+            self.stall
+                .summary(1.0 / self.cfg_imu_rate, self.estimator.num_features())
         );
     }
 }
@@ -553,6 +559,7 @@ pub fn run(c: &RoleCommon, id: WireId, incarnation: u32) -> Result<()> {
         stall: StallMeter::default(),
         give_back_failed: 0,
         round_due: None,
+        fusion_lost: false,
         incarnation,
         estimator,
         fusion,
@@ -643,6 +650,13 @@ pub fn run(c: &RoleCommon, id: WireId, incarnation: u32) -> Result<()> {
         // Keep fusing while waiting (neighbours' messages) and after the end (the links stay
         // answered until the monitor shuts the run down).
         v.service_links();
+        if v.fusion_lost {
+            let reason = "the fusion thread ended while it held the filter".to_string();
+            v.report(&Report::Failed {
+                reason: reason.clone(),
+            });
+            bail!(reason);
+        }
         if let Some(since) = linger_since {
             if since.elapsed() > LINGER_TIMEOUT {
                 bail!("no shutdown from the monitor after the end of the stream");
