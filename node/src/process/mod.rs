@@ -14,6 +14,8 @@
 //! - [`hub`]: the hub of central mode — a [`crate::agent::HubAgent`] on world time.
 //! - [`host`]: `canopy run --host NAME` — one host's share of a multi-host run, relaying its
 //!   processes' reports to the monitor over zenoh.
+//! - [`router`]: `canopy router` — the zenoh router of a multi-host run in client mode,
+//!   enforcing the run's access control and reporting its refusals to the monitor.
 //! - [`monitor`]: the launcher — spawns, paces events (crash, restart, hub loss), reaps, gathers
 //!   reports into a [`crate::record::RunRecord`], runs the centralized reference, writes outputs.
 //!
@@ -44,6 +46,7 @@ pub mod host;
 pub mod hub;
 pub mod monitor;
 pub mod protocol;
+pub mod router;
 pub mod vehicle;
 pub mod world;
 
@@ -207,6 +210,19 @@ pub(crate) fn decode_body<B: for<'a> Deserialize<'a> + Validate>(m: &Received) -
     m.decode::<B>().ok()
 }
 
+/// The controls waiting on `link` now (its peer events drained); bodies that fail to decode are
+/// counted by the link.
+pub(crate) fn controls(link: &mut dyn Link) -> Vec<protocol::Control> {
+    let mut out = Vec::new();
+    while link.poll_event().is_some() {}
+    while let Ok(Some(m)) = link.try_recv() {
+        if let Some(c) = decode_body::<protocol::Control>(&m) {
+            out.push(c);
+        }
+    }
+    out
+}
+
 /// Waits until `link` reports its peer up (or `timeout`, or `stop`).
 pub(crate) fn wait_peer_up(link: &mut dyn Link, timeout: Duration, stop: &AtomicBool) -> bool {
     let deadline = std::time::Instant::now() + timeout;
@@ -261,6 +277,11 @@ impl std::fmt::Debug for FusionLinks {
 /// - a **connecting** session for its links as end `b`, which listens nowhere: only the
 ///   listeners it connects to reach it, and each of them sends it only its own link's traffic
 ///   (their egress rules).
+///
+/// In client mode (`[zenoh].mode = "client"`, multi-host runs): one **client** session of the
+/// router(s) in `[zenoh].connect` for every net link, listening nowhere and enforcing nothing;
+/// with the team's password it authenticates as the node's user and the router enforces the
+/// ACL of every link (`deploy::router_access`, `canopy router`).
 struct NetSessions {
     /// The session serving links whose end `a` this node is (and, without a password, all).
     listening: Option<ZenohTransport>,
@@ -288,6 +309,32 @@ impl NetSessions {
         };
         let me_user = user(me)?;
         let tls = s.zenoh.tls.as_ref().map(|t| t.for_user(&me_user));
+        if c.host.is_some() && crate::deploy::client_mode(s) {
+            // Through the router: one client session for every net link, listening nowhere;
+            // the router authenticates it as this node's user and enforces the ACL.
+            if !mine.iter().any(|(_, l)| l.transport == TransportKind::Net) {
+                return Ok(Self {
+                    listening: None,
+                    connecting: None,
+                });
+            }
+            let mut cfg = ZenohConfig::new(prefix, Vec::new(), s.zenoh.connect.clone());
+            cfg.mode = canopy_transport::net::ZenohMode::Client;
+            cfg.multicast_scouting = s.zenoh.multicast_scouting;
+            cfg.auth = s.secrets.zenoh_password.clone().map(|password| ZenohAuth {
+                user: me_user,
+                password,
+                accept: Vec::new(),
+            });
+            cfg.tls = tls;
+            return Ok(Self {
+                listening: None,
+                connecting: Some(
+                    ZenohTransport::open(me, cfg)
+                        .context("opening the zenoh client session (through the router)")?,
+                ),
+            });
+        }
         let Some(password) = s.secrets.zenoh_password.clone() else {
             if listen.is_empty() && connect.is_empty() {
                 return Ok(Self {
@@ -356,7 +403,7 @@ impl NetSessions {
     /// The session of a link whose end `a` this node is (`as_a`) or not.
     fn for_link(&self, as_a: bool) -> Option<&ZenohTransport> {
         if as_a {
-            self.listening.as_ref()
+            self.listening.as_ref().or(self.connecting.as_ref())
         } else {
             self.connecting.as_ref().or(self.listening.as_ref())
         }
@@ -414,8 +461,10 @@ impl FusionLinks {
             .collect();
         let mut listen = Vec::new();
         let mut connect = Vec::new();
+        // Through a router, no link has endpoints of its own.
+        let through_router = c.host.is_some() && crate::deploy::client_mode(s);
         for (i, l) in &mine {
-            if l.transport == TransportKind::Net {
+            if l.transport == TransportKind::Net && !through_router {
                 let ep = l
                     .listen
                     .clone()
