@@ -1098,13 +1098,12 @@ vehicles = [5, 6, 8]
     path
 }
 
-/// tree-8 across three emulated machines (own netns, private /dev/shm and /tmp): sound, every
-/// link (three `net` across machines, four `shm` inside them) carried traffic both ways, each
-/// machine ran its own world and its vehicles only, and — issue #14's acceptance — the team's
-/// map RMSE is within 2 % of tree-8 on one host, judged against two one-host runs side by side
-/// ([`assert_rmse_within_one_host_spread`]: the one-host figure itself spreads by up to 3 %
-/// from run to run on a loaded machine, so one run is no fixed reference). Fails where
-/// namespaces cannot be created unless `CANOPY_TEST_NO_NAMESPACES=1`.
+/// tree-8 (with simulation-time delivery) across three emulated machines (own netns, private
+/// /dev/shm and /tmp): sound, every link (three `net` across machines, four `shm` inside them)
+/// carried traffic both ways, each machine ran its own world and its vehicles only, and —
+/// issue #14's acceptance — the team's map RMSE is within 2 % of the same scenario run once on
+/// one host; in fact the maps are the same bit for bit ([`assert_same_as_one_host`]). Fails
+/// where namespaces cannot be created unless `CANOPY_TEST_NO_NAMESPACES=1`.
 #[test]
 fn tree8_on_three_machines_with_private_shm() {
     let _g = serial();
@@ -1141,18 +1140,22 @@ fn tree8_on_three_machines_with_private_shm() {
     for (name, s) in r.print_standing("tree-8 on three machines") {
         assert!(s.coverage >= 0.8, "{name}: coverage {:.2}", s.coverage);
     }
-    assert_rmse_within_one_host_spread(&r, &tree8_one_host(), TREE8_DURATION, 0.02);
+    assert_same_as_one_host(&r, &tree8_one_host(), TREE8_DURATION, 0.02);
 }
 
-/// tree-8.toml without the fixed loopback port of uav2–uav3 (`listen = "tcp/127.0.0.1:7461"`).
+/// tree-8.toml with simulation-time delivery (`[fusion] delivery = "simulation_time"`: the run
+/// does not depend on process timing) and without the fixed loopback port of uav2–uav3
+/// (`listen = "tcp/127.0.0.1:7461"`).
 fn tree8_without_fixed_port() -> String {
     let text = std::fs::read_to_string(topology("tree-8.toml")).expect("tree-8.toml");
     let listen = "listen = \"tcp/127.0.0.1:7461\"";
+    let fusion = "[fusion]\n";
     assert!(
-        text.contains(listen),
+        text.contains(listen) && text.matches(fusion).count() == 1,
         "tree-8.toml changed: update this test"
     );
-    text.lines()
+    text.replace(fusion, "[fusion]\ndelivery = \"simulation_time\"\n")
+        .lines()
         .filter(|l| !l.starts_with(listen))
         .collect::<Vec<_>>()
         .join("\n")
@@ -1173,35 +1176,31 @@ fn tree8_one_host() -> PathBuf {
 }
 
 /// Issue #14's acceptance: the team's map RMSE across hosts within `tol` (2 %) of the same
-/// scenario on one host. One host's own figure spreads from run to run — process timing
-/// decides when each delta arrives relative to each vehicle's measurements, hence the
-/// linearisation points (tree-8, 60 s: 1.895–1.951 m, 3 %, over five runs on a loaded
-/// machine) — so a single one-host run is no fixed reference. The baseline is two one-host runs
-/// of the scenario, side by side with this one, and the bound is `tol` beyond their range:
-/// `[min (1 − tol), max (1 + tol)]`. The figures (both runs, their spread, the offset from
-/// their mean) are printed for the test log.
-fn assert_rmse_within_one_host_spread(r: &procs::Run, single: &Path, duration: &str, tol: f64) {
-    let ones: Vec<f64> = (0..2)
-        .map(|k| one_host(single, duration, k).summary.team.map_rmse_m)
-        .collect();
-    let multi = r.summary.team.map_rmse_m;
-    let (lo, hi) = (ones[0].min(ones[1]), ones[0].max(ones[1]));
-    let mean = 0.5 * (lo + hi);
+/// scenario run once on one host — and, with simulation-time delivery, the same maps bit for
+/// bit: every vehicle applies the same messages at the same simulated instants wherever it runs
+/// (`process::delivery`), so nothing is left to the scheduling of the processes. Prints both
+/// figures and how many rows of `map.csv` (every vehicle's final map and the reference's)
+/// differ; any difference fails.
+fn assert_same_as_one_host(r: &procs::Run, single: &Path, duration: &str, tol: f64) {
+    let one = one_host(single, duration, 0);
+    let (multi, one_rmse) = (r.summary.team.map_rmse_m, one.summary.team.map_rmse_m);
+    let rows = |run: &procs::Run| std::fs::read_to_string(run.file("map.csv")).expect("map.csv");
+    let (a, b) = (rows(r), rows(one));
+    let differ = a.lines().zip(b.lines()).filter(|(x, y)| x != y).count()
+        + a.lines().count().abs_diff(b.lines().count());
     eprintln!(
-        "team map RMSE: across hosts {multi:.3} m ({:+.1} % from the one-host mean); one host \
-         {:.3} m and {:.3} m (spread {:.1} %); bound [{:.3}, {:.3}] m",
-        100.0 * (multi / mean - 1.0),
-        ones[0],
-        ones[1],
-        100.0 * (hi - lo) / mean,
-        lo * (1.0 - tol),
-        hi * (1.0 + tol)
+        "team map RMSE: across hosts {multi:.6} m, one host {one_rmse:.6} m ({:+.3} %); \
+         map.csv rows differing: {differ} of {}",
+        100.0 * (multi / one_rmse - 1.0),
+        b.lines().count()
     );
     assert!(
-        multi >= lo * (1.0 - tol) && multi <= hi * (1.0 + tol),
-        "team map RMSE {multi:.3} m across hosts, one host {ones:?} m: more than {:.0} % \
-         outside the one-host range",
-        100.0 * tol
+        (multi - one_rmse).abs() <= tol * one_rmse,
+        "team map RMSE {multi:.3} m across hosts vs {one_rmse:.3} m on one host"
+    );
+    assert_eq!(
+        differ, 0,
+        "the maps across hosts differ from the one-host run's"
     );
 }
 

@@ -42,6 +42,7 @@ fn parse_vm_hwm(status: &str) -> Option<u64> {
     let kb: u64 = parts.next()?.parse().ok()?;
     (parts.next()? == "kB").then_some(kb * 1024)
 }
+pub(crate) mod delivery;
 pub mod host;
 pub mod hub;
 pub mod monitor;
@@ -523,25 +524,63 @@ impl FusionLinks {
     /// Everything waiting on the links now: peer events and decoded DDF messages, per peer in
     /// arrival order (events first).
     pub fn poll(&mut self) -> Vec<(NodeId, Vec<LinkEvent>, Vec<DdfMessage>)> {
+        self.poll_stamped()
+            .into_iter()
+            .map(|p| (p.peer, p.events, p.msgs.into_iter().map(|m| m.1).collect()))
+            .collect()
+    }
+
+    /// [`FusionLinks::poll`] with each message's simulation time (its envelope's: the sender's
+    /// time when it sent it) and each link's latest time marker
+    /// ([`MessageKind::TIME_MARKER`], simulation-time delivery).
+    pub fn poll_stamped(&mut self) -> Vec<Polled> {
         let mut out = Vec::new();
         for (&peer, link) in &mut self.links {
-            let mut events = Vec::new();
+            let mut p = Polled {
+                peer,
+                events: Vec::new(),
+                msgs: Vec::new(),
+                marker: None,
+            };
             while let Some(e) = link.poll_event() {
-                events.push(e);
+                p.events.push(e);
             }
-            let mut msgs = Vec::new();
             while let Ok(Some(m)) = link.try_recv() {
+                let t = m.header().sim_time;
+                if m.header().kind == MessageKind::TIME_MARKER {
+                    p.marker = Some(p.marker.map_or(t, |x: f64| x.max(t)));
                 // Bodies that fail to decode are counted by the link (`rejected.body`).
-                if let Some(Ok(msg)) = decode_ddf(&m) {
-                    msgs.push(msg);
+                } else if let Some(Ok(msg)) = decode_ddf(&m) {
+                    p.msgs.push((t, msg));
                 }
             }
-            if !events.is_empty() || !msgs.is_empty() {
-                out.push((peer, events, msgs));
+            if !p.events.is_empty() || !p.msgs.is_empty() || p.marker.is_some() {
+                out.push(p);
             }
         }
         out
     }
+
+    /// Sends a time marker stamped `now` on every link (simulation-time delivery: everything
+    /// this node stamps up to `now` has been sent). Undeliverable ones are counted by the link.
+    pub fn send_marker(&mut self, now: f64) {
+        for link in self.links.values_mut() {
+            let _ = send_body(link, MessageKind::TIME_MARKER, 0, now, &());
+        }
+    }
+}
+
+/// What one fusion link delivered ([`FusionLinks::poll_stamped`]).
+#[derive(Debug)]
+pub(crate) struct Polled {
+    /// The neighbour.
+    pub peer: NodeId,
+    /// Its link events, in order.
+    pub events: Vec<LinkEvent>,
+    /// Its DDF messages with their simulation times, in arrival order.
+    pub msgs: Vec<(f64, DdfMessage)>,
+    /// Its latest time marker, if one arrived.
+    pub marker: Option<f64>,
 }
 
 /// The monitor-facing report of one fusion link.

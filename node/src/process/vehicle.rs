@@ -32,6 +32,7 @@ use canopy_transport::link::{Link, LinkEvent};
 use canopy_transport::{MessageKind, NodeId as WireId};
 use nalgebra::{SMatrix, Vector3};
 
+use super::delivery::{Due, SimTimeDelivery};
 use super::fusion_thread::{Done, FusionThread, FusionView, Job};
 use super::protocol::{
     Control, EstimateReport, FeatureReport, FrameAssociations, InitMsg, MONITOR_ID, MapReport,
@@ -80,6 +81,12 @@ struct Vehicle<'s> {
     give_back_failed: u64,
     /// A round found due at the last IMU sample, not yet sent to the fusion thread.
     round_due: Option<f64>,
+    /// `[fusion] delivery = "simulation_time"`: what the links deliver waits for its round.
+    delivery: Option<SimTimeDelivery>,
+    /// SIGTERM / Ctrl-C.
+    stop: Arc<std::sync::atomic::AtomicBool>,
+    /// The monitor's Shutdown arrived while waiting for the neighbours.
+    shutdown: bool,
 }
 
 /// How long fusion work holds up the estimator thread: the time spent on it between two
@@ -245,6 +252,14 @@ impl Vehicle<'_> {
     /// Link events and DDF messages waiting now go to the fusion thread; what it has finished
     /// comes back (replies sent, a fused round taken back).
     fn service_links(&mut self) {
+        if let Some(d) = self.delivery.as_mut() {
+            // Simulation-time delivery: everything waits for its round (`dispatch_round`), and
+            // the fused copy is taken back at the next frame, not when it happens to be ready.
+            for p in self.links.poll_stamped() {
+                d.push(p.peer, p.events, p.msgs, p.marker);
+            }
+            return;
+        }
         let now = self.t;
         let polled = self.links.poll();
         let start = StallMeter::mark();
@@ -298,6 +313,10 @@ impl Vehicle<'_> {
                 self.stall.add(start, Work::Lend);
                 let start = StallMeter::mark();
                 self.links.send(now, out);
+                if self.delivery.is_some() {
+                    // Everything this vehicle stamps up to `now` has gone.
+                    self.links.send_marker(now);
+                }
                 self.stall.add(start, Work::Messages);
             }
         }
@@ -403,6 +422,7 @@ impl Vehicle<'_> {
         self.wait_for_round();
         self.links.clock.set(now.max(self.t));
         self.service_links();
+        self.deliver_due(now);
         self.naive_bytes += naive_round_bytes(self.estimator.filter().num_features());
         let start = StallMeter::mark();
         let filter = Box::new(self.estimator.lend());
@@ -416,6 +436,64 @@ impl Vehicle<'_> {
             budgets,
         });
         self.stall.add(start, Work::Lend);
+    }
+
+    /// Simulation-time delivery: waits until every gated neighbour has sent what it stamps up
+    /// to `round` − one period (`delivery`), then hands the fusion thread what is due before the
+    /// round at `round`, in order. Reports what it waits for once a wall second (the monitor's
+    /// watchdog judges a wait that never ends); a shutdown or a stop ends the wait.
+    fn deliver_due(&mut self, round: f64) {
+        if self.delivery.is_none() {
+            return;
+        }
+        let mut last_status: Option<Instant> = None;
+        loop {
+            let waiting = self
+                .delivery
+                .as_ref()
+                .map(|d| d.waiting_for(round))
+                .unwrap_or_default();
+            if waiting.is_empty() || self.shutdown || self.stop.load(Ordering::Relaxed) {
+                break;
+            }
+            if last_status.is_none_or(|t| t.elapsed() >= STATUS_INTERVAL) {
+                let st = Report::Status {
+                    t: self.t,
+                    state: format!(
+                        "waiting for neighbour(s) {waiting:?} to send what they stamp up to t = \
+                         {:.3} (simulation-time delivery, round at t = {round:.3})",
+                        round - 1.0 / self.s.fusion.rate_hz
+                    ),
+                    bounded_wait: false,
+                };
+                self.report(&st);
+                last_status = Some(Instant::now());
+            }
+            self.shutdown |= super::controls(&mut self.monitor)
+                .iter()
+                .any(|c| matches!(c, Control::Shutdown));
+            std::thread::sleep(Duration::from_millis(1));
+            self.service_links();
+        }
+        let due = self
+            .delivery
+            .as_mut()
+            .map(|d| d.due(round))
+            .unwrap_or_default();
+        for d in due {
+            self.fusion.submit(match d {
+                Due::Event(peer, LinkEvent::PeerUp) => Job::LinkUp {
+                    now: round,
+                    peer: NodeId(peer),
+                },
+                Due::Event(peer, LinkEvent::PeerDown) => Job::LinkDown { peer: NodeId(peer) },
+                Due::Message(peer, msg) => Job::Message {
+                    now: round,
+                    from: NodeId(peer),
+                    msg,
+                },
+            });
+        }
     }
 
     fn on_imu(&mut self, imu: &canopy_fusion::sensor::ImuSample) {
@@ -544,6 +622,17 @@ pub fn run(c: &RoleCommon, id: WireId, incarnation: u32) -> Result<()> {
         }
     };
     let (estimator, fusion) = build_agent(&s, &cfg, &world, &init, epoch)?.into_parts();
+    let delivery = (s.fusion.delivery == crate::network::Delivery::SimulationTime).then(|| {
+        // Gated: the links on which nothing is lost or held back (no faults, no radio).
+        let peers = crate::network::effective_links(&s)
+            .into_iter()
+            .filter(|l| l.a == id || l.b == id)
+            .map(|l| {
+                let peer = if l.a == id { l.b } else { l.a };
+                (peer, l.faults.is_none() && l.radio.is_none())
+            });
+        SimTimeDelivery::new(1.0 / s.fusion.rate_hz, init.time, peers)
+    });
     let fusion = FusionThread::spawn(fusion).context("starting the fusion thread")?;
     let record_dt = s.run.record_interval_s;
     let round_dt = 1.0 / s.fusion.rate_hz;
@@ -553,6 +642,9 @@ pub fn run(c: &RoleCommon, id: WireId, incarnation: u32) -> Result<()> {
         stall: StallMeter::default(),
         give_back_failed: 0,
         round_due: None,
+        delivery,
+        stop: stop.clone(),
+        shutdown: false,
         incarnation,
         estimator,
         fusion,
@@ -580,7 +672,7 @@ pub fn run(c: &RoleCommon, id: WireId, incarnation: u32) -> Result<()> {
     let mut last_status = Instant::now();
     let mut stream_idle_since = Instant::now();
     loop {
-        let mut shutdown = stop.load(Ordering::Relaxed);
+        let mut shutdown = stop.load(Ordering::Relaxed) || v.shutdown;
         while let Ok(Some(m)) = v.monitor.try_recv() {
             if let Some(Control::Shutdown) = decode_body::<Control>(&m) {
                 shutdown = true;
