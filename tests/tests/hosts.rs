@@ -1554,17 +1554,16 @@ fn central_mode_on_two_machines_with_private_shm() {
 /// (10.0.0.3), zenoh's usual router port.
 const ROUTER_ENDPOINT: &str = "tcp/10.0.0.3:7447";
 
-/// `topologies/two-hosts.toml` in client mode: every session (vehicles' net links, host
-/// launchers, monitor) a client of the router at [`ROUTER_ENDPOINT`], the team's password set
-/// (the router enforces the access control), paced at 3× real time (the rogue acts while the
-/// vehicles run).
+/// The shipped `topologies/two-hosts-router.toml` (two-hosts in client mode: every session
+/// — vehicles' net links, host launchers, monitor — a client of the router at
+/// [`ROUTER_ENDPOINT`]) with the team's password (the router enforces the access control),
+/// paced at 3× real time (the rogue acts while the vehicles run).
 fn two_hosts_through_a_router(dir: &Path) -> PathBuf {
     use canopy_node::deploy::ZenohModeConfig;
     use canopy_node::scenario::Scenario;
-    let mut s = Scenario::load(&topology("two-hosts.toml")).expect("two-hosts.toml");
-    s.zenoh.mode = ZenohModeConfig::Client;
-    s.zenoh.monitor = None;
-    s.zenoh.connect = vec![ROUTER_ENDPOINT.to_string()];
+    let mut s = Scenario::load(&topology("two-hosts-router.toml")).expect("two-hosts-router.toml");
+    assert_eq!(s.zenoh.mode, ZenohModeConfig::Client);
+    assert_eq!(s.zenoh.connect, [ROUTER_ENDPOINT]);
     s.run.real_time_factor = Some(3.0);
     s.secrets.zenoh_password = Some(TEAM_PASSWORD.into());
     let path = dir.join("two-hosts-router.toml");
@@ -1608,11 +1607,11 @@ fn rogue_through_the_router(machines: &Machines, prefix: &str) {
 }
 
 /// Issue #14's deployment through a zenoh router: two-hosts in client mode
-/// ([`two_hosts_through_a_router`]) on three emulated machines — alpha (with the monitor),
+/// ([`two_hosts_through_a_router`]: the shipped two-hosts-router.toml) on three emulated machines — alpha (with the monitor),
 /// beta, and the router (`canopy router`) on a machine of its own — every zenoh session a
 /// client of the router, nothing listening anywhere else. The run is sound, both cross-host
 /// links carried fusion traffic both ways with no transport rejection, and the team's map RMSE
-/// is within 5 % of the scenario on one host (the reason of
+/// is within 5 % of two-hosts.toml on one host (the same team, world and seed) (the reason of
 /// [`two_hosts_and_a_monitor_run_the_team`]'s 5 %).
 ///
 /// Access control is the router's: a rogue on beta ([`rogue_through_the_router`]: uav4's valid
@@ -1630,7 +1629,7 @@ fn two_hosts_through_a_router_on_its_own_machine() {
     };
     let work = tempfile::tempdir_in(env!("CARGO_TARGET_TMPDIR")).expect("work directory");
     let scenario = two_hosts_through_a_router(work.path());
-    let prefix = "canopy/two-hosts";
+    let prefix = "canopy/two-hosts-router";
     let r = run_team(
         Some(&machines),
         &scenario,

@@ -28,7 +28,7 @@ use anyhow::{Context, Result, bail};
 use canopy_fusion::ins::{VehicleState, VehicleVector};
 use canopy_fusion::state::VEHICLE_DIM;
 use canopy_fusion::topology::NodeId;
-use canopy_transport::link::{Link, LinkEvent};
+use canopy_transport::link::{Link, LinkEvent, PeerState};
 use canopy_transport::{MessageKind, NodeId as WireId};
 use nalgebra::{SMatrix, Vector3};
 
@@ -51,6 +51,10 @@ use crate::world::{InitialEstimate, World};
 const INIT_TIMEOUT: Duration = Duration::from_secs(120);
 /// How often a process tells the monitor what it is doing (`Report::Status`).
 pub(crate) const STATUS_INTERVAL: Duration = Duration::from_secs(1);
+/// Arrival delivery: how long the first round waits for the vehicle's fault-free links to come
+/// up (zenoh links connect within seconds; a team running at many times real time would
+/// otherwise fuse over them only from whenever that happened to be in simulated time).
+const LINK_WAIT: Duration = Duration::from_secs(60);
 /// After the end of its stream, how long a vehicle keeps serving its links without hearing
 /// from the monitor.
 const LINGER_TIMEOUT: Duration = Duration::from_secs(120);
@@ -87,6 +91,11 @@ struct Vehicle<'s> {
     stop: Arc<std::sync::atomic::AtomicBool>,
     /// The monitor's Shutdown arrived while waiting for the neighbours.
     shutdown: bool,
+    /// Neighbours on fault-free links without radio model: waited for (their link up at the
+    /// first round; with simulation-time delivery, their time markers at every round).
+    gated: Vec<WireId>,
+    /// The first round has been dispatched.
+    first_round_done: bool,
 }
 
 /// How long fusion work holds up the estimator thread: the time spent on it between two
@@ -438,43 +447,44 @@ impl Vehicle<'_> {
         self.stall.add(start, Work::Lend);
     }
 
-    /// Simulation-time delivery: waits until every gated neighbour has sent what it stamps up
-    /// to `round` − one period (`delivery`), then hands the fusion thread what is due before the
-    /// round at `round`, in order. Reports what it waits for once a wall second (the monitor's
-    /// watchdog judges a wait that never ends); a shutdown or a stop ends the wait.
+    /// Before the round at `round`. Simulation-time delivery: waits until every gated neighbour
+    /// has sent what it stamps up to `round` − one period (`delivery`), then hands the fusion
+    /// thread what is due, in order. Arrival delivery: before the first round only, waits (up to
+    /// [`LINK_WAIT`]) for the gated links to come up, so the team starts fusing over them at the
+    /// same simulated time whatever the time zenoh takes to connect.
     fn deliver_due(&mut self, round: f64) {
         if self.delivery.is_none() {
+            // Arrival delivery: the first round waits for the links to come up (below).
+            if !std::mem::replace(&mut self.first_round_done, true) {
+                self.wait_for_neighbours(
+                    None,
+                    |v| v.links_down(),
+                    |w| {
+                        format!(
+                            "waiting for the link(s) to {w:?} to come up before the first round"
+                        )
+                    },
+                );
+            }
             return;
         }
-        let mut last_status: Option<Instant> = None;
-        loop {
-            let waiting = self
-                .delivery
-                .as_ref()
-                .map(|d| d.waiting_for(round))
-                .unwrap_or_default();
-            if waiting.is_empty() || self.shutdown || self.stop.load(Ordering::Relaxed) {
-                break;
-            }
-            if last_status.is_none_or(|t| t.elapsed() >= STATUS_INTERVAL) {
-                let st = Report::Status {
-                    t: self.t,
-                    state: format!(
-                        "waiting for neighbour(s) {waiting:?} to send what they stamp up to t = \
-                         {:.3} (simulation-time delivery, round at t = {round:.3})",
-                        round - 1.0 / self.s.fusion.rate_hz
-                    ),
-                    bounded_wait: false,
-                };
-                self.report(&st);
-                last_status = Some(Instant::now());
-            }
-            self.shutdown |= super::controls(&mut self.monitor)
-                .iter()
-                .any(|c| matches!(c, Control::Shutdown));
-            std::thread::sleep(Duration::from_millis(1));
-            self.service_links();
-        }
+        let period = 1.0 / self.s.fusion.rate_hz;
+        self.wait_for_neighbours(
+            Some(round),
+            |v| {
+                v.delivery
+                    .as_ref()
+                    .map(|d| d.waiting_for(round))
+                    .unwrap_or_default()
+            },
+            |w| {
+                format!(
+                    "waiting for neighbour(s) {w:?} to send what they stamp up to t = {:.3} \
+                     (simulation-time delivery, round at t = {round:.3})",
+                    round - period
+                )
+            },
+        );
         let due = self
             .delivery
             .as_mut()
@@ -493,6 +503,63 @@ impl Vehicle<'_> {
                     msg,
                 },
             });
+        }
+    }
+
+    /// The gated neighbours (fault-free links, no radio) whose link is not up now.
+    fn links_down(&self) -> Vec<WireId> {
+        self.gated
+            .iter()
+            .copied()
+            .filter(|p| {
+                self.links
+                    .links
+                    .get(p)
+                    .is_some_and(|l| l.peer_state() != PeerState::Up)
+            })
+            .collect()
+    }
+
+    /// Waits (servicing the links) until `waiting(self)` is empty, a shutdown or a stop — or,
+    /// without simulation-time delivery (`round` None), [`LINK_WAIT`] has passed, which is
+    /// logged: a link that never comes up must not hold the vehicle forever. Tells the monitor
+    /// what it waits for once a wall second (`describe`); the monitor's watchdog judges a wait
+    /// that makes no progress anywhere.
+    fn wait_for_neighbours(
+        &mut self,
+        round: Option<f64>,
+        waiting: impl Fn(&Self) -> Vec<WireId>,
+        describe: impl Fn(&[WireId]) -> String,
+    ) {
+        let since = Instant::now();
+        let mut last_status: Option<Instant> = None;
+        loop {
+            let w = waiting(self);
+            if w.is_empty() || self.shutdown || self.stop.load(Ordering::Relaxed) {
+                return;
+            }
+            if round.is_none() && since.elapsed() > LINK_WAIT {
+                tracing::warn!(
+                    down = ?w,
+                    "links still down after {} s: starting the first round without them",
+                    LINK_WAIT.as_secs()
+                );
+                return;
+            }
+            if last_status.is_none_or(|t| t.elapsed() >= STATUS_INTERVAL) {
+                let st = Report::Status {
+                    t: self.t,
+                    state: describe(&w),
+                    bounded_wait: false,
+                };
+                self.report(&st);
+                last_status = Some(Instant::now());
+            }
+            self.shutdown |= super::controls(&mut self.monitor)
+                .iter()
+                .any(|c| matches!(c, Control::Shutdown));
+            std::thread::sleep(Duration::from_millis(1));
+            self.service_links();
         }
     }
 
@@ -552,6 +619,11 @@ impl Vehicle<'_> {
             self.dispatch_round(now);
         }
         self.wait_for_round();
+        if self.delivery.is_some() {
+            // Simulation-time delivery: this vehicle applies nothing more and sends nothing
+            // more, so its neighbours need not wait for it (a replayed log may end early).
+            self.links.send_marker(f64::MAX);
+        }
         // Always: the counters must include what came after the last record time (a frame
         // follows the sample that triggered that report); the monitor keeps one estimate per
         // time.
@@ -622,17 +694,18 @@ pub fn run(c: &RoleCommon, id: WireId, incarnation: u32) -> Result<()> {
         }
     };
     let (estimator, fusion) = build_agent(&s, &cfg, &world, &init, epoch)?.into_parts();
-    let delivery = (s.fusion.delivery == crate::network::Delivery::SimulationTime).then(|| {
-        // Gated: the links on which nothing is lost or held back (no faults, no radio).
-        let peers = crate::network::effective_links(&s)
-            .into_iter()
-            .filter(|l| l.a == id || l.b == id)
-            .map(|l| {
-                let peer = if l.a == id { l.b } else { l.a };
-                (peer, l.faults.is_none() && l.radio.is_none())
-            });
-        SimTimeDelivery::new(1.0 / s.fusion.rate_hz, init.time, peers)
-    });
+    // Gated: the links on which nothing is lost or held back (no faults, no radio).
+    let peers: Vec<(WireId, bool)> = crate::network::effective_links(&s)
+        .into_iter()
+        .filter(|l| l.a == id || l.b == id)
+        .map(|l| {
+            let peer = if l.a == id { l.b } else { l.a };
+            (peer, l.faults.is_none() && l.radio.is_none())
+        })
+        .collect();
+    let gated = peers.iter().filter(|p| p.1).map(|p| p.0).collect();
+    let delivery = (s.fusion.delivery == crate::network::Delivery::SimulationTime)
+        .then(|| SimTimeDelivery::new(1.0 / s.fusion.rate_hz, init.time, peers));
     let fusion = FusionThread::spawn(fusion).context("starting the fusion thread")?;
     let record_dt = s.run.record_interval_s;
     let round_dt = 1.0 / s.fusion.rate_hz;
@@ -645,6 +718,8 @@ pub fn run(c: &RoleCommon, id: WireId, incarnation: u32) -> Result<()> {
         delivery,
         stop: stop.clone(),
         shutdown: false,
+        gated,
+        first_round_done: false,
         incarnation,
         estimator,
         fusion,
@@ -679,6 +754,8 @@ pub fn run(c: &RoleCommon, id: WireId, incarnation: u32) -> Result<()> {
             }
         }
         if shutdown {
+            // No waiting for the neighbours any more (simulation-time delivery).
+            v.shutdown = true;
             if !ended {
                 v.finish();
             }
