@@ -550,7 +550,8 @@ impl Vehicle<'_> {
                 let st = Report::Status {
                     t: self.t,
                     state: describe(&w),
-                    bounded_wait: false,
+                    // The first round's wait for the links has its own deadline.
+                    bounded_wait: round.is_none(),
                 };
                 self.report(&st);
                 last_status = Some(Instant::now());
