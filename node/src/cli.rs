@@ -28,6 +28,10 @@ pub enum Command {
     Run(LaunchArgs),
     /// Run a scenario in one deterministic process (simulated network).
     Sim(RunArgs),
+    /// The zenoh router of a multi-host run in client mode (`[zenoh].mode = "client"`): every
+    /// session of the run connects to it; it enforces the scenario's access control and
+    /// reports what it refused to the monitor. Start it first; it ends after the run.
+    Router(RouterArgs),
     /// Validate a scenario and explain what it will run.
     Check {
         /// Scenario TOML file.
@@ -88,6 +92,26 @@ pub struct LaunchArgs {
     /// `--monitor`: seconds to wait for every host to connect before giving up.
     #[arg(long, value_name = "SECONDS", default_value_t = 300.0)]
     pub wait_hosts: f64,
+}
+
+/// Arguments of `router`.
+#[derive(Debug, Args)]
+pub struct RouterArgs {
+    /// Scenario TOML file (the same as the monitor's and every host's).
+    pub scenario: PathBuf,
+    /// Endpoint to listen on, e.g. `tcp/0.0.0.0:7447` (repeatable; default: every endpoint of
+    /// `[zenoh].connect`).
+    #[arg(long, value_name = "ENDPOINT")]
+    pub listen: Vec<String>,
+    /// Override the simulated duration [s] (the same as the monitor's).
+    #[arg(long)]
+    pub duration: Option<f64>,
+    /// Seconds to wait for the monitor to answer before giving up.
+    #[arg(long, value_name = "SECONDS", default_value_t = 300.0)]
+    pub monitor_wait: f64,
+    /// No progress lines.
+    #[arg(long)]
+    pub quiet: bool,
 }
 
 /// Arguments of `run` and `sim`.
@@ -308,6 +332,18 @@ fn cmd_run_host(args: &LaunchArgs, s: Scenario, name: &str) -> Result<()> {
     Ok(())
 }
 
+fn cmd_router(args: &RouterArgs) -> Result<()> {
+    let s = load_scenario(Some(&args.scenario))?;
+    let opts = crate::process::router::RouterOptions {
+        listen: args.listen.clone(),
+        duration: args.duration,
+        monitor_wait: seconds("--monitor-wait", args.monitor_wait)?,
+        quiet: args.quiet,
+        stop: ctrl_c_flag(),
+    };
+    crate::process::router::run_router(s, &opts)
+}
+
 fn cmd_run(args: &LaunchArgs) -> Result<()> {
     let s = load_scenario(args.run.scenario.as_deref())?;
     if let Some(name) = &args.host {
@@ -512,15 +548,20 @@ fn cmd_check(path: &Path) -> Result<()> {
             nodes.join(", ")
         );
     }
-    if !s.hosts.is_empty() {
+    if !s.hosts.is_empty() && crate::deploy::client_mode(&s) {
+        println!(
+            "  hosts (client mode): `canopy router SCENARIO` first on the router's machine \
+             (listening on {}), then `canopy run SCENARIO --monitor` and `canopy run SCENARIO \
+             --host NAME` on each host, all connecting to it; plain `canopy run` runs every \
+             host's share on this machine, peer to peer (docs/arch/deploy.md)",
+            s.zenoh.connect.join(", ")
+        );
+    } else if !s.hosts.is_empty() {
         println!(
             "  hosts: `canopy run SCENARIO --monitor` on the monitor's machine ({}), then \
              `canopy run SCENARIO --host NAME` on each host; plain `canopy run` runs every \
              host's share on this machine (docs/arch/deploy.md)",
-            s.zenoh
-                .monitor
-                .as_deref()
-                .unwrap_or("through the zenoh routers of [zenoh].connect")
+            s.zenoh.monitor.as_deref().unwrap_or("?")
         );
     }
     for e in &s.events {
@@ -673,6 +714,7 @@ pub fn run_cli(cli: Cli) -> Result<()> {
     match cli.command {
         Command::Sim(args) => cmd_sim(&args),
         Command::Run(args) => cmd_run(&args),
+        Command::Router(args) => cmd_router(&args),
         Command::Role(args) => crate::process::run_role(args),
         Command::Check { scenario } => cmd_check(&scenario),
         Command::Compare { dirs } => cmd_compare(&dirs),

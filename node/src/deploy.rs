@@ -43,7 +43,9 @@ pub enum ZenohModeConfig {
     /// launchers connect to the monitor (default).
     #[default]
     Peer,
-    /// Through zenoh router(s): every session is a client of the routers in `[zenoh].connect`.
+    /// Through a zenoh router (`canopy router`): every session of a multi-host run is a client
+    /// of the router at `[zenoh].connect`, which routes between them and enforces the access
+    /// control.
     Client,
 }
 
@@ -53,9 +55,12 @@ pub enum ZenohModeConfig {
 pub struct ZenohDeploy {
     /// `peer` (default) or `client`.
     pub mode: ZenohModeConfig,
-    /// `client` mode: the router endpoints the control plane's sessions connect to (*required*
-    /// there; the routers are run by the user, e.g. `zenohd`; the vehicles' `net` links do not
-    /// use them yet, and client mode is not tested: docs/arch/deploy.md).
+    /// `client` mode: the endpoint(s) of the zenoh router (`canopy router SCENARIO`, which
+    /// enforces the run's access control and reports its refusals to the monitor); every
+    /// session of a multi-host run — vehicles' `net` links, hub, host launchers, monitor —
+    /// connects there and listens nowhere (*required* there). Several endpoints are several
+    /// addresses of that router (a client uses the first that answers); the router listens on
+    /// all of them unless told otherwise (`canopy router --listen`).
     #[serde(skip_serializing_if = "Vec::is_empty")]
     pub connect: Vec<String>,
     /// `peer` mode: the endpoint the monitor listens on, e.g. `tcp/10.0.0.1:7450`; every host
@@ -160,6 +165,81 @@ pub struct HostSpec {
 
 /// zenoh user of the monitor.
 pub const MONITOR_USER: &str = "monitor";
+
+/// zenoh user of the router (`canopy router`, client mode); reserved (no node, host or the
+/// monitor may take it).
+pub const ROUTER_USER: &str = "router";
+
+/// The run's sessions are clients of zenoh router(s) (`[zenoh].mode = "client"`) — in a
+/// multi-host run (`--host`, `--monitor`, `canopy router`); a single-host `canopy run` keeps its
+/// vehicles' net links peer to peer on loopback.
+pub fn client_mode(s: &Scenario) -> bool {
+    s.zenoh.mode == ZenohModeConfig::Client && !s.hosts.is_empty()
+}
+
+/// Every zenoh user of a multi-host run: its fusion nodes (vehicles, the hub), its host
+/// launchers (`host-NAME`) and the monitor.
+pub fn team_users(s: &Scenario) -> Vec<String> {
+    let mut users: Vec<String> = node_names(s).into_values().collect();
+    users.extend(s.hosts.iter().map(host_user));
+    users.push(MONITOR_USER.to_string());
+    users
+}
+
+/// The access control of a client-mode run's router (`canopy router`), built from the key
+/// layout, default deny:
+/// - fusion plane (`key_prefix`): both directions of every `net` link — the user of each end
+///   may publish, subscribe and hold / watch liveliness only on its own side of that link, so
+///   two nodes talk through the router exactly on their `net` links (not on `shm` ones, not
+///   with a non-neighbour, not as another node);
+/// - control plane (`control_prefix`): host `i` ↔ the monitor for every host, and the router
+///   ↔ the monitor (its own link, [`crate::process::protocol::ROUTER_ID`], on which it reports
+///   its refusals).
+pub fn router_access(s: &Scenario) -> canopy_transport::access::ZenohAccess {
+    use crate::process::protocol::{MONITOR_ID, ROUTER_ID};
+    use canopy_transport::access::{AclLink, ZenohAccess};
+    let names = node_names(s);
+    let user = |id: u32| {
+        names
+            .get(&id)
+            .cloned()
+            .unwrap_or_else(|| format!("node{id}"))
+    };
+    let both = |ua: String, a: u32, ub: String, b: u32| {
+        [
+            AclLink {
+                user: ua,
+                from: a,
+                to: b,
+            },
+            AclLink {
+                user: ub,
+                from: b,
+                to: a,
+            },
+        ]
+    };
+    let fusion: Vec<AclLink> = effective_links(s)
+        .iter()
+        .filter(|l| l.transport == TransportKind::Net)
+        .flat_map(|l| both(user(l.a), l.a, user(l.b), l.b))
+        .collect();
+    let mut control: Vec<AclLink> = s
+        .hosts
+        .iter()
+        .enumerate()
+        .flat_map(|(i, h)| both(host_user(h), i as u32, MONITOR_USER.into(), MONITOR_ID))
+        .collect();
+    // The router's own link: only the monitor's side is a client's (the router's own session
+    // is not subject to its access control; its egress to the monitor is).
+    control.push(AclLink {
+        user: MONITOR_USER.into(),
+        from: MONITOR_ID,
+        to: ROUTER_ID,
+    });
+    ZenohAccess::for_links(&key_prefix(s), &fusion)
+        .merge(ZenohAccess::for_links(&control_prefix(s), &control))
+}
 
 /// zenoh user of a host launcher.
 pub fn host_user(h: &HostSpec) -> String {
@@ -354,6 +434,13 @@ pub fn validate(s: &Scenario) -> Result<(), ScenarioError> {
                 "client mode needs the zenoh router endpoint(s)",
             ));
         }
+        ZenohModeConfig::Client if z.monitor.is_some() => {
+            return Err(ScenarioError::invalid(
+                "zenoh.monitor",
+                "client mode reaches the monitor through the router(s) of [zenoh].connect: \
+                 remove `monitor` (it is the endpoint the monitor listens on in peer mode)",
+            ));
+        }
         _ => {}
     }
     let names = node_names(s);
@@ -361,7 +448,14 @@ pub fn validate(s: &Scenario) -> Result<(), ScenarioError> {
         .iter()
         .map(|(id, n)| (n.clone(), format!("node {id}")))
         .collect();
-    users.insert(MONITOR_USER.into(), "the monitor".into());
+    for (reserved, what) in [(MONITOR_USER, "the monitor"), (ROUTER_USER, "the router")] {
+        if let Some(node) = users.insert(reserved.into(), what.into()) {
+            return Err(ScenarioError::invalid(
+                "vehicle.name",
+                format!("`{reserved}` is the zenoh user of {what}; {node} may not be called so"),
+            ));
+        }
+    }
     let mut seen: BTreeMap<u32, String> = BTreeMap::new();
     let mut hub_hosts = 0;
     for (i, h) in s.hosts.iter().enumerate() {
@@ -636,6 +730,74 @@ mod tests {
                 assert!(e.contains(x), "{what}: {e:?} lacks {x:?}");
             }
         }
+    }
+
+    /// Client mode: the router's access control grants each node exactly its own side of its
+    /// `net` links (none of its `shm` ones), each host launcher its control link, the monitor
+    /// its side of every control link and of the router's; every user of the run is listed.
+    #[test]
+    fn the_router_grants_exactly_the_net_links_and_the_control_links() {
+        use crate::process::protocol::{MONITOR_ID, ROUTER_ID};
+        use canopy_transport::access::{AclFlow, AclMessage};
+        let mut s = tree8_on_three_hosts();
+        s.zenoh.mode = ZenohModeConfig::Client;
+        s.zenoh.monitor = None;
+        s.zenoh.connect = vec!["tcp/10.0.0.9:7447".into()];
+        validate(&s).unwrap();
+        assert!(client_mode(&s));
+        let acl = router_access(&s);
+        let puts = |user: &str| -> Vec<String> {
+            let mut v: Vec<String> = acl
+                .grants
+                .iter()
+                .filter(|g| {
+                    g.user == user && g.flow == AclFlow::Ingress && g.message == AclMessage::Put
+                })
+                .flat_map(|g| g.keys.clone())
+                .collect();
+            v.sort();
+            v
+        };
+        // uav2: net links to uav3 and uav6; its shm link to uav1 is not the router's business.
+        assert_eq!(
+            puts("uav2"),
+            vec!["canopy/tree-8/link/2/3", "canopy/tree-8/link/2/6"]
+        );
+        assert_eq!(puts("uav1"), Vec::<String>::new());
+        assert_eq!(puts("uav8"), vec!["canopy/tree-8/link/8/7"]);
+        assert_eq!(
+            puts("host-beta"),
+            vec![format!("canopy/tree-8/ctl/link/1/{MONITOR_ID}")]
+        );
+        let mut monitor = puts("monitor");
+        monitor.retain(|k| k.ends_with(&format!("/{ROUTER_ID}")));
+        assert_eq!(
+            monitor,
+            vec![format!("canopy/tree-8/ctl/link/{MONITOR_ID}/{ROUTER_ID}")]
+        );
+        assert_eq!(
+            acl.announce,
+            vec!["canopy/tree-8/link/**", "canopy/tree-8/ctl/link/**"]
+        );
+        let users = team_users(&s);
+        for u in ["uav1", "uav8", "host-alpha", "host-gamma", "monitor"] {
+            assert!(users.iter().any(|x| x == u), "{u} in {users:?}");
+        }
+        assert!(!users.iter().any(|x| x == ROUTER_USER));
+
+        // Client mode has no monitor endpoint; `router` is the router's user.
+        let mut bad = s.clone();
+        bad.zenoh.monitor = Some("tcp/10.0.0.1:7450".into());
+        let e = validate(&bad).unwrap_err().to_string();
+        assert!(
+            e.contains("zenoh.monitor") && e.contains("client mode"),
+            "{e}"
+        );
+        let mut bad = s.clone();
+        bad.hosts[0].name = "x".into();
+        bad.vehicles[0].name = Some(ROUTER_USER.into());
+        let e = validate(&bad).unwrap_err().to_string();
+        assert!(e.contains("router"), "{e}");
     }
 
     /// Central mode: the hub belongs to exactly one host and its links to vehicles elsewhere

@@ -166,6 +166,28 @@ pub struct FusionConfig {
     pub hello_interval_s: f64,
     /// How long a sequence gap may persist before a Nack [s] (default 2).
     pub gap_timeout_s: f64,
+    /// When a vehicle process applies a neighbour's DDF message (`canopy run`; `canopy sim`
+    /// is deterministic either way): `arrival` (default: as soon as it arrives) or
+    /// `simulation_time` (at the receiver's first round one round period after the message's
+    /// simulation time, waiting for it if needed: the run no longer depends on process timing;
+    /// decentralized mode, fault-free links; `process::delivery`).
+    pub delivery: Delivery,
+}
+
+/// When a vehicle process applies what its neighbours send (`[fusion] delivery`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "snake_case")]
+pub enum Delivery {
+    /// As it arrives: the round that fuses a message is the first after its arrival in wall
+    /// time, so the outcome depends on process scheduling (the runs of one scenario spread).
+    #[default]
+    Arrival,
+    /// At simulation-time boundaries: a message stamped `t` (its sender's round time) is
+    /// applied at the receiver's first round at or after `t + 1/rate_hz`, and a vehicle waits
+    /// at each round until every neighbour on a fault-free link has sent everything it stamps up
+    /// to then. Every vehicle then sees the same messages at the same simulated instants, run
+    /// after run and on one host or several (`process::delivery`).
+    SimulationTime,
 }
 
 impl Default for FusionConfig {
@@ -183,6 +205,7 @@ impl Default for FusionConfig {
             hub_id: 0,
             hello_interval_s: 1.0,
             gap_timeout_s: 2.0,
+            delivery: Delivery::Arrival,
         }
     }
 }
@@ -724,6 +747,16 @@ pub fn validate(s: &Scenario) -> Result<(), ScenarioError> {
             "fusion.hub_id",
             format!(
                 "ids from {FIRST_RESERVED_NODE_ID} up are reserved for the world and monitor processes"
+            ),
+        ));
+    }
+    if f.delivery == Delivery::SimulationTime && f.mode != FusionMode::Decentralized {
+        return Err(ScenarioError::invalid(
+            "fusion.delivery",
+            format!(
+                "simulation_time delivery is built for decentralized mode (the hub of central \
+                 mode applies messages as they arrive); this scenario is {}",
+                f.mode
             ),
         ));
     }

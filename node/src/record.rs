@@ -195,4 +195,8 @@ pub struct RunRecord {
     /// origin + t, in the recording's time base.
     #[serde(default)]
     pub time_origin_ns: Option<u64>,
+    /// What the zenoh router's access control refused of its clients (multi-host runs in
+    /// client mode, `canopy router`), by `"<action> on <key>"`; empty otherwise.
+    #[serde(default)]
+    pub router_access_refused: std::collections::BTreeMap<String, u64>,
 }

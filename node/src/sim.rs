@@ -896,6 +896,7 @@ pub fn simulate(s: &Scenario, mut opts: SimOptions<'_>) -> Result<SimOutcome, Si
         time_origin_ns: s.run.time_origin_ns,
         team_wrong_merges: truth.team_wrong_merges(),
         identity: s.world.appearance.identity.to_string(),
+        router_access_refused: Default::default(),
     };
     record.events.sort_by(|a, b| a.t.total_cmp(&b.t));
     Ok(SimOutcome {

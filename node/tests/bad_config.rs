@@ -105,6 +105,14 @@ fn cases() -> Vec<Case> {
             expect: Invalid("fusion.gate_probability", "must be in (0, 1)"),
         },
         Case {
+            kind: "simulation-time delivery outside decentralized mode",
+            edit: (
+                "mode = \"decentralized\"",
+                "mode = \"isolated\"\ndelivery = \"simulation_time\"",
+            ),
+            expect: Invalid("fusion.delivery", "decentralized mode"),
+        },
+        Case {
             kind: "bad number (zero feature count)",
             edit: ("features = { count = 400,", "features = { count = 0,"),
             expect: Invalid("world.features.count", "must be in 1..="),

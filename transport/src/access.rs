@@ -94,10 +94,10 @@ pub struct AclGrant {
 pub struct ZenohAccess {
     /// Everything allowed; all else is refused.
     pub grants: Vec<AclGrant>,
-    /// Key prefix of the run: every accepted user is told which `{prefix}/link/**` keys this
-    /// node subscribes to (egress of subscriber declarations), so that a publication it is not
+    /// Key expressions (`{prefix}/link/**` of each key prefix served) whose subscriber
+    /// declarations every accepted user is told of (egress), so that a publication it is not
     /// allowed to make is sent and refused here — counted — rather than silently never routed.
-    pub key_prefix: String,
+    pub announce: Vec<String>,
 }
 
 /// A directed link of canopy's layout that a user may carry: `from → to`, `from` being the
@@ -161,7 +161,7 @@ impl ZenohAccess {
             }
         }
         Self {
-            key_prefix: key_prefix.to_string(),
+            announce: vec![format!("{key_prefix}/link/**")],
             grants: by_user
                 .into_iter()
                 .map(|((user, flow, message), keys)| AclGrant {
@@ -172,6 +172,18 @@ impl ZenohAccess {
                 })
                 .collect(),
         }
+    }
+
+    /// The rules of `self` and `other` together: a router serving several key prefixes (the
+    /// fusion links and the control plane of a run) enforces both sets.
+    pub fn merge(mut self, other: ZenohAccess) -> Self {
+        self.grants.extend(other.grants);
+        for a in other.announce {
+            if !self.announce.contains(&a) {
+                self.announce.push(a);
+            }
+        }
+        self
     }
 
     /// zenoh's `access_control` configuration block (JSON5) for a node that accepts the users
@@ -185,9 +197,9 @@ impl ZenohAccess {
         let announce = "announce".to_string();
         let mut rules = vec![format!(
             "{{id: {}, messages: [\"declare_subscriber\"], flows: [\"egress\"], \
-             permission: \"allow\", key_exprs: [{}]}}",
+             permission: \"allow\", key_exprs: {}}}",
             json_str(&announce),
-            json_str(&format!("{}/link/**", self.key_prefix))
+            json_list(&self.announce)
         )];
         let mut policies: Vec<Vec<String>> = vec![vec![announce]; users.len()];
         for (i, g) in self.grants.iter().enumerate() {

@@ -73,6 +73,9 @@ impl MessageKind {
     pub const CONTROL: Self = Self(7);
     /// Liveness heartbeat.
     pub const HEARTBEAT: Self = Self(8);
+    /// A simulation-time marker on a fusion link (empty body): the sender has sent everything
+    /// it stamps with a time up to the header's (simulation-time delivery, canopy-node).
+    pub const TIME_MARKER: Self = Self(9);
 
     /// Name of a known kind, `None` for codes this build does not know.
     pub fn name(self) -> Option<&'static str> {
@@ -85,6 +88,7 @@ impl MessageKind {
             Self::MAP_REPORT => "map-report",
             Self::CONTROL => "control",
             Self::HEARTBEAT => "heartbeat",
+            Self::TIME_MARKER => "time-marker",
             _ => return None,
         })
     }

@@ -4,7 +4,10 @@
 //! One [`ZenohTransport`] per process = one zenoh session in **peer** mode with explicit
 //! `listen` / `connect` endpoints (those of the node's configured links), multicast scouting and
 //! gossip disabled — so the session only ever talks to the configured neighbours and the network
-//! stays the configured tree (peers do not relay; multi-hop propagation is the DDF's job).
+//! stays the configured tree (peers do not relay; multi-hop propagation is the DDF's job) — or
+//! in **client** mode, connected only to the zenoh router(s) in `connect`, which route between
+//! the clients and enforce the access control ([`ZenohMode`]; a **router** is a session in
+//! router mode that only listens).
 //! [`ZenohTransport::link`] then opens one [`ZenohLink`] per neighbour:
 //! - data `a → b` is published on `{prefix}/link/{a}/{b}` with `CongestionControl::Block`
 //!   (the default `Drop` loses fragments of large messages) over zenoh's default reliable
@@ -127,6 +130,9 @@ pub struct ZenohConfig {
     pub access: Option<ZenohAccess>,
     /// TLS on every link (`tls/` endpoints only); `None` = plain TCP.
     pub tls: Option<ZenohTls>,
+    /// Client mode: how long opening the session waits for a router of `connect` to answer
+    /// (retrying every `reconnect_period`, doubling up to 8×); `None` = until one does.
+    pub connect_timeout: Option<Duration>,
 }
 
 /// The role of a zenoh session.
@@ -167,6 +173,7 @@ impl ZenohConfig {
             multicast_scouting: false,
             access: None,
             tls: None,
+            connect_timeout: None,
         }
     }
 }
@@ -285,10 +292,12 @@ impl ZenohTransport {
         )?;
         set(&mut zc, "scouting/gossip/enabled", "false".into())?;
         if cfg.mode == ZenohMode::Client {
-            // A client keeps trying its routers in the background instead of failing to open
-            // when none answers yet (hosts start in any order).
-            set(&mut zc, "connect/exit_on_failure", "false".into())?;
-            set(&mut zc, "connect/timeout_ms", "0".into())?;
+            // A client retries its routers while it opens (zenoh's client default is one
+            // attempt: `timeout_ms` 0), for `connect_timeout` or (-1) until one answers.
+            let ms = cfg.connect_timeout.map_or(-1, |d| {
+                i64::try_from(d.as_millis().max(1)).unwrap_or(i64::MAX)
+            });
+            set(&mut zc, "connect/timeout_ms", ms.to_string())?;
         }
         set(&mut zc, "listen/endpoints", json_list(&cfg.listen))?;
         set(&mut zc, "connect/endpoints", json_list(&cfg.connect))?;
@@ -411,6 +420,20 @@ impl ZenohTransport {
     /// This node.
     pub fn local_id(&self) -> NodeId {
         self.local
+    }
+
+    /// The same session as node `local` under another key prefix (a router's own links on a
+    /// run's control plane, next to the fusion links it routes). It shares the session: closing
+    /// either closes both.
+    pub fn scoped(&self, local: NodeId, key_prefix: &str) -> Result<ZenohTransport, LinkError> {
+        check_prefix(key_prefix)?;
+        let mut cfg = self.cfg.clone();
+        cfg.key_prefix = key_prefix.to_string();
+        Ok(Self {
+            local,
+            cfg,
+            session: self.session.clone(),
+        })
     }
 
     fn data_key(&self, from: NodeId, to: NodeId) -> String {

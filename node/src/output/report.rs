@@ -400,14 +400,21 @@ fn rejections(summary: &Summary) -> String {
     html
 }
 
-/// The table of what the vehicles' zenoh access control refused (nothing when nothing was).
+/// The table of what zenoh access control refused — the vehicles' listening sessions, and the
+/// router in client mode (nothing when nothing was).
 fn access_refused(summary: &Summary) -> String {
     let mut rows = String::new();
-    for v in &summary.vehicles {
-        for (what, n) in &v.access_refused {
+    let router = ("router".to_string(), &summary.router_access_refused);
+    for (name, refused) in summary
+        .vehicles
+        .iter()
+        .map(|v| (v.name.clone(), &v.access_refused))
+        .chain(std::iter::once(router))
+    {
+        for (what, n) in refused {
             rows.push_str(&format!(
                 "<tr><td>{}</td><td><code>{}</code></td><td style=\"text-align:right\">{n}</td></tr>",
-                escape(&v.name),
+                escape(&name),
                 escape(what)
             ));
         }
@@ -418,8 +425,8 @@ fn access_refused(summary: &Summary) -> String {
     format!(
         "<h2>Refused by zenoh access control</h2><p>Messages and declarations of sessions \
          using a key of a link they are not part of (a non-neighbour, or a forged sender), \
-         refused by the vehicle's listening session.</p><table><tr><th>vehicle</th>\
-         <th>refused</th><th>count</th></tr>{rows}</table>"
+         refused by the vehicle's listening session or, in client mode, by the zenoh router.\
+         </p><table><tr><th>refused at</th><th>refused</th><th>count</th></tr>{rows}</table>"
     )
 }
 

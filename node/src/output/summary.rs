@@ -205,6 +205,10 @@ pub struct Summary {
     pub association: AssociationSummary,
     /// Number of fault and lifecycle events.
     pub events: usize,
+    /// What the zenoh router's access control refused of its clients (multi-host runs in
+    /// client mode), by `"<action> on <key>"`; absent when nothing was.
+    #[serde(default, skip_serializing_if = "std::collections::BTreeMap::is_empty")]
+    pub router_access_refused: std::collections::BTreeMap<String, u64>,
 }
 
 /// Team means.
@@ -447,6 +451,7 @@ pub fn summarize(run: &RunRecord) -> Summary {
         baseline,
         identity: run.identity.clone(),
         events: run.events.len(),
+        router_access_refused: run.router_access_refused.clone(),
     }
 }
 

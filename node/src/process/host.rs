@@ -131,14 +131,7 @@ impl Relay {
 
     /// The monitor's controls waiting now.
     fn controls(&mut self) -> Vec<Control> {
-        let mut out = Vec::new();
-        while self.link.poll_event().is_some() {}
-        while let Ok(Some(m)) = self.link.try_recv() {
-            if let Some(c) = decode_body::<Control>(&m) {
-                out.push(c);
-            }
-        }
-        out
+        super::controls(&mut self.link)
     }
 }
 
@@ -156,7 +149,9 @@ pub fn run_host(s: Scenario, name: &str, opts: &HostOptions) -> Result<HostOutco
     std::fs::create_dir_all(&opts.out)
         .with_context(|| format!("creating {}", opts.out.display()))?;
     let mut s = s;
-    crate::deploy::resolve_endpoints(&mut s).context("deriving the net links' endpoints")?;
+    if !crate::deploy::client_mode(&s) {
+        crate::deploy::resolve_endpoints(&mut s).context("deriving the net links' endpoints")?;
+    }
     let launch = LaunchOptions {
         out: opts.out.clone(),
         duration: opts.duration,
@@ -187,7 +182,7 @@ pub fn run_host(s: Scenario, name: &str, opts: &HostOptions) -> Result<HostOutco
     };
 
     // The monitor first: nothing starts on this host without it.
-    let session = control_session(&s, index as NodeId, &secret)?;
+    let session = control_session(&s, index as NodeId, &secret, opts.monitor_wait)?;
     let link = session
         .link(MONITOR_ID, super::CONTROL_MAX_BODY)
         .context("opening the control link to the monitor")?;

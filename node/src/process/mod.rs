@@ -14,6 +14,8 @@
 //! - [`hub`]: the hub of central mode — a [`crate::agent::HubAgent`] on world time.
 //! - [`host`]: `canopy run --host NAME` — one host's share of a multi-host run, relaying its
 //!   processes' reports to the monitor over zenoh.
+//! - [`router`]: `canopy router` — the zenoh router of a multi-host run in client mode,
+//!   enforcing the run's access control and reporting its refusals to the monitor.
 //! - [`monitor`]: the launcher — spawns, paces events (crash, restart, hub loss), reaps, gathers
 //!   reports into a [`crate::record::RunRecord`], runs the centralized reference, writes outputs.
 //!
@@ -40,10 +42,12 @@ fn parse_vm_hwm(status: &str) -> Option<u64> {
     let kb: u64 = parts.next()?.parse().ok()?;
     (parts.next()? == "kB").then_some(kb * 1024)
 }
+pub(crate) mod delivery;
 pub mod host;
 pub mod hub;
 pub mod monitor;
 pub mod protocol;
+pub mod router;
 pub mod vehicle;
 pub mod world;
 
@@ -208,6 +212,19 @@ pub(crate) fn decode_body<B: for<'a> Deserialize<'a> + Validate>(m: &Received) -
     m.decode::<B>().ok()
 }
 
+/// The controls waiting on `link` now (its peer events drained); bodies that fail to decode are
+/// counted by the link.
+pub(crate) fn controls(link: &mut dyn Link) -> Vec<protocol::Control> {
+    let mut out = Vec::new();
+    while link.poll_event().is_some() {}
+    while let Ok(Some(m)) = link.try_recv() {
+        if let Some(c) = decode_body::<protocol::Control>(&m) {
+            out.push(c);
+        }
+    }
+    out
+}
+
 /// Waits until `link` reports its peer up (or `timeout`, or `stop`).
 pub(crate) fn wait_peer_up(link: &mut dyn Link, timeout: Duration, stop: &AtomicBool) -> bool {
     let deadline = std::time::Instant::now() + timeout;
@@ -262,6 +279,11 @@ impl std::fmt::Debug for FusionLinks {
 /// - a **connecting** session for its links as end `b`, which listens nowhere: only the
 ///   listeners it connects to reach it, and each of them sends it only its own link's traffic
 ///   (their egress rules).
+///
+/// In client mode (`[zenoh].mode = "client"`, multi-host runs): one **client** session of the
+/// router(s) in `[zenoh].connect` for every net link, listening nowhere and enforcing nothing;
+/// with the team's password it authenticates as the node's user and the router enforces the
+/// ACL of every link (`deploy::router_access`, `canopy router`).
 struct NetSessions {
     /// The session serving links whose end `a` this node is (and, without a password, all).
     listening: Option<ZenohTransport>,
@@ -289,6 +311,32 @@ impl NetSessions {
         };
         let me_user = user(me)?;
         let tls = s.zenoh.tls.as_ref().map(|t| t.for_user(&me_user));
+        if c.host.is_some() && crate::deploy::client_mode(s) {
+            // Through the router: one client session for every net link, listening nowhere;
+            // the router authenticates it as this node's user and enforces the ACL.
+            if !mine.iter().any(|(_, l)| l.transport == TransportKind::Net) {
+                return Ok(Self {
+                    listening: None,
+                    connecting: None,
+                });
+            }
+            let mut cfg = ZenohConfig::new(prefix, Vec::new(), s.zenoh.connect.clone());
+            cfg.mode = canopy_transport::net::ZenohMode::Client;
+            cfg.multicast_scouting = s.zenoh.multicast_scouting;
+            cfg.auth = s.secrets.zenoh_password.clone().map(|password| ZenohAuth {
+                user: me_user,
+                password,
+                accept: Vec::new(),
+            });
+            cfg.tls = tls;
+            return Ok(Self {
+                listening: None,
+                connecting: Some(
+                    ZenohTransport::open(me, cfg)
+                        .context("opening the zenoh client session (through the router)")?,
+                ),
+            });
+        }
         let Some(password) = s.secrets.zenoh_password.clone() else {
             if listen.is_empty() && connect.is_empty() {
                 return Ok(Self {
@@ -357,7 +405,7 @@ impl NetSessions {
     /// The session of a link whose end `a` this node is (`as_a`) or not.
     fn for_link(&self, as_a: bool) -> Option<&ZenohTransport> {
         if as_a {
-            self.listening.as_ref()
+            self.listening.as_ref().or(self.connecting.as_ref())
         } else {
             self.connecting.as_ref().or(self.listening.as_ref())
         }
@@ -415,8 +463,10 @@ impl FusionLinks {
             .collect();
         let mut listen = Vec::new();
         let mut connect = Vec::new();
+        // Through a router, no link has endpoints of its own.
+        let through_router = c.host.is_some() && crate::deploy::client_mode(s);
         for (i, l) in &mine {
-            if l.transport == TransportKind::Net {
+            if l.transport == TransportKind::Net && !through_router {
                 let ep = l
                     .listen
                     .clone()
@@ -475,25 +525,63 @@ impl FusionLinks {
     /// Everything waiting on the links now: peer events and decoded DDF messages, per peer in
     /// arrival order (events first).
     pub fn poll(&mut self) -> Vec<(NodeId, Vec<LinkEvent>, Vec<DdfMessage>)> {
+        self.poll_stamped()
+            .into_iter()
+            .map(|p| (p.peer, p.events, p.msgs.into_iter().map(|m| m.1).collect()))
+            .collect()
+    }
+
+    /// [`FusionLinks::poll`] with each message's simulation time (its envelope's: the sender's
+    /// time when it sent it) and each link's latest time marker
+    /// ([`MessageKind::TIME_MARKER`], simulation-time delivery).
+    pub fn poll_stamped(&mut self) -> Vec<Polled> {
         let mut out = Vec::new();
         for (&peer, link) in &mut self.links {
-            let mut events = Vec::new();
+            let mut p = Polled {
+                peer,
+                events: Vec::new(),
+                msgs: Vec::new(),
+                marker: None,
+            };
             while let Some(e) = link.poll_event() {
-                events.push(e);
+                p.events.push(e);
             }
-            let mut msgs = Vec::new();
             while let Ok(Some(m)) = link.try_recv() {
+                let t = m.header().sim_time;
+                if m.header().kind == MessageKind::TIME_MARKER {
+                    p.marker = Some(p.marker.map_or(t, |x: f64| x.max(t)));
                 // Bodies that fail to decode are counted by the link (`rejected.body`).
-                if let Some(Ok(msg)) = decode_ddf(&m) {
-                    msgs.push(msg);
+                } else if let Some(Ok(msg)) = decode_ddf(&m) {
+                    p.msgs.push((t, msg));
                 }
             }
-            if !events.is_empty() || !msgs.is_empty() {
-                out.push((peer, events, msgs));
+            if !p.events.is_empty() || !p.msgs.is_empty() || p.marker.is_some() {
+                out.push(p);
             }
         }
         out
     }
+
+    /// Sends a time marker stamped `now` on every link (simulation-time delivery: everything
+    /// this node stamps up to `now` has been sent). Undeliverable ones are counted by the link.
+    pub fn send_marker(&mut self, now: f64) {
+        for link in self.links.values_mut() {
+            let _ = send_body(link, MessageKind::TIME_MARKER, 0, now, &());
+        }
+    }
+}
+
+/// What one fusion link delivered ([`FusionLinks::poll_stamped`]).
+#[derive(Debug)]
+pub(crate) struct Polled {
+    /// The neighbour.
+    pub peer: NodeId,
+    /// Its link events, in order.
+    pub events: Vec<LinkEvent>,
+    /// Its DDF messages with their simulation times, in arrival order.
+    pub msgs: Vec<(f64, DdfMessage)>,
+    /// Its latest time marker, if one arrived.
+    pub marker: Option<f64>,
 }
 
 /// The monitor-facing report of one fusion link.

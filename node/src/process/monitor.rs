@@ -195,6 +195,11 @@ pub struct RunChecks {
     /// sessions (a session using a host's control link that is not that host's).
     #[serde(default)]
     pub control_access_refused: BTreeMap<String, u64>,
+    /// `--monitor` in client mode: what the zenoh router's access control refused of its
+    /// clients (every session of the run: vehicles, hub, host launchers, the monitor, and
+    /// anyone else with a credential), by `"<action> on <key>"`, as it last reported.
+    #[serde(default)]
+    pub router_access_refused: BTreeMap<String, u64>,
     /// Hub: every failure on its fusion path, by reason (rejected messages, refused
     /// information, failed rounds, link events).
     #[serde(default)]
@@ -424,6 +429,8 @@ struct Monitor {
     hub_rejected: u64,
     /// What the hub's zenoh access control refused (its last report).
     hub_access_refused: BTreeMap<String, u64>,
+    /// What the zenoh router's access control refused (its last report; client mode).
+    router_access_refused: BTreeMap<String, u64>,
     hub_rejections: BTreeMap<String, u64>,
     hub_alive: bool,
     /// Vehicles the world holds its streams for (a scheduled restart).
@@ -840,10 +847,14 @@ pub(crate) fn check_multi_host(s: &Scenario, flag: &str) -> Result<()> {
 /// user/password check is one-way: it has no user name for the monitor to enforce rules by);
 /// what reaches it comes from the monitor's session, whose egress rules send it only its own
 /// control link.
+///
+/// Client mode: every session is a client of the router(s) in `[zenoh].connect`, which enforces
+/// the access control (`canopy router`); opening waits up to `wait` for a router to answer.
 pub(crate) fn control_session(
     s: &Scenario,
     local: NodeId,
     secret: &Option<String>,
+    wait: Duration,
 ) -> Result<canopy_transport::net::ZenohTransport> {
     use crate::deploy::ZenohModeConfig;
     use canopy_transport::access::{AclLink, ZenohAccess};
@@ -859,6 +870,7 @@ pub(crate) fn control_session(
     let mut cfg = ZenohConfig::new(prefix.clone(), listen, connect);
     cfg.mode = mode;
     cfg.multicast_scouting = s.zenoh.multicast_scouting;
+    cfg.connect_timeout = Some(wait);
     let user = if is_monitor {
         crate::deploy::MONITOR_USER.to_string()
     } else {
@@ -897,12 +909,26 @@ pub(crate) fn control_session(
             cfg.access = Some(ZenohAccess::for_links(&prefix, &links));
         }
     }
-    ZenohTransport::open(local, cfg).context("opening the control plane's zenoh session")
+    ZenohTransport::open(local, cfg).with_context(|| {
+        if mode == ZenohMode::Client {
+            format!(
+                "opening the control plane's zenoh session: no zenoh router answered at {} \
+                 within {:.0} s (start `canopy router SCENARIO` on the router's machine first)",
+                s.zenoh.connect.join(", "),
+                wait.as_secs_f64()
+            )
+        } else {
+            "opening the control plane's zenoh session".to_string()
+        }
+    })
 }
 
-/// One host launcher as the monitor sees it.
+/// One host launcher (or, in client mode, the zenoh router) as the monitor sees it.
 struct RemoteHost {
     name: String,
+    /// It is the zenoh router (`canopy router`), not a host launcher: it runs no process and
+    /// reports what its access control refused ([`HostMsg::Refusals`]).
+    router: bool,
     link: canopy_transport::net::ZenohLink,
     /// Its `Hello` was accepted.
     welcomed: bool,
@@ -934,7 +960,7 @@ struct Remote {
 
 impl Remote {
     fn open(s: &Scenario, secret: &Option<String>, wait: Duration) -> Result<Self> {
-        let session = control_session(s, MONITOR_ID, secret)?;
+        let session = control_session(s, MONITOR_ID, secret, wait)?;
         let hosts = s
             .hosts
             .iter()
@@ -942,6 +968,7 @@ impl Remote {
             .map(|(i, h)| {
                 Ok(RemoteHost {
                     name: h.name.clone(),
+                    router: false,
                     link: session
                         .link(i as NodeId, super::CONTROL_MAX_BODY)
                         .with_context(|| format!("opening the control link to host {}", h.name))?,
@@ -953,6 +980,22 @@ impl Remote {
                 })
             })
             .collect::<Result<Vec<_>>>()?;
+        let mut hosts = hosts;
+        if crate::deploy::client_mode(s) {
+            // The router reports its refusals on a control link of its own.
+            hosts.push(RemoteHost {
+                name: crate::deploy::ROUTER_USER.to_string(),
+                router: true,
+                link: session
+                    .link(super::protocol::ROUTER_ID, super::CONTROL_MAX_BODY)
+                    .context("opening the control link to the zenoh router")?,
+                welcomed: false,
+                announced: false,
+                done: false,
+                lost: false,
+                down_since: None,
+            });
+        }
         Ok(Self {
             endpoint: s
                 .zenoh
@@ -977,7 +1020,8 @@ impl Remote {
         (!missing.is_empty() && self.since.elapsed() > self.wait).then(|| {
             format!(
                 "host(s) [{}] did not connect to the monitor at {} within {:.0} s (is `canopy \
-                 run SCENARIO --host NAME` running there, and can it reach this address?)",
+                 run SCENARIO --host NAME` running there — in client mode also `canopy router \
+                 SCENARIO` on the router's machine — and can it reach this address?)",
                 missing.join(", "),
                 self.endpoint,
                 self.wait.as_secs_f64()
@@ -1065,6 +1109,11 @@ impl Monitor {
                         }
                         self.remote_procs.push(p);
                     }
+                    HostMsg::Refusals(refused) => {
+                        if remote.hosts[h].router {
+                            self.router_access_refused = refused;
+                        }
+                    }
                     HostMsg::Done { failure } => {
                         remote.hosts[h].done = true;
                         if let Some(f) = failure {
@@ -1113,7 +1162,7 @@ impl Monitor {
             return;
         }
         if let Some(r) = self.remote.as_mut() {
-            for h in r.hosts.iter_mut() {
+            for h in r.hosts.iter_mut().filter(|h| !h.router) {
                 let _ = send_body(
                     &mut h.link,
                     MessageKind::CONTROL,
@@ -1153,14 +1202,22 @@ impl Monitor {
         }
     }
 
-    /// Asks every host launcher to end its share and waits for them to say they are done.
+    /// Asks every host launcher to end its share and waits for them to say they are done; then
+    /// (client mode) the router, for its final refusals — last, because everything the hosts
+    /// send goes through it.
     fn shutdown_remote(&mut self) {
-        let deadline = Instant::now() + REMOTE_SHUTDOWN;
+        self.shutdown_remote_part(false, REMOTE_SHUTDOWN);
+        self.shutdown_remote_part(true, ROUTER_SHUTDOWN);
+    }
+
+    /// [`Monitor::shutdown_remote`] of the host launchers (`router` false) or the router.
+    fn shutdown_remote_part(&mut self, router: bool, wait: Duration) {
+        let deadline = Instant::now() + wait;
         let mut last_sent: Option<Instant> = None;
         loop {
             if last_sent.is_none_or(|t| t.elapsed() > Duration::from_secs(1)) {
                 if let Some(r) = self.remote.as_mut() {
-                    for h in r.hosts.iter_mut().filter(|h| !h.done) {
+                    for h in r.hosts.iter_mut().filter(|h| !h.done && h.router == router) {
                         let _ = send_body(
                             &mut h.link,
                             MessageKind::CONTROL,
@@ -1179,6 +1236,7 @@ impl Monitor {
             let open: Vec<&str> = r
                 .hosts
                 .iter()
+                .filter(|h| h.router == router)
                 .filter(|h| !h.done && !h.lost && h.link.peer_state() == PeerState::Up)
                 .map(|h| h.name.as_str())
                 .collect();
@@ -1187,9 +1245,10 @@ impl Monitor {
             }
             if Instant::now() > deadline {
                 eprintln!(
-                    "host(s) [{}] did not confirm the end of their share within {} s",
+                    "{} [{}] did not confirm the end of the run within {} s",
+                    if router { "the router" } else { "host(s)" },
                     open.join(", "),
-                    REMOTE_SHUTDOWN.as_secs()
+                    wait.as_secs()
                 );
                 return;
             }
@@ -1207,6 +1266,8 @@ const STOP_GRACE_PER_PROCESS: Duration = Duration::from_millis(500);
 /// How long the monitor waits for the host launchers to end their shares: their own shutdown
 /// (10 s for the processes' final reports, then 3 s per signal) and some slack.
 const REMOTE_SHUTDOWN: Duration = Duration::from_secs(30);
+/// How long the monitor waits for the router's final refusals (one message on a live link).
+const ROUTER_SHUTDOWN: Duration = Duration::from_secs(5);
 
 /// No progress for this long: the monitor says who holds the run up and why.
 const STALL_WARN: Duration = Duration::from_secs(5);
@@ -1318,7 +1379,10 @@ pub fn launch(mut s: Scenario, opts: &LaunchOptions) -> Result<LaunchOutcome> {
         .with_context(|| format!("creating {}", opts.out.display()))?;
     if opts.monitor_only.is_some() {
         check_multi_host(&s, "--monitor")?;
-        crate::deploy::resolve_endpoints(&mut s).context("deriving the net links' endpoints")?;
+        if !crate::deploy::client_mode(&s) {
+            crate::deploy::resolve_endpoints(&mut s)
+                .context("deriving the net links' endpoints")?;
+        }
     }
     let (s, secret) = resolve(s, opts)?;
     // Every check `canopy check` makes, here in the launcher: a bad input fails the run before
@@ -1376,6 +1440,7 @@ pub fn launch(mut s: Scenario, opts: &LaunchOptions) -> Result<LaunchOutcome> {
         remote_procs: Vec::new(),
         hub_rejected: 0,
         hub_access_refused: BTreeMap::new(),
+        router_access_refused: BTreeMap::new(),
         hub_rejections: BTreeMap::new(),
         hub_alive: s.fusion.mode == FusionMode::Central,
         restart_requests: Default::default(),
@@ -1478,9 +1543,13 @@ pub fn launch(mut s: Scenario, opts: &LaunchOptions) -> Result<LaunchOutcome> {
             }
             if let Some(h) = r.hosts.iter().find(|h| h.lost) {
                 m.failure.get_or_insert(format!(
-                    "lost the host launcher `{}`: its zenoh session to the monitor went away \
-                     before its share of the run ended and did not come back within {} s",
-                    h.name,
+                    "lost {}: its zenoh session to the monitor went away before the run \
+                     ended and did not come back within {} s",
+                    if h.router {
+                        "the zenoh router".to_string()
+                    } else {
+                        format!("the host launcher `{}`", h.name)
+                    },
                     LOST_GRACE.as_secs()
                 ));
                 break;
@@ -1920,7 +1989,15 @@ fn assemble(
         time_origin_ns: s.run.time_origin_ns,
         team_wrong_merges: truth.team_wrong_merges(),
         identity: s.world.appearance.identity.to_string(),
+        router_access_refused: m.router_access_refused.clone(),
     };
+    if !m.router_access_refused.is_empty() {
+        eprintln!(
+            "the zenoh router's access control refused {} message(s) of its clients: {:?}",
+            m.router_access_refused.values().sum::<u64>(),
+            m.router_access_refused
+        );
+    }
     let processes = m
         .procs
         .iter()
@@ -1950,6 +2027,7 @@ fn assemble(
         hub_rejected: m.hub_rejected,
         hub_access_refused: m.hub_access_refused.clone(),
         control_access_refused: super::access_refusals(),
+        router_access_refused: m.router_access_refused.clone(),
         hub_rejections: m.hub_rejections.clone(),
         interrupted,
         failure: m.failure.clone(),

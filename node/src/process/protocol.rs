@@ -27,6 +27,10 @@ pub const WORLD_ID: NodeId = u32::MAX;
 /// Node id of the monitor (launcher) on its links.
 pub const MONITOR_ID: NodeId = u32::MAX - 1;
 const _: () = assert!(MONITOR_ID >= FIRST_RESERVED_NODE_ID);
+/// Node id of the zenoh router (`canopy router`) on the control plane of a multi-host run in
+/// client mode (its link to the monitor carries [`HostMsg::Refusals`]).
+pub const ROUTER_ID: NodeId = u32::MAX - 2;
+const _: () = assert!(ROUTER_ID >= FIRST_RESERVED_NODE_ID);
 
 fn finite(what: &'static str, v: impl IntoIterator<Item = f64>) -> Result<(), ValidationError> {
     match v.into_iter().position(|x| !x.is_finite()) {
@@ -582,6 +586,10 @@ pub enum HostMsg {
         /// Why the host's share failed, if it did.
         failure: Option<String>,
     },
+    /// The zenoh router (`canopy router`, client mode) → monitor: everything its access control
+    /// has refused of the clients so far, by `"<action> on <key>"` (ingress: what a client
+    /// attempted), sent whenever it changes and when the monitor ends the run.
+    Refusals(std::collections::BTreeMap<String, u64>),
 }
 
 impl Validate for HostMsg {
@@ -590,7 +598,7 @@ impl Validate for HostMsg {
             HostMsg::Hello { duration_s, .. } => finite("hello.duration_s", [*duration_s]),
             HostMsg::Report { report, .. } => report.validate(),
             HostMsg::Process(p) => finite("process.ended_at", [p.ended_at]),
-            HostMsg::Done { .. } => Ok(()),
+            HostMsg::Done { .. } | HostMsg::Refusals(_) => Ok(()),
         }
     }
 }

@@ -28,10 +28,11 @@ use anyhow::{Context, Result, bail};
 use canopy_fusion::ins::{VehicleState, VehicleVector};
 use canopy_fusion::state::VEHICLE_DIM;
 use canopy_fusion::topology::NodeId;
-use canopy_transport::link::{Link, LinkEvent};
+use canopy_transport::link::{Link, LinkEvent, PeerState};
 use canopy_transport::{MessageKind, NodeId as WireId};
 use nalgebra::SMatrix;
 
+use super::delivery::{Due, SimTimeDelivery};
 use super::fusion_thread::{Done, FusionThread, FusionView, Job};
 use super::protocol::{
     Control, EstimateReport, FeatureReport, FrameAssociations, InitMsg, MONITOR_ID, MapReport,
@@ -50,6 +51,10 @@ use crate::world::{InitialEstimate, World};
 const INIT_TIMEOUT: Duration = Duration::from_secs(120);
 /// How often a process tells the monitor what it is doing (`Report::Status`).
 pub(crate) const STATUS_INTERVAL: Duration = Duration::from_secs(1);
+/// Arrival delivery: how long the first round waits for the vehicle's fault-free links to come
+/// up (zenoh links connect within seconds; a team running at many times real time would
+/// otherwise fuse over them only from whenever that happened to be in simulated time).
+const LINK_WAIT: Duration = Duration::from_secs(60);
 /// After the end of its stream, how long a vehicle keeps serving its links without hearing
 /// from the monitor.
 const LINGER_TIMEOUT: Duration = Duration::from_secs(120);
@@ -82,6 +87,17 @@ struct Vehicle<'s> {
     round_due: Option<f64>,
     /// The fusion thread ended while it held the filter (a bug): the process fails.
     fusion_lost: bool,
+    /// `[fusion] delivery = "simulation_time"`: what the links deliver waits for its round.
+    delivery: Option<SimTimeDelivery>,
+    /// SIGTERM / Ctrl-C.
+    stop: Arc<std::sync::atomic::AtomicBool>,
+    /// The monitor's Shutdown arrived while waiting for the neighbours.
+    shutdown: bool,
+    /// Neighbours on fault-free links without radio model: waited for (their link up at the
+    /// first round; with simulation-time delivery, their time markers at every round).
+    gated: Vec<WireId>,
+    /// The first round has been dispatched.
+    first_round_done: bool,
 }
 
 /// How long fusion work holds up the estimator thread: the time spent on it between two
@@ -247,6 +263,14 @@ impl Vehicle<'_> {
     /// Link events and DDF messages waiting now go to the fusion thread; what it has finished
     /// comes back (replies sent, a fused round taken back).
     fn service_links(&mut self) {
+        if let Some(d) = self.delivery.as_mut() {
+            // Simulation-time delivery: everything waits for its round (`dispatch_round`), and
+            // the fused copy is taken back at the next frame, not when it happens to be ready.
+            for p in self.links.poll_stamped() {
+                d.push(p.peer, p.events, p.msgs, p.marker);
+            }
+            return;
+        }
         let now = self.t;
         let polled = self.links.poll();
         let start = StallMeter::mark();
@@ -300,6 +324,10 @@ impl Vehicle<'_> {
                 self.stall.add(start, Work::Lend);
                 let start = StallMeter::mark();
                 self.links.send(now, out);
+                if self.delivery.is_some() {
+                    // Everything this vehicle stamps up to `now` has gone.
+                    self.links.send_marker(now);
+                }
                 self.stall.add(start, Work::Messages);
             }
         }
@@ -407,6 +435,7 @@ impl Vehicle<'_> {
         self.wait_for_round();
         self.links.clock.set(now.max(self.t));
         self.service_links();
+        self.deliver_due(now);
         self.naive_bytes += naive_round_bytes(self.estimator.num_features());
         let start = StallMeter::mark();
         let filter = match self.estimator.lend() {
@@ -424,6 +453,123 @@ impl Vehicle<'_> {
             budgets,
         });
         self.stall.add(start, Work::Lend);
+    }
+
+    /// Before the round at `round`. Simulation-time delivery: waits until every gated neighbour
+    /// has sent what it stamps up to `round` − one period (`delivery`), then hands the fusion
+    /// thread what is due, in order. Arrival delivery: before the first round only, waits (up to
+    /// [`LINK_WAIT`]) for the gated links to come up, so the team starts fusing over them at the
+    /// same simulated time whatever the time zenoh takes to connect.
+    fn deliver_due(&mut self, round: f64) {
+        if self.delivery.is_none() {
+            // Arrival delivery: the first round waits for the links to come up (below).
+            if !std::mem::replace(&mut self.first_round_done, true) {
+                self.wait_for_neighbours(
+                    None,
+                    |v| v.links_down(),
+                    |w| {
+                        format!(
+                            "waiting for the link(s) to {w:?} to come up before the first round"
+                        )
+                    },
+                );
+            }
+            return;
+        }
+        let period = 1.0 / self.s.fusion.rate_hz;
+        self.wait_for_neighbours(
+            Some(round),
+            |v| {
+                v.delivery
+                    .as_ref()
+                    .map(|d| d.waiting_for(round))
+                    .unwrap_or_default()
+            },
+            |w| {
+                format!(
+                    "waiting for neighbour(s) {w:?} to send what they stamp up to t = {:.3} \
+                     (simulation-time delivery, round at t = {round:.3})",
+                    round - period
+                )
+            },
+        );
+        let due = self
+            .delivery
+            .as_mut()
+            .map(|d| d.due(round))
+            .unwrap_or_default();
+        for d in due {
+            self.fusion.submit(match d {
+                Due::Event(peer, LinkEvent::PeerUp) => Job::LinkUp {
+                    now: round,
+                    peer: NodeId(peer),
+                },
+                Due::Event(peer, LinkEvent::PeerDown) => Job::LinkDown { peer: NodeId(peer) },
+                Due::Message(peer, msg) => Job::Message {
+                    now: round,
+                    from: NodeId(peer),
+                    msg,
+                },
+            });
+        }
+    }
+
+    /// The gated neighbours (fault-free links, no radio) whose link is not up now.
+    fn links_down(&self) -> Vec<WireId> {
+        self.gated
+            .iter()
+            .copied()
+            .filter(|p| {
+                self.links
+                    .links
+                    .get(p)
+                    .is_some_and(|l| l.peer_state() != PeerState::Up)
+            })
+            .collect()
+    }
+
+    /// Waits (servicing the links) until `waiting(self)` is empty, a shutdown or a stop — or,
+    /// without simulation-time delivery (`round` None), [`LINK_WAIT`] has passed, which is
+    /// logged: a link that never comes up must not hold the vehicle forever. Tells the monitor
+    /// what it waits for once a wall second (`describe`); the monitor's watchdog judges a wait
+    /// that makes no progress anywhere.
+    fn wait_for_neighbours(
+        &mut self,
+        round: Option<f64>,
+        waiting: impl Fn(&Self) -> Vec<WireId>,
+        describe: impl Fn(&[WireId]) -> String,
+    ) {
+        let since = Instant::now();
+        let mut last_status: Option<Instant> = None;
+        loop {
+            let w = waiting(self);
+            if w.is_empty() || self.shutdown || self.stop.load(Ordering::Relaxed) {
+                return;
+            }
+            if round.is_none() && since.elapsed() > LINK_WAIT {
+                tracing::warn!(
+                    down = ?w,
+                    "links still down after {} s: starting the first round without them",
+                    LINK_WAIT.as_secs()
+                );
+                return;
+            }
+            if last_status.is_none_or(|t| t.elapsed() >= STATUS_INTERVAL) {
+                let st = Report::Status {
+                    t: self.t,
+                    state: describe(&w),
+                    // The first round's wait for the links has its own deadline.
+                    bounded_wait: round.is_none(),
+                };
+                self.report(&st);
+                last_status = Some(Instant::now());
+            }
+            self.shutdown |= super::controls(&mut self.monitor)
+                .iter()
+                .any(|c| matches!(c, Control::Shutdown));
+            std::thread::sleep(Duration::from_millis(1));
+            self.service_links();
+        }
     }
 
     fn on_imu(&mut self, imu: &canopy_fusion::sensor::ImuSample) {
@@ -482,6 +628,11 @@ impl Vehicle<'_> {
             self.dispatch_round(now);
         }
         self.wait_for_round();
+        if self.delivery.is_some() {
+            // Simulation-time delivery: this vehicle applies nothing more and sends nothing
+            // more, so its neighbours need not wait for it (a replayed log may end early).
+            self.links.send_marker(f64::MAX);
+        }
         // Always: the counters must include what came after the last record time (a frame
         // follows the sample that triggered that report); the monitor keeps one estimate per
         // time.
@@ -550,6 +701,18 @@ pub fn run(c: &RoleCommon, id: WireId, incarnation: u32) -> Result<()> {
         }
     };
     let (estimator, fusion) = build_agent(&s, &cfg, &world, &init, epoch)?.into_parts();
+    // Gated: the links on which nothing is lost or held back (no faults, no radio).
+    let peers: Vec<(WireId, bool)> = crate::network::effective_links(&s)
+        .into_iter()
+        .filter(|l| l.a == id || l.b == id)
+        .map(|l| {
+            let peer = if l.a == id { l.b } else { l.a };
+            (peer, l.faults.is_none() && l.radio.is_none())
+        })
+        .collect();
+    let gated = peers.iter().filter(|p| p.1).map(|p| p.0).collect();
+    let delivery = (s.fusion.delivery == crate::network::Delivery::SimulationTime)
+        .then(|| SimTimeDelivery::new(1.0 / s.fusion.rate_hz, init.time, peers));
     let fusion = FusionThread::spawn(fusion).context("starting the fusion thread")?;
     let record_dt = s.run.record_interval_s;
     let round_dt = 1.0 / s.fusion.rate_hz;
@@ -560,6 +723,11 @@ pub fn run(c: &RoleCommon, id: WireId, incarnation: u32) -> Result<()> {
         give_back_failed: 0,
         round_due: None,
         fusion_lost: false,
+        delivery,
+        stop: stop.clone(),
+        shutdown: false,
+        gated,
+        first_round_done: false,
         incarnation,
         estimator,
         fusion,
@@ -587,13 +755,15 @@ pub fn run(c: &RoleCommon, id: WireId, incarnation: u32) -> Result<()> {
     let mut last_status = Instant::now();
     let mut stream_idle_since = Instant::now();
     loop {
-        let mut shutdown = stop.load(Ordering::Relaxed);
+        let mut shutdown = stop.load(Ordering::Relaxed) || v.shutdown;
         while let Ok(Some(m)) = v.monitor.try_recv() {
             if let Some(Control::Shutdown) = decode_body::<Control>(&m) {
                 shutdown = true;
             }
         }
         if shutdown {
+            // No waiting for the neighbours any more (simulation-time delivery).
+            v.shutdown = true;
             if !ended {
                 v.finish();
             }
