@@ -844,9 +844,8 @@ pub fn simulate(s: &Scenario, mut opts: SimOptions<'_>) -> Result<SimOutcome, Si
             .nodes
             .get(&NodeId(cfg.id))
             .and_then(|n| n.agent.as_ref())
-            && let Some(d) = a.ddf()
         {
-            sim.audit.set_merges(cfg.id, d.keys().merges());
+            sim.audit.set_merges(cfg.id, a.merges());
         }
     }
     let truth = sim.audit.finish();
