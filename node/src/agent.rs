@@ -846,6 +846,12 @@ impl VehicleAgent {
         self.fusion.flush(self.estimator.filter_mut());
     }
 
+    /// Searches the map for correspondences after every fusion (`Some`, the default under
+    /// appearance association) or not ([`VehicleFusion::set_correspondence`]).
+    pub fn set_correspondence(&mut self, cfg: Option<CorrespondenceConfig>) {
+        self.fusion.set_correspondence(cfg);
+    }
+
     /// The correspondences this vehicle adopted ([`VehicleFusion::merges`]).
     pub fn merges(&self) -> Vec<Merge> {
         self.fusion.merges()

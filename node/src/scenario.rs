@@ -575,9 +575,9 @@ impl std::fmt::Display for Identity {
     }
 }
 
-/// The identity model of every scenario that does not name one (flipping the shipped default
-/// is this one line).
-pub const DEFAULT_IDENTITY: Identity = Identity::Perfect;
+/// The identity model of every scenario that does not name one: simulated appearance, as real
+/// sensors give (issue 12). `identity = "perfect"` is the named ablation.
+pub const DEFAULT_IDENTITY: Identity = Identity::Appearance;
 
 /// `[world.appearance]`: the identity model and, for `identity = "appearance"`, the
 /// descriptors, their noise and the trackers (model in [`crate::world::appearance`]).

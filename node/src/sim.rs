@@ -214,7 +214,9 @@ pub fn vehicle_agent(
         frame: world.frame(),
         local_gravity_mps2: world.local_gravity(),
         origin: world.map_origin(),
-        association: s.fusion.association_config(&s.world.appearance),
+        association: s
+            .fusion
+            .association_config_for(&s.world.appearance, cfg.replay.is_some()),
         fresh_id_namespace: cfg.id,
     };
     let agent_error = |source| SimError::Agent {
@@ -238,6 +240,9 @@ pub fn vehicle_agent(
             cfg.replay.as_ref().and_then(|r| r.zero_velocity),
         )
         .map_err(agent_error)?;
+    if !s.fusion.map_correspondences {
+        agent.set_correspondence(None);
+    }
     // Capacity-limited links: sparsified channel filters (default) or CI submaps from the
     // first round (`fusion = "ci"`).
     for &(peer, fusion) in &radio_peers {
