@@ -547,6 +547,14 @@ impl VehicleFusion {
         self.counters.rounds += 1;
         self.flush(filter);
         self.correspond(filter);
+        if self.correspondence.is_some() {
+            let missing = filter.undescribed_features();
+            if !missing.is_empty()
+                && let Some(ddf) = self.ddf.as_mut()
+            {
+                ddf.request_descriptors(&missing);
+            }
+        }
         // The DDF reads Y only if an exact link sends a delta, and covariance blocks for CI
         // links.
         let out = self
@@ -1005,8 +1013,13 @@ impl HubAgent {
         r
     }
 
-    /// A fusion round.
+    /// A fusion round (keys the hub holds without a descriptor are asked for again: it passes
+    /// descriptors on between the vehicles).
     pub fn on_round(&mut self, now: f64) -> Result<Vec<Outgoing>, DdfError> {
+        let missing = self.store.undescribed();
+        if !missing.is_empty() {
+            self.ddf.request_descriptors(&missing);
+        }
         let r = self.ddf.on_round(now, &mut self.store).map(|o| o.messages);
         self.reject("round", r)
     }

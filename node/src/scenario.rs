@@ -267,6 +267,16 @@ impl Scenario {
         for (i, v) in self.vehicles.iter().enumerate() {
             let prefix = format!("vehicle[{i}]");
             v.validate(world_frame).map_err(|e| e.within(&prefix))?;
+            if v.id > crate::sim::MAX_VEHICLE_ID {
+                return Err(ScenarioError::invalid(
+                    format!("{prefix}.id"),
+                    format!(
+                        "must be at most {} (feature keys carry the vehicle id in 20 bits), got {}",
+                        crate::sim::MAX_VEHICLE_ID,
+                        v.id
+                    ),
+                ));
+            }
             for (j, other) in self.vehicles[..i].iter().enumerate() {
                 if other.id == v.id {
                     return Err(ScenarioError::invalid(

@@ -274,6 +274,20 @@ impl InformationStore {
     pub fn descriptor(&self, key: FeatureId) -> Option<&Appearance> {
         self.descriptors.get(&key)
     }
+
+    /// Keys held without a descriptor, once any descriptor has been seen (a team with
+    /// identities never sends any, and is not asked).
+    pub fn undescribed(&self) -> Vec<FeatureId> {
+        if self.descriptors.is_empty() {
+            return Vec::new();
+        }
+        self.info
+            .ids
+            .iter()
+            .copied()
+            .filter(|k| !self.descriptors.contains_key(k))
+            .collect()
+    }
 }
 
 impl FuseTarget for InformationStore {

@@ -254,6 +254,23 @@ impl SlamFilter {
         d2 <= gate
     }
 
+    /// Map features without an appearance descriptor (appearance association only; empty
+    /// otherwise): keys whose `Describe` was lost or never came, to be asked for again
+    /// ([`crate::ddf::DdfNode::request_descriptors`]).
+    pub fn undescribed_features(&self) -> Vec<FeatureId> {
+        if !matches!(
+            self.config.association.mode,
+            super::AssociationMode::Appearance { .. }
+        ) {
+            return Vec::new();
+        }
+        self.layout
+            .features()
+            .filter(|&(id, _)| self.appearance.of(id).is_none())
+            .map(|(id, _)| id)
+            .collect()
+    }
+
     /// Whether this filter's own estimate contradicts a neighbour's correspondence: both keys
     /// held and their difference outside the wide gate χ²₃(`probability`) with the joint
     /// covariance. `false` when either key is not held (nothing to contradict).

@@ -231,9 +231,10 @@ fn build_agent(
     cfg: &VehicleConfig,
     world: &World,
     init: &InitMsg,
+    incarnation: u32,
     epoch: u64,
 ) -> Result<VehicleAgent> {
-    crate::sim::vehicle_agent(s, cfg, world, &initial_from(init), epoch)
+    crate::sim::vehicle_agent(s, cfg, world, &initial_from(init), incarnation, epoch)
         .with_context(|| format!("building the estimator of {}", cfg.display_name()))
 }
 
@@ -543,7 +544,8 @@ pub fn run(c: &RoleCommon, id: WireId, incarnation: u32) -> Result<()> {
             break i;
         }
     };
-    let (estimator, fusion) = build_agent(&s, &cfg, &world, &init, epoch)?.into_parts();
+    let (estimator, fusion) =
+        build_agent(&s, &cfg, &world, &init, incarnation, epoch)?.into_parts();
     let fusion = FusionThread::spawn(fusion).context("starting the fusion thread")?;
     let record_dt = s.run.record_interval_s;
     let round_dt = 1.0 / s.fusion.rate_hz;
