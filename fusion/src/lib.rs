@@ -12,6 +12,8 @@
 //! - [`imu`]: IMU error model and grades (21.13–21.17).
 //! - [`alignment`]: initial alignment from a rest period (levelling, gyro bias) and rest
 //!   detection, for starting on real recordings.
+//! - [`frames`]: relative frames of vehicles in local SLAM (4-DOF given gravity), their
+//!   robust estimation from common features.
 //! - [`consistency`]: NEES, χ² quantiles, ANEES bands, angle-aware errors.
 //! - [`ins`]: INS mechanization in both frames with ∇F, ∇G and Q (21.19–21.38).
 //! - [`observation`]: terrain observation models, J_1 initialization and their Jacobians (21.41–21.50).
@@ -29,6 +31,7 @@ pub mod alignment;
 pub mod ci;
 pub mod consistency;
 pub mod ddf;
+pub mod frames;
 pub mod geodesy;
 pub mod imu;
 pub mod info;

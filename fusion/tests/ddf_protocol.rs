@@ -857,3 +857,66 @@ fn the_history_side_refuses_a_sync_built_on_stale_knowledge() {
         );
     }
 }
+
+/// A lost `Describe` heals: a node holding a key without its descriptor asks its neighbours
+/// (`DescribeRequest`), and a neighbour that knows it answers at its next round — under the
+/// key the asker used, also when the neighbour has since merged that key into another; a key
+/// nobody can describe is not answered. Without the request the descriptor would never come.
+#[test]
+fn a_lost_describe_is_asked_for_and_answered() {
+    use canopy_fusion::ddf::InformationStore;
+    use canopy_fusion::keys::Merge;
+    let look = [1u64, 2, 3, 4];
+    let mut a = DdfNode::new(A, 11, vec![B], origin(), DdfConfig::default());
+    let mut b = DdfNode::new(B, 22, vec![A], origin(), DdfConfig::default());
+    let (mut sa, mut sb) = (
+        InformationStore::new(origin()),
+        InformationStore::new(origin()),
+    );
+    // A knows key 5's descriptor and has merged key 9 (what B calls it) into 5.
+    sa.describe(&[(5, look)]);
+    sa.merge(&Merge { from: 9, into: 5 }).unwrap();
+    a.adopt_merge(9, 5, &mut sa);
+    a.on_link_up(0.0, B).unwrap();
+    b.on_link_up(0.0, A).unwrap();
+    b.request_descriptors(&[9, 8]);
+    let out = b.on_round(1.0, &mut sb).unwrap().messages;
+    let asked: Vec<&DdfMessage> = out
+        .iter()
+        .map(|o| &o.message)
+        .filter(|m| matches!(m.body, Body::DescribeRequest { .. }))
+        .collect();
+    assert_eq!(asked.len(), 1);
+    for m in out {
+        a.on_message(1.0, B, m.message, &mut sa).unwrap();
+    }
+    let answer: Vec<Outgoing> = a
+        .on_round(2.0, &mut sa)
+        .unwrap()
+        .messages
+        .into_iter()
+        .filter(|o| matches!(o.message.body, Body::Describe { .. }))
+        .collect();
+    assert_eq!(answer.len(), 1);
+    let Body::Describe { features } = &answer[0].message.body else {
+        unreachable!()
+    };
+    assert_eq!(
+        features,
+        &vec![(9, look)],
+        "only the key A can describe, as B named it"
+    );
+    for m in answer {
+        b.on_message(2.0, A, m.message, &mut sb).unwrap();
+    }
+    assert_eq!(sb.descriptor(9), Some(&look));
+    assert_eq!(sb.descriptor(8), None);
+    // Answered once: the next round of A carries no Describe.
+    assert!(
+        a.on_round(3.0, &mut sa)
+            .unwrap()
+            .messages
+            .iter()
+            .all(|o| !matches!(o.message.body, Body::Describe { .. }))
+    );
+}

@@ -42,7 +42,7 @@ fn main() -> Result<()> {
     let (world, mut sources) = SensorSource::for_scenario(&s)?;
     let src = sources.first_mut().context("no vehicle")?;
     let est = src.initial_estimate();
-    let mut agent = canopy_node::sim::vehicle_agent(&s, &s.vehicles[0], &world, &est, 1)?;
+    let mut agent = canopy_node::sim::vehicle_agent(&s, &s.vehicles[0], &world, &est, 0, 1)?;
     let record_dt = s.run.record_interval_s;
     let duration = s.run.duration_s;
     let eps = 1e-9;

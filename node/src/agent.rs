@@ -12,17 +12,19 @@
 
 use canopy_fusion::ci::{CiCriterion, Submap};
 use canopy_fusion::ddf::{
-    DdfConfig, DdfError, DdfMessage, DdfNode, FuseRejected, FuseTarget, Mode, Outgoing,
+    DdfConfig, DdfError, DdfMessage, DdfNode, FuseRejected, FuseTarget, InformationStore, Mode,
+    Outgoing,
 };
 use canopy_fusion::info::MapInformation;
-use canopy_fusion::keys::Merge;
-use canopy_fusion::sensor::FeatureId;
-use canopy_fusion::sensor::{ImuSample, ObservationFrame};
+use canopy_fusion::keys::{KeyMap, Merge};
+use canopy_fusion::sensor::{FeatureId, ImuSample, ObservationFrame};
 use canopy_fusion::slam::{
-    FrameReport, ObservationOutcome, SlamConfig, SlamError, SlamFilter, VehicleSetup,
+    AssociationMode, CorrespondenceConfig, FrameReport, ObservationOutcome, SlamConfig, SlamError,
+    SlamFilter, VehicleSetup,
 };
 use canopy_fusion::topology::{NodeId, Topology};
 use nalgebra::{Matrix3, Vector3};
+use std::collections::BTreeSet;
 
 /// Counters of a vehicle agent.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
@@ -189,6 +191,8 @@ struct Pending {
     submaps: Vec<(Submap, CiCriterion)>,
     /// Key merges adopted by the DDF node, in order.
     merges: Vec<Merge>,
+    /// Appearance descriptors neighbours sent with keys new to their link.
+    described: Vec<(FeatureId, canopy_fusion::sensor::Appearance)>,
 }
 
 impl FuseTarget for EkfTarget<'_> {
@@ -211,6 +215,37 @@ impl FuseTarget for EkfTarget<'_> {
     fn merge(&mut self, merge: &Merge) -> Result<(), FuseRejected> {
         self.pending.merges.push(*merge);
         Ok(())
+    }
+
+    fn describe(&mut self, features: &[(FeatureId, canopy_fusion::sensor::Appearance)]) {
+        self.pending.described.extend_from_slice(features);
+    }
+}
+
+/// The filter itself as the DDF node's target, for a correspondence this vehicle adopts in
+/// its round (applied at once; the error, if any, is kept for counting).
+struct DirectTarget<'a> {
+    filter: &'a mut SlamFilter,
+    error: Option<SlamError>,
+}
+
+impl FuseTarget for DirectTarget<'_> {
+    fn fuse(&mut self, delta: &MapInformation) -> Result<(), FuseRejected> {
+        self.filter.fuse(delta)
+    }
+
+    fn fuse_submap(&mut self, submap: &Submap, criterion: CiCriterion) -> Result<(), FuseRejected> {
+        self.filter.fuse_submap(submap, criterion)
+    }
+
+    fn merge(&mut self, merge: &Merge) -> Result<(), FuseRejected> {
+        self.filter.merge_features(merge).map_err(|e| {
+            let r = FuseRejected {
+                reason: e.to_string(),
+            };
+            self.error = Some(e);
+            r
+        })
     }
 }
 
@@ -248,6 +283,9 @@ pub struct FusionCounters {
     /// Rounds that failed (the DDF could not read the map or form its messages); nothing was
     /// sent and the channels are unchanged.
     pub rounds_failed: u64,
+    /// Correspondences this vehicle found in its own map and adopted (cross-vehicle keys or
+    /// its own duplicates; [`SlamFilter::find_correspondences`]).
+    pub correspondences_found: u64,
 }
 
 /// The fusion half of a vehicle: its DDF node and the information received but not yet fused
@@ -262,6 +300,13 @@ pub struct VehicleFusion {
     counters: FusionCounters,
     /// Every failure on the fusion path, by reason (`fusion.<step>.<error>`), logged once.
     rejections: Rejections,
+    /// Correspondence search in the map after each fusion (appearance association only).
+    correspondence: Option<CorrespondenceConfig>,
+    /// Candidate correspondences already counted as rejected, by (reason, pair): each pair is
+    /// counted once per reason, not once per round it is re-examined.
+    candidates_rejected: BTreeSet<(&'static str, FeatureId, FeatureId)>,
+    /// Correspondences adopted without a DDF node (isolated mode: own duplicates only).
+    own_keys: KeyMap,
 }
 
 impl VehicleFusion {
@@ -293,7 +338,78 @@ impl VehicleFusion {
             pending: Pending::default(),
             counters: FusionCounters::default(),
             rejections: Rejections::default(),
+            correspondence: None,
+            candidates_rejected: BTreeSet::new(),
+            own_keys: KeyMap::default(),
         })
+    }
+
+    /// Searches the map for correspondences after every fusion (`Some`) or not. Set for
+    /// appearance association, where keys are the vehicles' own and one physical feature
+    /// can be held under several.
+    pub fn set_correspondence(&mut self, cfg: Option<CorrespondenceConfig>) {
+        self.correspondence = cfg;
+    }
+
+    /// The correspondences this vehicle adopted (its DDF node's, or in isolated mode its own).
+    pub fn merges(&self) -> Vec<Merge> {
+        match &self.ddf {
+            Some(d) => d.keys().merges(),
+            None => self.own_keys.merges(),
+        }
+    }
+
+    /// Finds correspondences in `filter`'s map and adopts them: through the DDF node, which
+    /// re-keys its channel filters and tells the neighbours (module `canopy_fusion::keys`),
+    /// or directly in isolated mode. Rejected candidates are counted once per pair and reason
+    /// (`fusion.correspondence.<reason>`).
+    fn correspond(&mut self, filter: &mut SlamFilter) {
+        let Some(cfg) = self.correspondence else {
+            return;
+        };
+        let report = filter.find_correspondences(&cfg);
+        for (reason, pairs) in [
+            ("incompatible", &report.incompatible_pairs),
+            ("ambiguous", &report.ambiguous_pairs),
+            ("joint", &report.joint_rejected_pairs),
+        ] {
+            for &(a, b) in pairs {
+                if self.candidates_rejected.insert((reason, a, b)) {
+                    self.rejections.add(
+                        format!("fusion.correspondence.{reason}"),
+                        1,
+                        &format!("candidate correspondence {a:#x} = {b:#x} left apart ({reason})"),
+                    );
+                }
+            }
+        }
+        for m in report.merges {
+            let applied = match self.ddf.as_mut() {
+                Some(ddf) => {
+                    let mut direct = DirectTarget {
+                        filter,
+                        error: None,
+                    };
+                    let adopted = ddf.adopt_merge(m.from, m.into, &mut direct).is_some();
+                    match direct.error {
+                        Some(e) => Err(e),
+                        None => Ok(adopted),
+                    }
+                }
+                None => match self.own_keys.adopt(m.from, m.into) {
+                    Some(eff) => filter.merge_features(&eff).map(|()| true),
+                    None => Ok(false),
+                },
+            };
+            match applied {
+                Ok(true) => self.counters.correspondences_found += 1,
+                Ok(false) => {}
+                Err(e) => {
+                    self.counters.merges_refused += 1;
+                    self.reject("merge", &e, 1, &e);
+                }
+            }
+        }
     }
 
     /// The failures on the fusion path, by reason: `fusion.fuse.<error>` (a batch of deltas
@@ -327,6 +443,11 @@ impl VehicleFusion {
 
     /// Fuses the received information batched since the last call into `filter`.
     pub fn flush(&mut self, filter: &mut SlamFilter) {
+        // Descriptors first: they are of keys the batch may bring.
+        let described = std::mem::take(&mut self.pending.described);
+        if !described.is_empty() {
+            FuseTarget::describe(filter, &described);
+        }
         if let Some(sum) = self.pending.sum.take() {
             let n = std::mem::take(&mut self.pending.count);
             // Features whose information the batch cancels exactly (a resynchronisation after a
@@ -345,6 +466,23 @@ impl VehicleFusion {
             }
         }
         for m in std::mem::take(&mut self.pending.merges) {
+            // A neighbour's correspondence this estimate contradicts (both features held, their
+            // difference outside the wide gate) is kept apart in the estimate: the DDF node's
+            // bookkeeping is merged anyway, which stays exact (module `canopy_fusion::keys`).
+            if let Some(cfg) = self.correspondence
+                && filter.merge_contradicted(&m, cfg.ambiguity_probability)
+            {
+                self.counters.merges_refused += 1;
+                self.rejections.add(
+                    "fusion.merge.contradicted".into(),
+                    1,
+                    &format!(
+                        "neighbour's correspondence {:#x} = {:#x} contradicts this estimate",
+                        m.from, m.into
+                    ),
+                );
+                continue;
+            }
             if let Err(e) = filter.merge_features(&m) {
                 self.counters.merges_refused += 1;
                 self.reject("merge", &e, 1, &e);
@@ -402,10 +540,21 @@ impl VehicleFusion {
         now: f64,
     ) -> Result<Vec<Outgoing>, AgentError> {
         if self.ddf.is_none() {
+            // Isolated: no neighbours, but the vehicle's own duplicates are still merged.
+            self.correspond(filter);
             return Ok(Vec::new());
         }
         self.counters.rounds += 1;
         self.flush(filter);
+        self.correspond(filter);
+        if self.correspondence.is_some() {
+            let missing = filter.undescribed_features();
+            if !missing.is_empty()
+                && let Some(ddf) = self.ddf.as_mut()
+            {
+                ddf.request_descriptors(&missing);
+            }
+        }
         // The DDF reads Y only if an exact link sends a delta, and covariance blocks for CI
         // links.
         let out = self
@@ -729,7 +878,14 @@ impl VehicleAgent {
         link_budgets: &[(NodeId, Option<usize>)],
     ) -> Result<Self, AgentError> {
         let estimator = VehicleEstimator::new(slam, setup)?;
-        let fusion = VehicleFusion::new(id, epoch, slam.origin, mode, topology, ddf, link_budgets)?;
+        let mut fusion =
+            VehicleFusion::new(id, epoch, slam.origin, mode, topology, ddf, link_budgets)?;
+        if let AssociationMode::Appearance { max_distance, .. } = slam.association.mode {
+            fusion.set_correspondence(Some(CorrespondenceConfig {
+                max_distance,
+                ..CorrespondenceConfig::default()
+            }));
+        }
         Ok(Self {
             id,
             estimator,
@@ -761,6 +917,17 @@ impl VehicleAgent {
     /// start of every round; call it before reading a final map).
     pub fn flush_fusion(&mut self) {
         self.fusion.flush(self.estimator.filter_mut());
+    }
+
+    /// Searches the map for correspondences after every fusion (`Some`, the default under
+    /// appearance association) or not ([`VehicleFusion::set_correspondence`]).
+    pub fn set_correspondence(&mut self, cfg: Option<CorrespondenceConfig>) {
+        self.fusion.set_correspondence(cfg);
+    }
+
+    /// The correspondences this vehicle adopted ([`VehicleFusion::merges`]).
+    pub fn merges(&self) -> Vec<Merge> {
+        self.fusion.merges()
     }
 
     /// This node's id.
@@ -855,7 +1022,7 @@ impl AgentCounters {
 /// (the independent opinion pool, eqs. 21.88–21.91), fed back through channel filters.
 #[derive(Debug)]
 pub struct HubAgent {
-    store: MapInformation,
+    store: InformationStore,
     ddf: DdfNode,
     rejected: u64,
     /// Every failure on the hub's fusion path, by reason (`fusion.<step>.<error>` as in
@@ -874,7 +1041,7 @@ impl HubAgent {
     ) -> Result<Self, DdfError> {
         let node = DdfNode::for_mode(Mode::Central { hub: id }, id, epoch, topology, origin, ddf)?;
         Ok(Self {
-            store: MapInformation::zero(origin),
+            store: InformationStore::new(origin),
             ddf: node,
             rejected: 0,
             rejections: Rejections::default(),
@@ -883,7 +1050,7 @@ impl HubAgent {
 
     /// The hub's map information.
     pub fn store(&self) -> &MapInformation {
-        &self.store
+        &self.store.info
     }
 
     /// The DDF node.
@@ -911,8 +1078,13 @@ impl HubAgent {
         r
     }
 
-    /// A fusion round.
+    /// A fusion round (keys the hub holds without a descriptor are asked for again: it passes
+    /// descriptors on between the vehicles).
     pub fn on_round(&mut self, now: f64) -> Result<Vec<Outgoing>, DdfError> {
+        let missing = self.store.undescribed();
+        if !missing.is_empty() {
+            self.ddf.request_descriptors(&missing);
+        }
         let r = self.ddf.on_round(now, &mut self.store).map(|o| o.messages);
         self.reject("round", r)
     }
@@ -1007,7 +1179,7 @@ mod rejection_tests {
         let (world, mut sources) = crate::replay::SensorSource::for_scenario(&s).unwrap();
         let est = sources[0].initial_estimate();
         let build = || {
-            crate::sim::vehicle_agent(&s, &s.vehicles[0], &world, &est, 7)
+            crate::sim::vehicle_agent(&s, &s.vehicles[0], &world, &est, 0, 7)
                 .unwrap()
                 .into_parts()
                 .0

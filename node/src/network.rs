@@ -166,6 +166,12 @@ pub struct FusionConfig {
     pub hello_interval_s: f64,
     /// How long a sequence gap may persist before a Nack [s] (default 2).
     pub gap_timeout_s: f64,
+    /// Appearance association only: after each fusion every vehicle searches its map for keys
+    /// that name one feature (a neighbour's and its own, or two of its own) and adopts them as
+    /// correspondences (`canopy_fusion::slam::SlamFilter::find_correspondences`). Default true;
+    /// false is the ablation in which a feature two vehicles initialised before exchanging
+    /// stays two features.
+    pub map_correspondences: bool,
     /// When a vehicle process applies a neighbour's DDF message (`canopy run`; `canopy sim`
     /// is deterministic either way): `arrival` (default: as soon as it arrives) or
     /// `simulation_time` (at the receiver's first round one round period after the message's
@@ -206,6 +212,7 @@ impl Default for FusionConfig {
             hello_interval_s: 1.0,
             gap_timeout_s: 2.0,
             delivery: Delivery::Arrival,
+            map_correspondences: true,
         }
     }
 }
@@ -215,8 +222,24 @@ impl FusionConfig {
     /// or its default for `identity` (descriptor for perfect identities, appearance otherwise);
     /// appearance association takes its candidate distance from `appearance`.
     pub fn association_config(&self, appearance: &AppearanceConfig) -> AssociationConfig {
+        self.association_config_for(appearance, false)
+    }
+
+    /// [`association_config`](Self::association_config) for one vehicle: a vehicle replayed
+    /// from logs gets its descriptors from the log (track ids of a recording or of a recorded
+    /// run), not from the simulator's identity model, so its default is `descriptor`.
+    pub fn association_config_for(
+        &self,
+        appearance: &AppearanceConfig,
+        replayed: bool,
+    ) -> AssociationConfig {
+        let identity = if replayed {
+            Identity::Perfect
+        } else {
+            appearance.identity
+        };
         AssociationConfig {
-            mode: match self.association_kind(appearance.identity) {
+            mode: match self.association_kind(identity) {
                 AssociationKind::Descriptor => AssociationMode::Descriptor,
                 AssociationKind::NearestNeighbour => AssociationMode::NearestNeighbour,
                 AssociationKind::Jcbb => AssociationMode::Jcbb {

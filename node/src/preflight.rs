@@ -54,7 +54,7 @@ pub fn preflight(s: &Scenario) -> Result<Vec<VehicleInput>> {
     let (world, sources) = SensorSource::for_scenario(s)?;
     let mut out = Vec::with_capacity(sources.len());
     for (i, (cfg, src)) in s.vehicles.iter().zip(&sources).enumerate() {
-        crate::sim::vehicle_agent(s, cfg, &world, &src.initial_estimate(), 1)
+        crate::sim::vehicle_agent(s, cfg, &world, &src.initial_estimate(), 0, 1)
             .with_context(|| format!("vehicle[{i}] `{}`: its estimator", cfg.display_name()))?;
         out.push(match src {
             SensorSource::Sim(_) => VehicleInput::Simulated,

@@ -168,11 +168,25 @@ impl Node {
 /// it (`canopy sim`, the vehicle process, the pre-run checks): its filter (frame and origin of
 /// `world`, the scenario's association, fresh ids in the vehicle's namespace), its DDF node on
 /// the scenario's topology with each link's byte budget.
+/// Largest vehicle id: a vehicle's feature keys carry its id in 20 bits beside its
+/// incarnation ([`key_namespace`]).
+pub const MAX_VEHICLE_ID: u32 = (1 << 20) - 1;
+
+/// The namespace of the feature keys a vehicle process makes (`SlamConfig::fresh_id_namespace`):
+/// its id and its incarnation (the process start: 0, then one more per restart, 11 bits). A
+/// restarted process counts its keys from 0 again; with the incarnation in the key, none of
+/// them can name a feature its dead predecessor named, which its neighbours still hold.
+pub fn key_namespace(id: u32, incarnation: u32) -> u32 {
+    ((incarnation & 0x7FF) << 20) | (id & MAX_VEHICLE_ID)
+}
+
+/// The estimator and DDF agent of vehicle `cfg` (process start `incarnation`, DDF `epoch`).
 pub fn vehicle_agent(
     s: &Scenario,
     cfg: &crate::scenario::VehicleConfig,
     world: &World,
     estimate: &InitialEstimate,
+    incarnation: u32,
     epoch: u64,
 ) -> Result<VehicleAgent, SimError> {
     let topo = topology(s)?;
@@ -214,8 +228,10 @@ pub fn vehicle_agent(
         frame: world.frame(),
         local_gravity_mps2: world.local_gravity(),
         origin: world.map_origin(),
-        association: s.fusion.association_config(&s.world.appearance),
-        fresh_id_namespace: cfg.id,
+        association: s
+            .fusion
+            .association_config_for(&s.world.appearance, cfg.replay.is_some()),
+        fresh_id_namespace: key_namespace(cfg.id, incarnation),
     };
     let agent_error = |source| SimError::Agent {
         node: cfg.display_name(),
@@ -238,6 +254,9 @@ pub fn vehicle_agent(
             cfg.replay.as_ref().and_then(|r| r.zero_velocity),
         )
         .map_err(agent_error)?;
+    if !s.fusion.map_correspondences {
+        agent.set_correspondence(None);
+    }
     // Capacity-limited links: sparsified channel filters (default) or CI submaps from the
     // first round (`fusion = "ci"`).
     for &(peer, fusion) in &radio_peers {
@@ -292,6 +311,7 @@ impl<'s> Sim<'s> {
             cfg,
             &self.world,
             estimate,
+            incarnation,
             epoch_for(s.world.seed, cfg.id, incarnation),
         )
     }
@@ -844,9 +864,8 @@ pub fn simulate(s: &Scenario, mut opts: SimOptions<'_>) -> Result<SimOutcome, Si
             .nodes
             .get(&NodeId(cfg.id))
             .and_then(|n| n.agent.as_ref())
-            && let Some(d) = a.ddf()
         {
-            sim.audit.set_merges(cfg.id, d.keys().merges());
+            sim.audit.set_merges(cfg.id, a.merges());
         }
     }
     let truth = sim.audit.finish();

@@ -1,123 +1,245 @@
-//! The shipped appearance scenario (`topologies/appearance-4.toml`) under `canopy sim`, beside
-//! the same seed with perfect identities: the estimators never see a true feature id, every
-//! observation is judged against the truth, the association figures reach the summary, and the
-//! vehicles are never more confident than the centralized all-data reference (which associates
-//! by the true ids). The figures of both runs are printed; issue 12's bars are compared in the
-//! printout, not asserted, while cross-vehicle association is missing (docs/arch/association.md).
+//! Association without the simulator's identities on the shipped scenarios, under `canopy sim`
+//! (issue 12): the default team (`topologies/tree-4.toml`, simulated appearance), its
+//! perfect-identity ablation (`topologies/perfect-4.toml`, same seed, same observations) and the
+//! hard variant (`topologies/appearance-hard-4.toml`: 10 % confusable features, bit flips up to
+//! 20 %, tracks breaking every few frames).
 //!
-//! Runtime (release): 2 × 60 s of the 4-UAV team with the reference, ≈ 15 s.
+//! What it proves:
+//! * the estimators never see a true id (every map key is a vehicle's own key) and every frame
+//!   is judged against the truth;
+//! * with the vehicles finding their correspondences themselves, both appearance runs meet
+//!   issue 12's bars against the perfect-identity run: team map RMSE ≤ 1.10×, pose and map
+//!   ANEES ≤ 1.1×, no wrong correspondence fused, mature duplicates ≤ 2 %, and no vehicle more
+//!   confident than the centralized all-data reference;
+//! * the hard run counts the candidate correspondences it refused;
+//! * where correspondences have to be found — `topologies/partition-heal.toml`, whose two
+//!   halves map the same ground apart for 35 s — they are (every one right), and the same bars
+//!   hold against that scenario's perfect-identity run;
+//! * the audit can fail: with the correspondence search switched off (`[fusion]
+//!   map_correspondences = false`, the ablation) the features the halves initialised apart
+//!   stay duplicated, and the audit reports them.
+//!
+//! Runtime (release): 3 × 120 s and 3 × 90 s of the 4-UAV team with the reference, ≈ 1 min on
+//! an idle 2-core machine.
 
 use std::path::Path;
 
-use canopy_node::output::summary::summarize;
+use canopy_node::output::summary::{Summary as RunSummary, summarize};
 use canopy_node::scenario::{Identity, Scenario};
-use canopy_node::sim::{SimOptions, simulate};
+use canopy_node::sim::{SimOptions, SimOutcome, simulate};
 
-const DURATION: f64 = 60.0;
+/// Long enough that every vehicle's map overlaps its neighbours' and features mature (held
+/// ≥ 10 s).
+const DURATION: f64 = 120.0;
 
-fn shipped() -> Scenario {
-    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../topologies/appearance-4.toml");
-    Scenario::load(&path).expect("the shipped appearance scenario loads")
+fn shipped(name: &str) -> Scenario {
+    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join(format!("../topologies/{name}.toml"));
+    Scenario::load(&path).unwrap_or_else(|e| panic!("{name}: {e}"))
 }
 
-#[test]
-fn appearance_scenario_runs_without_true_ids_and_reports_its_association() {
-    let s = shipped();
-    assert_eq!(s.world.appearance.identity, Identity::Appearance);
-    let mut perfect = s.clone();
-    perfect.world.appearance.identity = Identity::Perfect;
-    let opts = || SimOptions {
-        duration: Some(DURATION),
-        ..SimOptions::default()
-    };
-    let app = simulate(&s, opts()).expect("appearance run");
-    let per = simulate(&perfect, opts()).expect("perfect-identity run");
-    let (sa, sp) = (summarize(&app.record), summarize(&per.record));
-    let max_ratio = |c: &[(f64, f64)]| c.iter().map(|x| x.1).fold(f64::NAN, f64::max);
-    for (name, sm, out) in [("appearance", &sa, &app), ("perfect", &sp, &per)] {
-        let a = &sm.association;
-        println!(
-            "{name}: map RMSE {:.3} m, position RMSE {:.3} m, pose ANEES {:.2}, map ANEES {:.2}; \
-             wrong associations {} of {}; duplicates {} (mature {} of {}, share {:.3}); \
-             unmatched {}; merges {} (wrong {}); max confidence ratio {:.3} over {} record times",
-            sm.team.map_rmse_m,
-            sm.team.position_rmse_m,
-            sm.team.pose_anees,
-            sm.team.map_anees,
-            a.wrong_associations,
-            a.observations,
-            a.duplicate_features,
-            a.mature_duplicates,
-            a.mature_features,
-            a.mature_duplicate_share,
-            a.unmatched_features,
-            a.merges_adopted,
-            a.wrong_merges,
-            max_ratio(&out.checks.confidence_ratio),
-            out.checks.confidence_ratio.len(),
-        );
-    }
-    println!(
-        "appearance / perfect: map RMSE × {:.2}, pose ANEES × {:.2}, map ANEES × {:.2}",
-        sa.team.map_rmse_m / sp.team.map_rmse_m,
-        sa.team.pose_anees / sp.team.pose_anees,
-        sa.team.map_anees / sp.team.map_anees
-    );
+fn sim(s: &Scenario) -> (SimOutcome, RunSummary) {
+    let out = simulate(
+        s,
+        SimOptions {
+            duration: Some(DURATION.min(s.run.duration_s)),
+            ..SimOptions::default()
+        },
+    )
+    .expect("simulation runs");
+    let summary = summarize(&out.record);
+    (out, summary)
+}
 
-    assert_eq!(sa.identity, "appearance");
-    assert_eq!(sp.identity, "perfect");
+fn max_ratio(out: &SimOutcome) -> f64 {
+    out.checks
+        .confidence_ratio
+        .iter()
+        .map(|x| x.1)
+        .fold(f64::NAN, f64::max)
+}
+
+fn print(name: &str, out: &SimOutcome, sm: &RunSummary) {
+    let a = &sm.association;
+    println!(
+        "{name}: map RMSE {:.3} m, position RMSE {:.3} m, pose ANEES {:.2}, map ANEES {:.2}; \
+         wrong associations {} of {}; correspondences adopted {} (wrong {}, cross-vehicle wrong \
+         {}); duplicates {} (mature {} of {}, share {:.3}); unmatched {}; max confidence ratio \
+         {:.3}",
+        sm.team.map_rmse_m,
+        sm.team.position_rmse_m,
+        sm.team.pose_anees,
+        sm.team.map_anees,
+        a.wrong_associations,
+        a.observations,
+        a.merges_adopted,
+        a.wrong_merges,
+        a.wrong_cross_vehicle_merges,
+        a.duplicate_features,
+        a.mature_duplicates,
+        a.mature_features,
+        a.mature_duplicate_share,
+        a.unmatched_features,
+        max_ratio(out),
+    );
+}
+
+/// Candidate correspondences a run refused, summed over the vehicles (`fusion.correspondence.*`).
+fn refused_candidates(out: &SimOutcome) -> u64 {
+    out.record
+        .vehicles
+        .iter()
+        .flat_map(|v| v.rejections.iter())
+        .filter(|(k, _)| k.starts_with("fusion.correspondence."))
+        .map(|(_, n)| n)
+        .sum()
+}
+
+/// Issue 12's bars for an appearance run against the perfect-identity run of the same seed.
+fn assert_bars(name: &str, out: &SimOutcome, sm: &RunSummary, perfect: &RunSummary) {
+    assert_eq!(sm.identity, "appearance", "{name}");
     // The same world and noise: both runs saw the same observations.
-    assert_eq!(sa.association.observations, sp.association.observations);
-    assert!(sa.association.observations > 0);
-    // Every frame had its true ids: nothing escaped the audit.
-    assert_eq!(sa.association.unaudited_frames, 0);
-    // No estimator saw a true id: every key of every final map is a vehicle's own key (no
-    // world feature has it), and every key has the true feature its observations name.
-    for v in &app.record.vehicles {
-        assert!(!v.map.is_empty(), "{}: empty map", v.name);
+    assert_eq!(
+        sm.association.observations, perfect.association.observations,
+        "{name}"
+    );
+    assert_eq!(sm.association.unaudited_frames, 0, "{name}");
+    // No estimator saw a true id: every key is a vehicle's own (ids of world features are
+    // below 2³²), and every key stands for a true feature.
+    for v in &out.record.vehicles {
+        assert!(!v.map.is_empty(), "{name} {}: empty map", v.name);
         for f in &v.map {
-            assert!(f.id > 1 << 32, "{}: key {} is a feature id", v.name, f.id);
+            assert!(
+                f.id > 1 << 32,
+                "{name} {}: key {} is a feature id",
+                v.name,
+                f.id
+            );
             assert!(
                 f.truth_id.is_some(),
-                "{}: key {} has no truth",
+                "{name} {}: key {} has no truth",
                 v.name,
                 f.id
             );
         }
     }
-    // With perfect identities the keys are the true ids: nothing is duplicated or unmatched.
-    for v in &per.record.vehicles {
+    let a = &sm.association;
+    assert_eq!(
+        a.wrong_cross_vehicle_merges, 0,
+        "{name}: wrong correspondence fused"
+    );
+    assert_eq!(a.wrong_merges, 0, "{name}: wrong correspondence adopted");
+    // Within a vehicle (track, descriptor, gate, JCBB): 0 wrong of 5607 measured on both
+    // runs; a wrong association is a real failure, but one in 1000 observations (a confusable
+    // pair close together on another seed) is not a broken association.
+    assert!(
+        (a.wrong_associations as f64) <= 1e-3 * a.observations as f64,
+        "{name}: {} wrong associations of {}",
+        a.wrong_associations,
+        a.observations
+    );
+    let share = a.mature_duplicate_share;
+    assert!(a.mature_features > 0, "{name}: no mature features");
+    assert!(share <= 0.02, "{name}: mature duplicate share {share:.3}");
+    let ratio = |x: f64, y: f64| x / y;
+    let map = ratio(sm.team.map_rmse_m, perfect.team.map_rmse_m);
+    let pose = ratio(sm.team.pose_anees, perfect.team.pose_anees);
+    let mapn = ratio(sm.team.map_anees, perfect.team.map_anees);
+    println!(
+        "{name} / perfect: map RMSE × {map:.3}, pose ANEES × {pose:.3}, map ANEES × {mapn:.3}"
+    );
+    assert!(
+        map <= 1.10,
+        "{name}: team map RMSE {map:.3}× the perfect-identity run's"
+    );
+    assert!(
+        pose <= 1.1,
+        "{name}: pose ANEES {pose:.3}× the perfect-identity run's"
+    );
+    assert!(
+        mapn <= 1.1,
+        "{name}: map ANEES {mapn:.3}× the perfect-identity run's"
+    );
+    // Never more confident than the all-data reference, which associates by true ids (keys
+    // mapped to their true features). 1.05: the perfect-identity run reaches 1.0005 by
+    // linearisation, information counted twice would give about 2.
+    let r = max_ratio(out);
+    assert!(r <= 1.05, "{name}: confidence ratio {r}");
+}
+
+#[test]
+fn shipped_appearance_scenarios_meet_the_perfect_identity_bars() {
+    let default = Scenario::builtin_default();
+    assert_eq!(default.world.appearance.identity, Identity::Appearance);
+    let perfect = shipped("perfect-4");
+    assert_eq!(perfect.world.appearance.identity, Identity::Perfect);
+    let hard = shipped("appearance-hard-4");
+    assert_eq!(hard.world.seed, default.world.seed);
+
+    let (per_out, per) = sim(&perfect);
+    let (app_out, app) = sim(&default);
+    let (hard_out, hard_sm) = sim(&hard);
+    for (name, out, sm) in [
+        ("perfect", &per_out, &per),
+        ("appearance", &app_out, &app),
+        ("hard", &hard_out, &hard_sm),
+    ] {
+        print(name, out, sm);
+    }
+    println!(
+        "refused candidate correspondences: appearance {}, hard {}",
+        refused_candidates(&app_out),
+        refused_candidates(&hard_out)
+    );
+
+    // With perfect identities the keys are the true ids: nothing duplicated or unmatched.
+    for v in &per_out.record.vehicles {
         assert!(v.map.iter().all(|f| f.truth_id == Some(f.id)), "{}", v.name);
     }
     assert_eq!(
         (
-            sp.association.duplicate_features,
-            sp.association.unmatched_features
+            per.association.duplicate_features,
+            per.association.unmatched_features
         ),
         (0, 0)
     );
-    // Without cross-vehicle association the fused maps hold shared features twice: the audit
-    // must see it (a check that cannot fail would report 0 here).
-    assert!(sa.association.unmatched_features > 0);
-    assert!(sa.association.unmatched_features <= sa.association.duplicate_features);
-    // Within a vehicle, association by track, descriptor and gate: measured 0 wrong of 5607
-    // observations at 120 s; 1 % leaves room for another seed's confusable pair, not for a
-    // broken association.
-    let a = &sa.association;
+    assert_bars("appearance", &app_out, &app, &per);
+    assert_bars("hard", &hard_out, &hard_sm, &per);
+    // The hard run's descriptors bring many look-alike candidates; each one refused is counted
+    // (10 % confusable features and 20 % bit flips: hundreds of pairs over the team).
+    assert!(refused_candidates(&hard_out) > refused_candidates(&app_out));
+}
+
+#[test]
+fn correspondences_are_found_after_a_partition_and_the_audit_sees_them_missing() {
+    let app = shipped("partition-heal");
+    assert_eq!(app.world.appearance.identity, Identity::Appearance);
+    let mut perfect = app.clone();
+    perfect.world.appearance.identity = Identity::Perfect;
+    let mut ablation = app.clone();
+    ablation.fusion.map_correspondences = false;
+    let (per_out, per) = sim(&perfect);
+    let (app_out, app_sm) = sim(&app);
+    let (abl_out, abl) = sim(&ablation);
+    for (name, out, sm) in [
+        ("partition-heal perfect", &per_out, &per),
+        ("partition-heal appearance", &app_out, &app_sm),
+        (
+            "partition-heal without correspondence search",
+            &abl_out,
+            &abl,
+        ),
+    ] {
+        print(name, out, sm);
+    }
+    assert_bars("partition-heal", &app_out, &app_sm, &per);
+    // The halves initialised shared features apart: correspondences had to be found (28 on
+    // the shipped seed), and none was wrong (asserted above).
+    assert!(app_sm.association.merges_adopted > 0);
+    // The ablation leaves them duplicated, and the audit reports it: the duplicate figures
+    // are not a check that cannot fail.
+    assert_eq!(abl.association.merges_adopted, 0);
     assert!(
-        (a.wrong_associations as f64) < 0.01 * a.observations as f64,
-        "{} wrong of {}",
-        a.wrong_associations,
-        a.observations
+        abl.association.unmatched_features > 0 && abl.association.duplicate_features > 0,
+        "the audit must see the duplicates the ablation leaves"
     );
-    // Never more confident than the all-data reference; the check compared features under
-    // appearance too (keys mapped to their true features). 1.05: the perfect-identity run of
-    // this seed reaches 1.0005 by linearisation (vehicles and reference linearise at different
-    // estimates), while information counted twice would give about 2.
-    assert_eq!(
-        app.checks.confidence_ratio.len(),
-        per.checks.confidence_ratio.len()
-    );
-    let r = max_ratio(&app.checks.confidence_ratio);
-    assert!(r <= 1.05, "confidence ratio {r}");
 }

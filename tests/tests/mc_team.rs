@@ -1,12 +1,15 @@
 //! Full multi-vehicle SLAM, 4-vehicle tree (the default scenario), default noise, 10 seeds
-//! (issue: decentralized data fusion core). Each seed draws a new world and new noise; the
-//! decentralized run has the centralized all-data EKF alongside (fed the same IMU samples and
-//! observation frames), and the same seed is also run isolated (no fusion).
+//! (issues: decentralized data fusion core; association without identities). Each seed draws a
+//! new world and new noise; the decentralized run — simulated appearance, the default: every
+//! vehicle keys its map by its own keys and finds its correspondences with its neighbours' —
+//! has the centralized all-data EKF alongside (fed the same IMU samples and observation frames,
+//! with the true ids), and the same seed is also run isolated (no fusion) and with perfect
+//! identities (the ablation: every vehicle names a feature by its true id).
 
 use canopy_node::network::FusionMode;
 use canopy_node::output::summary::summarize_vehicle;
 use canopy_node::record::VehicleRecord;
-use canopy_node::scenario::Scenario;
+use canopy_node::scenario::{Identity, Scenario};
 use canopy_node::sim::{SimOptions, SimOutcome, simulate};
 use canopy_tests::montecarlo::{map_consistency, pose_consistency};
 
@@ -26,6 +29,17 @@ fn run(seed: u64, mode: FusionMode) -> SimOutcome {
     simulate(&s, SimOptions::default()).expect("simulation runs")
 }
 
+/// The decentralized run of `seed` with perfect identities (no reference: only the vehicles'
+/// figures are compared).
+fn run_perfect(seed: u64) -> SimOutcome {
+    let mut s = Scenario::builtin_default();
+    s.world.seed = seed;
+    s.run.duration_s = DURATION;
+    s.run.baseline = false;
+    s.world.appearance.identity = Identity::Perfect;
+    simulate(&s, SimOptions::default()).expect("simulation runs")
+}
+
 fn pooled_map_rmse(records: &[&VehicleRecord]) -> f64 {
     map_consistency(records).rmse
 }
@@ -36,12 +50,20 @@ fn pooled_map_rmse(records: &[&VehicleRecord]) -> f64 {
 /// ever more confident about a feature than the reference by more than 20 % (linearisation
 /// points differ between the filters; counting information twice would show as ≈ 2), zero wrong
 /// associations; and isolated vehicles are measurably worse (the benefit of fusion).
+///
+/// Association without identities (issue 12) against the same seeds with perfect identities:
+/// pooled team map RMSE ≤ 1.10×, pose and map ANEES ≤ 1.1×, no wrong correspondence adopted,
+/// mature duplicates ≤ 2 % — the vehicles find each other's features as well as if they were
+/// told (the wrong-association and duplicate figures come from the monitor's audit against the
+/// truth, which the estimators never see: these assertions can fail).
 #[test]
 fn decentralized_matches_central_and_beats_isolated() {
     let dec: Vec<SimOutcome> = (1..=SEEDS)
         .map(|s| run(s, FusionMode::Decentralized))
         .collect();
     let iso: Vec<SimOutcome> = (1..=SEEDS).map(|s| run(s, FusionMode::Isolated)).collect();
+    let per: Vec<SimOutcome> = (1..=SEEDS).map(run_perfect).collect();
+    let per_v: Vec<&VehicleRecord> = per.iter().flat_map(|o| o.record.vehicles.iter()).collect();
     let dec_v: Vec<&VehicleRecord> = dec.iter().flat_map(|o| o.record.vehicles.iter()).collect();
     let iso_v: Vec<&VehicleRecord> = iso.iter().flat_map(|o| o.record.vehicles.iter()).collect();
     // The reference's map is one joint map: count it once per seed.
@@ -106,6 +128,47 @@ fn decentralized_matches_central_and_beats_isolated() {
         "a vehicle is {ratio}× more confident than the centralized EKF"
     );
     assert_eq!(wrong, 0);
+
+    // Issue 12's bars against perfect identities on the same seeds.
+    let (map_per, anees_per) = (pooled_map_rmse(&per_v), anees(&per_v));
+    let (mapn_dec, mapn_per) = (map_consistency(&dec_v).anees, map_consistency(&per_v).anees);
+    let sum = |f: fn(&VehicleRecord) -> u64| dec_v.iter().map(|r| f(r)).sum::<u64>();
+    let wrong_merges = sum(|r| r.association.wrong_merges);
+    let wrong_cross = sum(|r| r.association.wrong_cross_vehicle_merges);
+    let adopted = sum(|r| r.association.merges_adopted);
+    let mature = sum(|r| r.association.mature_features);
+    let mature_dup = sum(|r| r.association.mature_duplicates);
+    let observations = sum(|r| r.observations);
+    let share = mature_dup as f64 / mature.max(1) as f64;
+    println!(
+        "  appearance vs perfect identities: map RMSE {map_dec:.3} vs {map_per:.3} m ({:.3}×), \
+         pose ANEES/6 {anees_dec:.3} vs {anees_per:.3} ({:.3}×), map ANEES/3 {mapn_dec:.3} vs \
+         {mapn_per:.3} ({:.3}×)",
+        map_dec / map_per,
+        anees_dec / anees_per,
+        mapn_dec / mapn_per
+    );
+    println!(
+        "  correspondences adopted {adopted} (wrong {wrong_merges}, cross-vehicle wrong \
+         {wrong_cross}); mature duplicates {mature_dup} of {mature} ({share:.4}); wrong \
+         associations {wrong} of {observations}"
+    );
+    assert!(observations > 0 && mature > 0);
+    assert!(
+        map_dec <= 1.10 * map_per,
+        "map RMSE {map_dec} > 1.10 × {map_per}"
+    );
+    assert!(
+        anees_dec <= 1.1 * anees_per,
+        "pose ANEES {anees_dec} > 1.1 × {anees_per}"
+    );
+    assert!(
+        mapn_dec <= 1.1 * mapn_per,
+        "map ANEES {mapn_dec} > 1.1 × {mapn_per}"
+    );
+    assert_eq!(wrong_merges, 0, "wrong correspondences adopted");
+    assert_eq!(wrong_cross, 0, "wrong cross-vehicle correspondences fused");
+    assert!(share <= 0.02, "mature duplicate share {share:.4}");
     // Benefit of fusion: isolated maps and positions at least 30 % worse.
     assert!(
         map_iso >= 1.3 * map_dec,

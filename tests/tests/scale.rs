@@ -51,11 +51,13 @@ fn hop_window_s(s: &Scenario) -> f64 {
     3.0 * period + s.run.max_lead_s + 2.0 * record
 }
 
-/// Final map of every vehicle: feature id → held since [s] (map.csv).
+/// Final map of every vehicle: true feature id → held since [s] (map.csv `truth_id`: the
+/// vehicles key their maps by their own keys, which differ between neighbours until a
+/// correspondence is adopted and told).
 fn final_maps(r: &Run) -> BTreeMap<String, BTreeMap<u64, f64>> {
     let mut maps: BTreeMap<String, BTreeMap<u64, f64>> = BTreeMap::new();
     for row in r.csv("map.csv") {
-        let id: u64 = row["id"].parse().expect("feature id");
+        let id: u64 = row["truth_id"].parse().expect("truth id");
         let held: f64 = row["held_since_s"].parse().expect("held_since_s");
         maps.entry(row["vehicle"].clone())
             .or_default()

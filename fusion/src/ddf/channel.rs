@@ -8,14 +8,14 @@ use super::{FuseTarget, LinkMode, MapSource};
 use crate::ci::{self, Submap, SubmapTracker};
 use crate::info::{InfoError, MapInformation};
 use crate::keys::{KeyMap, Merge};
-use crate::sensor::FeatureId;
+use crate::sensor::{Appearance, FeatureId};
 use crate::sparse;
 use crate::state::FEATURE_DIM;
 use crate::topology::NodeId;
 use nalgebra::Matrix3;
 use nalgebra::Vector3;
 use serde::{Deserialize, Serialize};
-use std::collections::{BTreeMap, HashMap, HashSet, VecDeque};
+use std::collections::{BTreeMap, BTreeSet, HashMap, HashSet, VecDeque};
 
 /// How many times a sparsified round moves the feature of a failing pivot of D_RR into S
 /// before it is refused. Why 8: each attempt is one Cholesky of D_RR (the round's main cost);
@@ -152,6 +152,10 @@ pub(crate) struct Channel {
     submap_acks: Vec<u64>,
     /// Merges to tell the peer (sent first in the next round).
     facts_out: Vec<Merge>,
+    /// Keys to ask the peer to describe at the next round ([`Body::DescribeRequest`]).
+    requests_out: Vec<FeatureId>,
+    /// Keys the peer asked this node to describe (answered at the next round).
+    requested: BTreeSet<FeatureId>,
     /// The peer's epoch changed: it must be told every merge this node holds.
     pub(crate) needs_all_facts: bool,
     /// Keys whose descriptors the peer's current epoch has been sent.
@@ -286,6 +290,8 @@ impl Channel {
             submap_seq: 0,
             submap_acks: Vec::new(),
             facts_out: Vec::new(),
+            requests_out: Vec::new(),
+            requested: BTreeSet::new(),
             needs_all_facts: false,
             described: HashSet::new(),
             stats: ChannelStats::default(),
@@ -415,6 +421,58 @@ impl Channel {
     /// Queues merges for the peer.
     pub(crate) fn queue_facts(&mut self, facts: &[Merge]) {
         self.facts_out.extend_from_slice(facts);
+    }
+
+    /// Asks the peer, at the next round, to describe `keys` (replacing an unsent request).
+    pub(crate) fn request_descriptors(&mut self, keys: &[FeatureId]) {
+        self.requests_out = keys.to_vec();
+    }
+
+    /// The peer asked for descriptors of `keys`: answered at the next round.
+    pub(crate) fn descriptors_requested(&mut self, keys: &[FeatureId]) {
+        self.requested.extend(keys.iter().copied());
+    }
+
+    /// The round's descriptor traffic: the request of keys this node lacks, and the answer to
+    /// the peer's request (the descriptors this node knows, under the keys the peer used).
+    fn descriptor_messages(
+        &mut self,
+        source: &dyn MapSource,
+        keys: &KeyMap,
+        ctx: &NodeCtx<'_>,
+        out: &mut Vec<DdfMessage>,
+    ) {
+        let ask = std::mem::take(&mut self.requests_out);
+        for chunk in ask.chunks(MAX_LIST) {
+            let msg = self.msg(
+                ctx,
+                Body::DescribeRequest {
+                    keys: chunk.to_vec(),
+                },
+            );
+            out.push(msg);
+        }
+        if self.requested.is_empty() {
+            return;
+        }
+        let asked: Vec<FeatureId> = std::mem::take(&mut self.requested).into_iter().collect();
+        let canonical: Vec<FeatureId> = asked.iter().map(|&k| keys.canonical(k)).collect();
+        let known: HashMap<FeatureId, Appearance> =
+            source.descriptors(&canonical).into_iter().collect();
+        let features: Vec<(FeatureId, Appearance)> = asked
+            .iter()
+            .zip(&canonical)
+            .filter_map(|(&k, c)| known.get(c).map(|a| (k, *a)))
+            .collect();
+        for chunk in features.chunks(MAX_LIST) {
+            let msg = self.msg(
+                ctx,
+                Body::Describe {
+                    features: chunk.to_vec(),
+                },
+            );
+            out.push(msg);
+        }
     }
 
     /// A `Describe` of the keys of `ids` this peer epoch has not been sent yet (`None` when
@@ -677,7 +735,7 @@ impl Channel {
                 Ok(())
             }
             // Handled by the node (they concern every channel); nothing left to do here.
-            Body::Merges { .. } | Body::Describe { .. } => Ok(()),
+            Body::Merges { .. } | Body::Describe { .. } | Body::DescribeRequest { .. } => Ok(()),
             _ if self.mode == LinkMode::Ci || !addressed => {
                 // Exact-protocol messages on a CI link, or not addressed to this epoch.
                 self.stats.stale += 1;
@@ -934,12 +992,14 @@ impl Channel {
         &mut self,
         now: f64,
         source: &dyn MapSource,
+        keys: &KeyMap,
         ctx: &NodeCtx<'_>,
     ) -> Vec<DdfMessage> {
         let mut out = Vec::new();
         if !self.link_up {
             return out;
         }
+        self.descriptor_messages(source, keys, ctx, &mut out);
         if self.mode == LinkMode::Ci {
             if !self.submap_acks.is_empty() {
                 let seqs = std::mem::take(&mut self.submap_acks);
@@ -1188,6 +1248,16 @@ impl Channel {
                         what: "descriptors",
                         expected: MAX_LIST,
                         found: features.len(),
+                    });
+                }
+                Ok(())
+            }
+            Body::DescribeRequest { keys } => {
+                if keys.len() > MAX_LIST {
+                    return Err(InfoError::Dimension {
+                        what: "describe request",
+                        expected: MAX_LIST,
+                        found: keys.len(),
                     });
                 }
                 Ok(())

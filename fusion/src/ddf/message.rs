@@ -118,6 +118,13 @@ pub enum Body {
         /// Key and descriptor (at most [`MAX_LIST`]).
         features: Vec<(FeatureId, Appearance)>,
     },
+    /// Keys the sender holds without a descriptor (a `Describe` lost, or sent before the
+    /// neighbour knew the descriptor itself): the receiver answers with a `Describe` of those
+    /// it knows at its next round. Repeated while keys stay undescribed, so any loss heals.
+    DescribeRequest {
+        /// The keys (at most [`MAX_LIST`]).
+        keys: Vec<FeatureId>,
+    },
 }
 
 /// Most entries of one [`Body::Merges`] or [`Body::Describe`] (more is rejected as malformed).
@@ -148,6 +155,7 @@ impl DdfMessage {
             Body::SubmapAck { .. } => "submap-ack",
             Body::Merges { .. } => "merges",
             Body::Describe { .. } => "describe",
+            Body::DescribeRequest { .. } => "describe-request",
         }
     }
 
@@ -167,6 +175,7 @@ impl DdfMessage {
                 Body::SubmapAck { seqs } => 9 + 9 * seqs.len(),
                 Body::Merges { merges } => 9 + 18 * merges.len(),
                 Body::Describe { features } => 9 + (9 + 4 * 9) * features.len(),
+                Body::DescribeRequest { keys } => 9 + 9 * keys.len(),
             }
     }
 }

@@ -255,3 +255,86 @@ impl MapSource for MapInformation {
         }
     }
 }
+
+/// An estimate that is only information — the hub of central mode: the sum of what it
+/// received ([`MapInformation`] as [`FuseTarget`]) and the appearance descriptors its
+/// neighbours sent with their keys, which it passes on with those keys ([`MapSource::descriptors`])
+/// so that the vehicles behind it can associate each other's features.
+#[derive(Clone, Debug)]
+pub struct InformationStore {
+    /// The information held.
+    pub info: MapInformation,
+    descriptors: std::collections::BTreeMap<FeatureId, Appearance>,
+}
+
+impl InformationStore {
+    /// An empty store with the team origin `origin`.
+    pub fn new(origin: nalgebra::Vector3<f64>) -> Self {
+        Self {
+            info: MapInformation::zero(origin),
+            descriptors: Default::default(),
+        }
+    }
+
+    /// The descriptor a neighbour sent for `key`.
+    pub fn descriptor(&self, key: FeatureId) -> Option<&Appearance> {
+        self.descriptors.get(&key)
+    }
+
+    /// Keys held without a descriptor, once any descriptor has been seen (a team with
+    /// identities never sends any, and is not asked).
+    pub fn undescribed(&self) -> Vec<FeatureId> {
+        if self.descriptors.is_empty() {
+            return Vec::new();
+        }
+        self.info
+            .ids
+            .iter()
+            .copied()
+            .filter(|k| !self.descriptors.contains_key(k))
+            .collect()
+    }
+}
+
+impl FuseTarget for InformationStore {
+    fn fuse(&mut self, delta: &MapInformation) -> Result<(), FuseRejected> {
+        self.info.fuse(delta)
+    }
+
+    fn fuse_submap(&mut self, submap: &Submap, criterion: CiCriterion) -> Result<(), FuseRejected> {
+        self.info.fuse_submap(submap, criterion)
+    }
+
+    fn merge(&mut self, merge: &Merge) -> Result<(), FuseRejected> {
+        if let Some(a) = self.descriptors.remove(&merge.from) {
+            self.descriptors.entry(merge.into).or_insert(a);
+        }
+        self.info.merge(merge)
+    }
+
+    fn describe(&mut self, features: &[(FeatureId, Appearance)]) {
+        for (f, a) in features {
+            self.descriptors.entry(*f).or_insert(*a);
+        }
+    }
+}
+
+impl MapSource for InformationStore {
+    fn information(&mut self) -> Result<MapInformation, InfoError> {
+        self.info.information()
+    }
+
+    fn feature_covariances(&self) -> Vec<(FeatureId, Matrix3<f64>)> {
+        self.info.feature_covariances()
+    }
+
+    fn marginal(&self, ids: &[FeatureId]) -> MapMarginal {
+        self.info.marginal(ids)
+    }
+
+    fn descriptors(&self, ids: &[FeatureId]) -> Vec<(FeatureId, Appearance)> {
+        ids.iter()
+            .filter_map(|f| self.descriptors.get(f).map(|a| (*f, *a)))
+            .collect()
+    }
+}

@@ -3,7 +3,7 @@
 
 use super::channel::{Channel, ChannelStats, LazyInformation, NodeCtx};
 use super::message::Body;
-use super::message::{DdfMessage, Outgoing};
+use super::message::{DdfMessage, MAX_LIST, Outgoing};
 use super::{FuseRejected, FuseTarget, LinkMode, MapSource, Mode};
 use crate::ci::CiCriterion;
 use crate::info::InfoError;
@@ -354,13 +354,24 @@ impl DdfNode {
         let mut messages = Vec::new();
         for (&peer, channel) in self.channels.iter_mut() {
             let mut out = per_channel.remove(&peer).unwrap_or_default();
-            out.extend(channel.round_finish(now, info.source(), &ctx));
+            out.extend(channel.round_finish(now, info.source(), &self.keys, &ctx));
             messages.extend(
                 out.into_iter()
                     .map(|message| Outgoing { to: peer, message }),
             );
         }
         Ok(RoundOutput { messages })
+    }
+
+    /// Asks every neighbour, at the next round, for the descriptors of `keys` (keys this
+    /// node's estimate holds without one: a `Describe` was lost, or the neighbour did not know
+    /// the descriptor when it first used the key). Call it every round while keys stay
+    /// undescribed; at most [`MAX_LIST`] keys per neighbour and round are sent.
+    pub fn request_descriptors(&mut self, keys: &[FeatureId]) {
+        let keys = &keys[..keys.len().min(MAX_LIST)];
+        for c in self.channels.values_mut() {
+            c.request_descriptors(keys);
+        }
     }
 
     /// The correspondences this node adopted.
@@ -394,6 +405,7 @@ impl DdfNode {
     /// delta again). Returns `None` when nothing is left for the channel.
     fn prepare(
         &mut self,
+        from: NodeId,
         mut message: DdfMessage,
         target: &mut dyn FuseTarget,
     ) -> Option<DdfMessage> {
@@ -413,6 +425,12 @@ impl DdfNode {
                     f.0 = self.keys.canonical(f.0);
                 }
                 target.describe(features);
+                return None;
+            }
+            Body::DescribeRequest { keys } => {
+                if let Some(c) = self.channels.get_mut(&from) {
+                    c.descriptors_requested(keys);
+                }
                 return None;
             }
             Body::Delta { info, .. } | Body::Cumulative { info, .. } => {
@@ -454,7 +472,7 @@ impl DdfNode {
             channel.stats.rejected += 1;
             return Err(DdfError::InvalidMessage { from, source });
         }
-        let Some(message) = self.prepare(message, target) else {
+        let Some(message) = self.prepare(from, message, target) else {
             if let Some(c) = self.channels.get_mut(&from) {
                 c.stats.messages_received += 1;
             }

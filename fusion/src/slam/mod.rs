@@ -28,6 +28,7 @@ mod appearance;
 mod association;
 mod bearing;
 mod ci_fuse;
+mod correspond;
 mod deferred;
 mod fuse;
 mod info_cache;
@@ -39,6 +40,7 @@ mod update;
 
 pub use bearing::{BearingConfig, BearingInit, BearingStats, TrackGate, TrackId, TrackInfo};
 pub use ci_fuse::CiReport;
+pub use correspond::{CorrespondenceConfig, CorrespondenceReport};
 pub use fuse::{ForgetReport, FuseMethod, FuseReport, Refused, VANISHED_RTOL};
 pub use layout::{Layout, PoseId, Slot, SlotKind};
 

@@ -23,7 +23,7 @@ fn range_bearing() -> SensorModel {
 /// Gravity of the flat test world [m/s²].
 const FLAT_GRAVITY: f64 = 9.81;
 
-fn config(frame: NavFrame, mode: AssociationMode) -> SlamConfig {
+pub(super) fn config(frame: NavFrame, mode: AssociationMode) -> SlamConfig {
     SlamConfig {
         frame,
         local_gravity_mps2: FLAT_GRAVITY,
@@ -37,7 +37,7 @@ fn config(frame: NavFrame, mode: AssociationMode) -> SlamConfig {
     }
 }
 
-fn vehicle(position: Vector3<f64>) -> VehicleSetup {
+pub(super) fn vehicle(position: Vector3<f64>) -> VehicleSetup {
     let mut cov = VehicleCovariance::zeros();
     for i in 0..3 {
         cov[(i, i)] = 1.0;

@@ -81,7 +81,7 @@ impl FusionView {
             channels: f.ddf().map(|d| d.channels().collect()).unwrap_or_default(),
             rejections: f.rejections().counts.clone(),
             node: f.ddf().map(|d| d.stats()).unwrap_or_default(),
-            merges: f.ddf().map(|d| d.keys().merges()).unwrap_or_default(),
+            merges: f.merges(),
         }
     }
 

@@ -249,9 +249,10 @@ fn build_agent(
     cfg: &VehicleConfig,
     world: &World,
     init: &InitMsg,
+    incarnation: u32,
     epoch: u64,
 ) -> Result<VehicleAgent> {
-    crate::sim::vehicle_agent(s, cfg, world, &initial_from(init), epoch)
+    crate::sim::vehicle_agent(s, cfg, world, &initial_from(init), incarnation, epoch)
         .with_context(|| format!("building the estimator of {}", cfg.display_name()))
 }
 
@@ -700,7 +701,8 @@ pub fn run(c: &RoleCommon, id: WireId, incarnation: u32) -> Result<()> {
             break i;
         }
     };
-    let (estimator, fusion) = build_agent(&s, &cfg, &world, &init, epoch)?.into_parts();
+    let (estimator, fusion) =
+        build_agent(&s, &cfg, &world, &init, incarnation, epoch)?.into_parts();
     // Gated: the links on which nothing is lost or held back (no faults, no radio).
     let peers: Vec<(WireId, bool)> = crate::network::effective_links(&s)
         .into_iter()

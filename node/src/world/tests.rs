@@ -19,10 +19,16 @@ use crate::scenario::{
     ShapeConfig, TrajectoryConfig, VehicleConfig,
 };
 
+/// A world whose sensors report true ids (`identity = "perfect"`): these tests check the
+/// sensor model against truth id by id; the appearance model has its own tests below.
 fn world(model: EarthModel, seed: u64) -> Arc<World> {
     let cfg = WorldConfig {
         seed,
         earth_model: model,
+        appearance: crate::scenario::AppearanceConfig {
+            identity: crate::scenario::Identity::Perfect,
+            ..Default::default()
+        },
         ..WorldConfig::default()
     };
     Arc::new(World::new(&cfg, seed).unwrap())

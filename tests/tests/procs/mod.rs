@@ -102,8 +102,12 @@ impl Run {
             .collect()
     }
 
-    /// The final maps of map.csv per vehicle (and `baseline`): id → (trace of the covariance,
-    /// error to truth, held since [s]).
+    /// The final maps of map.csv per vehicle (and `baseline`): true feature id → (trace of the
+    /// covariance, error to truth, held since [s]). Keyed by `truth_id` (the feature a key
+    /// stands for, `canopy_node::truth`), so that vehicles keying their maps by their own keys
+    /// (simulated appearance) compare with the reference, which keys by true id; where a map
+    /// holds a feature under two keys (a duplicate) the later row stands for it. Rows without a
+    /// truth (replayed vehicles) keep their key.
     pub fn maps(&self) -> BTreeMap<String, BTreeMap<u64, (f64, f64, f64)>> {
         let mut out: BTreeMap<String, BTreeMap<u64, (f64, f64, f64)>> = BTreeMap::new();
         for r in self.csv("map.csv") {
@@ -113,9 +117,13 @@ impl Run {
                 .sum();
             let err = r["error_m"].parse::<f64>().unwrap_or(f64::NAN);
             let since = r["held_since_s"].parse::<f64>().expect("held_since_s");
+            let key = match r["truth_id"].as_str() {
+                "" => r["id"].parse().expect("id"),
+                t => t.parse().expect("truth_id"),
+            };
             out.entry(r["vehicle"].clone())
                 .or_default()
-                .insert(r["id"].parse().expect("id"), (tr, err, since));
+                .insert(key, (tr, err, since));
         }
         out
     }
