@@ -16,8 +16,8 @@ use canopy_fusion::slam::{
 };
 use canopy_fusion::state::{ATT, POS};
 use canopy_node::scenario::{
-    AreaConfig, EarthModel, FeatureConfig, InitialConfig, Scenario, SensorConfig,
-    SensorModelConfig, ShapeConfig, TrajectoryConfig, VehicleConfig, WorldConfig,
+    AppearanceConfig, AreaConfig, EarthModel, FeatureConfig, Identity, InitialConfig, Scenario,
+    SensorConfig, SensorModelConfig, ShapeConfig, TrajectoryConfig, VehicleConfig, WorldConfig,
 };
 use canopy_node::world::{self, TruthSample};
 use nalgebra::{DMatrix, DVector};
@@ -59,6 +59,12 @@ fn scenario(earth: EarthModel, sensor: SensorModelConfig, seed: u64) -> Scenario
             features: FeatureConfig {
                 count: Some(150),
                 ..FeatureConfig::default()
+            },
+            // These runs judge the filter's single-vehicle pipelines against the true ids
+            // (the map is keyed by them): perfect identities, the named ablation.
+            appearance: AppearanceConfig {
+                identity: Identity::Perfect,
+                ..AppearanceConfig::default()
             },
             ..WorldConfig::default()
         },
