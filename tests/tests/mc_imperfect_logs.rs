@@ -27,7 +27,7 @@
 
 use canopy_fusion::slam::BearingInit;
 use canopy_node::network::FusionMode;
-use canopy_node::scenario::{EarthModel, Scenario, SensorModelConfig};
+use canopy_node::scenario::{EarthModel, Identity, Scenario, SensorModelConfig};
 use canopy_node::sim::{SimOptions, simulate};
 use canopy_tests::montecarlo::pose_consistency;
 
@@ -44,6 +44,9 @@ fn scenario(seed: u64, camera: bool) -> Scenario {
     s.fusion.mode = FusionMode::Isolated;
     s.world.earth_model = EarthModel::Flat;
     s.world.seed = seed;
+    // Outliers here are wrong descriptors (`mismatch_probability`), a model of perfect
+    // identities; the appearance model (the default) has its own errors instead.
+    s.world.appearance.identity = Identity::Perfect;
     s.run.duration_s = DURATION;
     s.run.baseline = false;
     let v = &mut s.vehicles[0];
