@@ -1217,51 +1217,30 @@ impl Channel {
             }
             Ok(())
         };
+        let at_most = |what: &'static str, max: usize, found: usize| {
+            if found > max {
+                return Err(InfoError::Dimension {
+                    what,
+                    expected: max,
+                    found,
+                });
+            }
+            Ok(())
+        };
         match &msg.body {
             Body::Hello(_) | Body::Nack { .. } => Ok(()),
             Body::SubmapAck { seqs } => {
-                if seqs.len() > MAX_SUBMAP_ACKS {
-                    return Err(InfoError::Dimension {
-                        what: "submap acknowledgements",
-                        expected: MAX_SUBMAP_ACKS,
-                        found: seqs.len(),
-                    });
-                }
-                Ok(())
+                at_most("submap acknowledgements", MAX_SUBMAP_ACKS, seqs.len())
             }
             Body::Merges { merges } => {
-                if merges.len() > MAX_LIST {
-                    return Err(InfoError::Dimension {
-                        what: "merges",
-                        expected: MAX_LIST,
-                        found: merges.len(),
-                    });
-                }
+                at_most("merges", MAX_LIST, merges.len())?;
                 if let Some(m) = merges.iter().find(|m| m.into >= m.from) {
                     return Err(InfoError::DuplicateId(m.from));
                 }
                 Ok(())
             }
-            Body::Describe { features } => {
-                if features.len() > MAX_LIST {
-                    return Err(InfoError::Dimension {
-                        what: "descriptors",
-                        expected: MAX_LIST,
-                        found: features.len(),
-                    });
-                }
-                Ok(())
-            }
-            Body::DescribeRequest { keys } => {
-                if keys.len() > MAX_LIST {
-                    return Err(InfoError::Dimension {
-                        what: "describe request",
-                        expected: MAX_LIST,
-                        found: keys.len(),
-                    });
-                }
-                Ok(())
-            }
+            Body::Describe { features } => at_most("descriptors", MAX_LIST, features.len()),
+            Body::DescribeRequest { keys } => at_most("describe request", MAX_LIST, keys.len()),
             Body::Delta { info, .. } | Body::Cumulative { info, .. } => check(info),
             Body::Sync { baseline, .. } => check(baseline),
             Body::Submap { submap: s, .. } => {

@@ -440,14 +440,7 @@ impl SlamFilter {
                 })
                 .flatten();
             if let Some(worst) = outlier {
-                if obs.len() - 1 < min_obs.max(2) {
-                    self.bearing.stats.tracks_rejected += 1;
-                    self.drop_track(k);
-                    return None;
-                }
-                let removed = self.bearing.tracks[k].observations.remove(worst);
-                self.release(std::slice::from_ref(&removed));
-                self.bearing.stats.outliers_removed += 1;
+                self.remove_outlier(k, worst, obs.len(), min_obs)?;
                 continue;
             }
             let dof = system.res2.len();
@@ -468,15 +461,22 @@ impl SlamFilter {
                 .enumerate()
                 .max_by(|a, b| a.1.total_cmp(b.1))
                 .map(|(j, _)| j)?;
-            if obs.len() - 1 < min_obs.max(2) {
-                self.bearing.stats.tracks_rejected += 1;
-                self.drop_track(k);
-                return None;
-            }
-            let removed = self.bearing.tracks[k].observations.remove(worst);
-            self.release(std::slice::from_ref(&removed));
-            self.bearing.stats.outliers_removed += 1;
+            self.remove_outlier(k, worst, obs.len(), min_obs)?;
         }
+    }
+
+    /// Removes observation `worst` of track `k` (of `n` observations), or refuses and drops
+    /// the whole track when fewer than `min_obs` (at least 2) would remain: `None` then.
+    fn remove_outlier(&mut self, k: usize, worst: usize, n: usize, min_obs: usize) -> Option<()> {
+        if n - 1 < min_obs.max(2) {
+            self.bearing.stats.tracks_rejected += 1;
+            self.drop_track(k);
+            return None;
+        }
+        let removed = self.bearing.tracks[k].observations.remove(worst);
+        self.release(std::slice::from_ref(&removed));
+        self.bearing.stats.outliers_removed += 1;
+        Some(())
     }
 
     /// Steps 1–3 for the stored observations `obs`.
