@@ -59,6 +59,26 @@ fn euroc_dir() -> Option<PathBuf> {
 /// calibration's bias walks, and 2.1 at 20 Hz with the outlier test alone.
 const POSE_ANEES_BOUND: f64 = 3.0;
 
+/// `canopy sim SCENARIO --out OUT --quiet` (or `run`), bounded at 300 s, asserted to succeed.
+fn canopy_into(command: &str, scenario: &Path, out: &Path) {
+    let (ok, stdout, stderr) = run_bounded(
+        &[
+            command,
+            scenario.to_str().unwrap(),
+            "--out",
+            out.to_str().unwrap(),
+            "--quiet",
+        ],
+        Duration::from_secs(300),
+    );
+    assert!(ok, "canopy {command}: {stdout}{stderr}");
+}
+
+/// A JSON output file (`summary.json`, `checks.json`) of a run's output directory.
+fn output_json(out: &Path, file: &str) -> serde_json::Value {
+    serde_json::from_str(&std::fs::read_to_string(out.join(file)).unwrap()).unwrap()
+}
+
 /// Imports the recording into `out`.
 fn import(dir: &Path, out: &Path) {
     let (ok, stdout, stderr) = run_bounded(
@@ -560,34 +580,16 @@ fn euroc_replays_in_check_sim_and_run() {
     let out = tempfile::tempdir().unwrap();
     import(&dir, out.path());
     let scenario = out.path().join("scenario.toml");
-    let scenario = scenario.to_str().unwrap();
-    let (ok, stdout, stderr) = run_bounded(&["check", scenario], Duration::from_secs(60));
+    let (ok, stdout, stderr) = run_bounded(
+        &["check", scenario.to_str().unwrap()],
+        Duration::from_secs(60),
+    );
     assert!(ok, "{stdout}{stderr}");
     assert!(stdout.contains("static alignment"), "{stdout}");
     let sim_dir = out.path().join("sim");
     let run_dir = out.path().join("run");
-    let (ok, stdout, stderr) = run_bounded(
-        &[
-            "sim",
-            scenario,
-            "--out",
-            sim_dir.to_str().unwrap(),
-            "--quiet",
-        ],
-        Duration::from_secs(300),
-    );
-    assert!(ok, "canopy sim: {stdout}{stderr}");
-    let (ok, stdout, stderr) = run_bounded(
-        &[
-            "run",
-            scenario,
-            "--out",
-            run_dir.to_str().unwrap(),
-            "--quiet",
-        ],
-        Duration::from_secs(300),
-    );
-    assert!(ok, "canopy run: {stdout}{stderr}");
+    canopy_into("sim", &scenario, &sim_dir);
+    canopy_into("run", &scenario, &run_dir);
     let rec: HashSet<u64> = recording_imu_times(&dir).into_iter().collect();
     for d in [&sim_dir, &run_dir] {
         let est = tum(&d.join("mav.est.tum"));
@@ -599,9 +601,7 @@ fn euroc_replays_in_check_sim_and_run() {
                 "{stamp} is not a recording timestamp"
             );
         }
-        let summary: serde_json::Value =
-            serde_json::from_str(&std::fs::read_to_string(d.join("summary.json")).unwrap())
-                .unwrap();
+        let summary = output_json(d, "summary.json");
         let v = &summary["vehicles"][0];
         // The estimate against the motion capture (the scenario names the imported ground
         // truth): ATE after SE(3) alignment within the 0.10 m that good open-source
@@ -637,16 +637,11 @@ fn euroc_replays_in_check_sim_and_run() {
                 .contains("canopy")
         );
     }
-    let checks: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(run_dir.join("checks.json")).unwrap())
-            .unwrap();
+    let checks = output_json(&run_dir, "checks.json");
     assert!(checks["failure"].is_null(), "{}", checks["failure"]);
     assert_eq!(
         checks["vehicles"][0]["rejections"],
-        serde_json::from_str::<serde_json::Value>(
-            &std::fs::read_to_string(run_dir.join("summary.json")).unwrap()
-        )
-        .unwrap()["vehicles"][0]["rejections"]
+        output_json(&run_dir, "summary.json")["vehicles"][0]["rejections"]
     );
     // Deterministic replay: the same estimate from one process and from many.
     assert_eq!(
@@ -697,20 +692,8 @@ fn euroc_at_10_and_5_hz_stays_accurate_and_consistent() {
         import(&rec, &out);
         let scenario = out.join("scenario.toml");
         let sim_dir = out.join("sim");
-        let (ok, stdout, stderr) = run_bounded(
-            &[
-                "sim",
-                scenario.to_str().unwrap(),
-                "--out",
-                sim_dir.to_str().unwrap(),
-                "--quiet",
-            ],
-            Duration::from_secs(300),
-        );
-        assert!(ok, "canopy sim: {stdout}{stderr}");
-        let summary: serde_json::Value =
-            serde_json::from_str(&std::fs::read_to_string(sim_dir.join("summary.json")).unwrap())
-                .unwrap();
+        canopy_into("sim", &scenario, &sim_dir);
+        let summary = output_json(&sim_dir, "summary.json");
         let v = &summary["vehicles"][0];
         let ate = v["ate"]["se3_m"].as_f64().expect("an ATE");
         let anees = v["pose_anees"].as_f64().expect("a pose ANEES");
@@ -809,20 +792,8 @@ fn euroc_mid_flight_starts_from_the_ground_truth_do_not_diverge() {
         );
         assert!(ok, "canopy import: {stdout}{stderr}");
         let sim_dir = out.join("sim");
-        let (ok, stdout, stderr) = run_bounded(
-            &[
-                "sim",
-                out.join("scenario.toml").to_str().unwrap(),
-                "--out",
-                sim_dir.to_str().unwrap(),
-                "--quiet",
-            ],
-            Duration::from_secs(300),
-        );
-        assert!(ok, "canopy sim: {stdout}{stderr}");
-        let summary: serde_json::Value =
-            serde_json::from_str(&std::fs::read_to_string(sim_dir.join("summary.json")).unwrap())
-                .unwrap();
+        canopy_into("sim", &out.join("scenario.toml"), &sim_dir);
+        let summary = output_json(&sim_dir, "summary.json");
         let v = &summary["vehicles"][0];
         let ate = v["ate"]["se3_m"].as_f64().expect("an ATE");
         let anees = v["pose_anees"].as_f64().expect("a pose ANEES");

@@ -1156,6 +1156,15 @@ fn multiview_initialization_and_constraint_equal_the_dense_batch() {
     }
 }
 
+/// Index of the bearing-only track of `descriptor` in `f` (which must hold one).
+fn track_index(f: &SlamFilter, descriptor: u64) -> usize {
+    f.bearing
+        .tracks
+        .iter()
+        .position(|t| t.descriptor == descriptor)
+        .expect("a track of that descriptor")
+}
+
 /// A track with one grossly wrong observation: the joint χ² test fails, the worst observation
 /// is removed and the rest initializes; a track of mutually inconsistent observations is refused
 /// and leaves the state as it was.
@@ -1168,12 +1177,7 @@ fn multiview_removes_an_outlier_and_refuses_an_inconsistent_track() {
     observe_features(&mut f, &ms, 6);
     f.flush();
     // Corrupt the third stored observation by 25 px (σ = 1 px).
-    let k = f
-        .bearing
-        .tracks
-        .iter()
-        .position(|t| t.descriptor == 7)
-        .unwrap();
+    let k = track_index(&f, 7);
     f.bearing.tracks[k].observations[2].z[0] += 25.0;
     let id = f.bearing.tracks[k].id;
     f.bearing.config.min_observations = 4;
@@ -1185,12 +1189,7 @@ fn multiview_removes_an_outlier_and_refuses_an_inconsistent_track() {
     let mut g = multiview_filter(frame, pixel_sensor());
     observe_features(&mut g, &ms, 6);
     g.flush();
-    let k = g
-        .bearing
-        .tracks
-        .iter()
-        .position(|t| t.descriptor == 7)
-        .unwrap();
+    let k = track_index(&g, 7);
     for (j, o) in g.bearing.tracks[k].observations.iter_mut().enumerate() {
         o.z[0] += 40.0 * (j as f64 - 2.5);
         o.z[1] -= 30.0 * ((j * 7 % 5) as f64 - 2.0);
@@ -1225,12 +1224,7 @@ fn marginal_sigma_ratio_catches_outliers_that_the_equivalent_white_sigma_lets_th
         f.bearing.config.marginal_sigma_ratio = ratio;
         observe_features(&mut f, &ms, 5);
         f.flush();
-        let k = f
-            .bearing
-            .tracks
-            .iter()
-            .position(|t| t.descriptor == 7)
-            .unwrap();
+        let k = track_index(&f, 7);
         f.bearing.tracks[k].observations[2].z[0] += 8.0;
         let id = f.bearing.tracks[k].id;
         f.bearing.config.min_observations = 4;
