@@ -81,22 +81,26 @@ fn output_json(out: &Path, file: &str) -> serde_json::Value {
 
 /// Imports the recording into `out`.
 fn import(dir: &Path, out: &Path) {
-    let (ok, stdout, stderr) = run_bounded(
-        &[
-            "import",
-            dir.to_str().unwrap(),
-            "--out",
-            out.to_str().unwrap(),
-            // ETH Zurich (approximate site: the normal gravity there).
-            "--latitude",
-            "47.376",
-            "--longitude",
-            "8.548",
-            "--height",
-            "500",
-        ],
-        Duration::from_secs(120),
-    );
+    import_with(dir, out, &[]);
+}
+
+/// Imports the recording into `out` with further `canopy import` options.
+fn import_with(dir: &Path, out: &Path, options: &[&str]) {
+    let mut args = vec![
+        "import",
+        dir.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+        // ETH Zurich (approximate site: the normal gravity there).
+        "--latitude",
+        "47.376",
+        "--longitude",
+        "8.548",
+        "--height",
+        "500",
+    ];
+    args.extend_from_slice(options);
+    let (ok, stdout, stderr) = run_bounded(&args, Duration::from_secs(120));
     assert!(ok, "canopy import failed:\n{stdout}{stderr}");
     println!("{stdout}");
 }
@@ -771,26 +775,16 @@ fn euroc_mid_flight_starts_from_the_ground_truth_do_not_diverge() {
         let rec = tmp.path().join(format!("rec{start}"));
         segment_from(&dir, &rec, start);
         let out = tmp.path().join(format!("scenario{start}"));
-        let (ok, stdout, stderr) = run_bounded(
+        import_with(
+            &rec,
+            &out,
             &[
-                "import",
-                rec.to_str().unwrap(),
-                "--out",
-                out.to_str().unwrap(),
                 "--initial",
                 "groundtruth",
                 "--imu-calib",
                 calib.to_str().unwrap(),
-                "--latitude",
-                "47.376",
-                "--longitude",
-                "8.548",
-                "--height",
-                "500",
             ],
-            Duration::from_secs(120),
         );
-        assert!(ok, "canopy import: {stdout}{stderr}");
         let sim_dir = out.join("sim");
         canopy_into("sim", &out.join("scenario.toml"), &sim_dir);
         let summary = output_json(&sim_dir, "summary.json");
