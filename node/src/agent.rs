@@ -310,9 +310,9 @@ pub struct VehicleFusion {
     /// Local SLAM in own frames: this vehicle's side of the team frame (`None`: one frame for
     /// the whole team, the shared launch frame or ECEF).
     team_frame: Option<crate::frames::TeamFrame>,
-    /// A frame change the caller must apply to its filter (the round that aligned it): the
-    /// frame and the new frame's owner.
-    rebase: Option<(canopy_fusion::frames::Frame4, NodeId)>,
+    /// An alignment taken whose frame change waits for the neighbour's first information
+    /// (module [`crate::frames`], step 4): the frame and the team frame's owner.
+    awaiting_rebase: Option<(canopy_fusion::frames::Frame4, NodeId)>,
 }
 
 impl VehicleFusion {
@@ -348,7 +348,7 @@ impl VehicleFusion {
             candidates_rejected: BTreeSet::new(),
             own_keys: KeyMap::default(),
             team_frame: None,
-            rebase: None,
+            awaiting_rebase: None,
         })
     }
 
@@ -356,7 +356,7 @@ impl VehicleFusion {
     /// joins the team frame of `root` through its neighbours' anchors; `max_distance` is the
     /// descriptor distance of a candidate correspondence. Until then it takes no part in the
     /// channel filters.
-    pub fn use_own_frame(&mut self, id: NodeId, root: NodeId, max_distance: u32) {
+    pub fn use_own_frame(&mut self, id: NodeId, root: NodeId, max_distance: Option<u32>) {
         self.team_frame = Some(crate::frames::TeamFrame::new(id, root, max_distance));
     }
 
@@ -365,10 +365,15 @@ impl VehicleFusion {
         self.team_frame.as_ref()
     }
 
-    /// The frame change the last round decided, once (the caller applies it to its filter:
-    /// [`VehicleEstimator::rebase`]).
-    pub fn take_rebase(&mut self) -> Option<(canopy_fusion::frames::Frame4, NodeId)> {
-        self.rebase.take()
+    /// Whose own frame the filter this half fuses is in (`None`: the team's shared frame):
+    /// this vehicle's until the round that moves it into the team frame, the root's after.
+    pub fn frame_owner(&self) -> Option<NodeId> {
+        let tf = self.team_frame.as_ref()?;
+        Some(if tf.in_team() && self.awaiting_rebase.is_none() {
+            tf.root()
+        } else {
+            tf.id()
+        })
     }
 
     /// Whether this vehicle still waits to join the team frame.
@@ -388,13 +393,8 @@ impl VehicleFusion {
             return;
         };
         let root = tf.root();
-        // The whole estimate moves into the team frame, with the wide gauge prior that keeps
-        // the neighbours' information about where that frame is theirs to send.
-        if let Err(e) = filter.rebase(&frame, &canopy_fusion::slam::default_gauge()) {
-            tf.reset();
-            self.reject("rebase", &e, 1, &e);
-            return;
-        }
+        // The correspondences are keys only: adopted now, in this frame. The estimate stays in
+        // its own frame until the neighbour's information arrives (`round_awaiting_rebase`).
         let mut errors = Vec::new();
         if let Some(ddf) = self.ddf.as_mut() {
             for m in merges {
@@ -414,7 +414,43 @@ impl VehicleFusion {
         for e in errors {
             self.reject("merge", &e, 1, &e);
         }
-        self.rebase = Some((frame, root));
+        self.awaiting_rebase = Some((frame, root));
+    }
+
+    /// A round between the alignment and the neighbour's first information (own frames): the
+    /// channels pair (Sync and Hello only: no channel of this vehicle is synced yet, or it
+    /// waits), nothing in this frame is sent. When the batch holds information (it is in the
+    /// team frame), the filter moves into the team frame with the wide gauge prior and the
+    /// batch is fused at once, with no filter step between: the gauge prior is a
+    /// linearisation at the aligned estimate for one linear step only (an EKF running with
+    /// 30° of yaw uncertainty gains spurious information on it). Returns `None` while waiting.
+    fn round_awaiting_rebase(
+        &mut self,
+        filter: &mut SlamFilter,
+        now: f64,
+    ) -> Option<Result<Vec<Outgoing>, AgentError>> {
+        let (frame, _root) = self.awaiting_rebase?;
+        if self.pending.sum.is_none() {
+            let ddf = self.ddf.as_mut()?;
+            if ddf.channels().any(|c| c.synced) {
+                return Some(Ok(Vec::new()));
+            }
+            return Some(match ddf.on_round(now, filter) {
+                Ok(out) => Ok(out.messages),
+                Err(e) => {
+                    self.counters.rounds_failed += 1;
+                    self.reject("round", &e, 1, &e);
+                    Err(e.into())
+                }
+            });
+        }
+        if let Err(e) = filter.rebase(&frame, &canopy_fusion::slam::default_gauge()) {
+            // Not applied: the batch (team frame) waits; counted, tried again next round.
+            self.reject("rebase", &e, 1, &e);
+            return Some(Ok(Vec::new()));
+        }
+        self.awaiting_rebase = None;
+        None
     }
 
     /// Anchors for the neighbours not paired yet (this vehicle in the team frame, own frames).
@@ -433,7 +469,11 @@ impl VehicleFusion {
         if waiting.is_empty() {
             return;
         }
-        let body = crate::frames::TeamFrame::anchor(filter);
+        let perfect = self
+            .team_frame
+            .as_ref()
+            .is_some_and(|f| f.perfect_identities());
+        let body = crate::frames::TeamFrame::anchor(filter, perfect);
         let mut errors = Vec::new();
         for peer in waiting {
             match ddf.message_to(peer, body.clone()) {
@@ -650,6 +690,9 @@ impl VehicleFusion {
         if self.outside_team() {
             self.round_outside_team(filter, now);
             return Ok(Vec::new());
+        }
+        if let Some(waiting) = self.round_awaiting_rebase(filter, now) {
+            return waiting;
         }
         self.flush(filter);
         self.correspond(filter);
@@ -1162,16 +1205,14 @@ impl VehicleAgent {
     /// A fusion round at time `now`: the messages to send.
     pub fn on_round(&mut self, now: f64) -> Result<Vec<Outgoing>, AgentError> {
         let out = self.fusion.round(self.estimator.filter_mut(), now);
-        // The round moved the filter into the team frame (own frames): its owner changes.
-        if let Some((_, owner)) = self.fusion.take_rebase() {
-            self.estimator.set_frame_owner(Some(owner));
-        }
+        // The round may have moved the filter into the team frame (own frames).
+        self.estimator.set_frame_owner(self.fusion.frame_owner());
         out
     }
 
     /// Local SLAM in own frames: starts in this vehicle's own frame and joins the team frame
     /// of `root` ([`VehicleFusion::use_own_frame`]).
-    pub fn use_own_frame(&mut self, root: NodeId, max_distance: u32) {
+    pub fn use_own_frame(&mut self, root: NodeId, max_distance: Option<u32>) {
         self.estimator.set_frame_owner(Some(self.id));
         self.fusion.use_own_frame(self.id, root, max_distance);
     }

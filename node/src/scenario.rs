@@ -343,13 +343,6 @@ impl Scenario {
                 "own frames need [fusion] mode = \"decentralized\" (vehicles align over their links)",
             ));
         }
-        if self.world.appearance.identity != Identity::Appearance {
-            return Err(ScenarioError::invalid(
-                "world.frames",
-                "own frames need [world.appearance] identity = \"appearance\" (the alignment \
-                 pairs features by their descriptors)",
-            ));
-        }
         if let Some(i) = self.vehicles.iter().position(|v| v.replay.is_some()) {
             return Err(ScenarioError::invalid(
                 format!("vehicle[{i}].replay"),

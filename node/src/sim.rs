@@ -262,9 +262,11 @@ pub fn vehicle_agent(
         agent.set_correspondence(None);
     }
     if s.world.frames == crate::scenario::Frames::Own {
-        // The team frame is the own frame of the vehicle with the smallest id.
-        let root = s.vehicles.iter().map(|v| v.id).min().unwrap_or(cfg.id);
-        agent.use_own_frame(NodeId(root), s.world.appearance.association_distance());
+        let root = crate::frames::team_root(s).map_or(cfg.id, |r| r.0);
+        // Perfect identities (the ablation) pair the maps' features by key.
+        let distance = (s.world.appearance.identity == Identity::Appearance)
+            .then(|| s.world.appearance.association_distance());
+        agent.use_own_frame(NodeId(root), distance);
     }
     // Capacity-limited links: sparsified channel filters (default) or CI submaps from the
     // first round (`fusion = "ci"`).
@@ -920,6 +922,14 @@ pub fn simulate(s: &Scenario, mut opts: SimOptions<'_>) -> Result<SimOutcome, Si
             let c = a.counters();
             sim.records[i].rejected_messages = c.fusion.messages_rejected;
             sim.records[i].rejections = a.rejections().counts.clone();
+            sim.records[i].frame_alignment = a.team_frame().map(|tf| {
+                // The true own → team frame: own → launch, then launch → the root's own.
+                let truth = sim
+                    .launch_from(Some(tf.root()))
+                    .inverse()
+                    .compose(&sim.launch_from(Some(NodeId(cfg.id))));
+                crate::frames::alignment_record(&tf.report(), &truth)
+            });
             sim.records[i].association.merges_refused =
                 a.ddf().map_or(0, |d| d.stats().merges_refused);
             sim.checks

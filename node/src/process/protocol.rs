@@ -245,7 +245,7 @@ pub struct LinkReport {
 }
 
 /// Counters of a vehicle process.
-#[derive(Clone, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct VehicleCounters {
     /// IMU samples applied.
     pub imu_samples: u64,
@@ -286,6 +286,9 @@ pub struct VehicleCounters {
     /// non-neighbour, or a session using a key of a link it is not part of.
     #[serde(default)]
     pub access_refused: std::collections::BTreeMap<String, u64>,
+    /// Local SLAM in own frames: this vehicle's side of the team frame.
+    #[serde(default)]
+    pub alignment: Option<crate::frames::AlignmentReport>,
 }
 
 /// What the estimator did with one observation (the monitor audits it against the truth).
@@ -349,6 +352,10 @@ pub struct EstimateReport {
     pub links: Vec<LinkReport>,
     /// Frames processed since the previous report.
     pub associations: Vec<FrameAssociations>,
+    /// Whose own frame the estimate is in (local SLAM in own frames; `None`: the team's
+    /// shared frame).
+    #[serde(default)]
+    pub frame_owner: Option<NodeId>,
 }
 
 /// One feature of a map report (estimator frame).
@@ -383,6 +390,9 @@ pub struct MapReport {
     /// key), for the monitor's truth metrics.
     #[serde(default)]
     pub merges: Vec<canopy_fusion::keys::Merge>,
+    /// Whose own frame the map is in (`None`: the team's shared frame).
+    #[serde(default)]
+    pub frame_owner: Option<NodeId>,
 }
 
 /// Truth of one vehicle at a record time (world → monitor only).
