@@ -46,7 +46,7 @@ use canopy_fusion::rotation::wrap_angle;
 use canopy_fusion::sensor::{FeatureId, hamming};
 use canopy_fusion::slam::SlamFilter;
 use canopy_fusion::topology::NodeId;
-use nalgebra::{Matrix3, Vector3, Vector4};
+use nalgebra::{Matrix3, Matrix4, Vector3, Vector4};
 
 use crate::record::FrameAlignmentRecord;
 
@@ -189,7 +189,7 @@ impl TeamFrame {
             }
         }
         let result = align(&cands, &self.cfg);
-        let current = match result {
+        let mut current = match result {
             Ok(a) => a,
             Err(e) => {
                 *self.failures.entry(reason(&e)).or_insert(0) += 1;
@@ -197,6 +197,7 @@ impl TeamFrame {
                 return None;
             }
         };
+        current.covariance += common_mode(&cands, &current.inliers);
         // Two consecutive alignments must agree within 3σ (of the sum of their covariances).
         let agree = self.previous.as_ref().is_some_and(|p| {
             let d = Vector4::new(
@@ -292,6 +293,25 @@ impl TeamFrame {
                 .collect(),
         }
     }
+}
+
+/// A bound on what [`align`]'s covariance leaves out. The fit treats the candidates' errors as
+/// independent, but the features of one map share its drift (its vehicle's error since the
+/// start, its neighbour's frame error): a common translation error the fit cannot average
+/// down. Every feature's marginal covariance holds that common part, so the smallest joint
+/// covariance of an inlier pair (own + other, by trace) bounds it; it is added to the
+/// translation block. Measured on `topologies/local-4.toml`: uav2's fit claimed σ 0.46 m
+/// against a 1.66 m error (36 inliers).
+fn common_mode(cands: &[Candidate], inliers: &[usize]) -> Matrix4<f64> {
+    let mut out = Matrix4::zeros();
+    let smallest = inliers
+        .iter()
+        .map(|&k| cands[k].own_cov + cands[k].other_cov)
+        .min_by(|a, b| a.trace().total_cmp(&b.trace()));
+    if let Some(c) = smallest {
+        out.fixed_view_mut::<3, 3>(0, 0).copy_from(&c);
+    }
+    out
 }
 
 /// The team's root in own frames: the vehicle with the smallest id (its own frame is the team
