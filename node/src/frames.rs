@@ -340,13 +340,13 @@ pub fn alignment_record(report: &AlignmentReport, truth: &Frame4) -> FrameAlignm
     r
 }
 
+/// A feature of a map: key, descriptor, position, covariance.
+type Described = (FeatureId, [u64; 4], Vector3<f64>, Matrix3<f64>);
+
 /// The features of `filter` with their descriptors, positions and covariances: those that have
 /// a descriptor, or (perfect identities, the keys are the features' true ids) every feature
 /// with a zero descriptor.
-fn described(
-    filter: &SlamFilter,
-    perfect_identities: bool,
-) -> Vec<(FeatureId, [u64; 4], Vector3<f64>, Matrix3<f64>)> {
+fn described(filter: &SlamFilter, perfect_identities: bool) -> Vec<Described> {
     let ids: Vec<FeatureId> = filter.features().iter().map(|f| f.0).collect();
     let appearances = if perfect_identities {
         ids.iter().map(|&id| (id, [0; 4])).collect()

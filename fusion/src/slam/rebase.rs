@@ -88,10 +88,10 @@ impl SlamFilter {
                 "only a local-SLAM filter can change its frame".into(),
             ));
         }
-        if !(to.yaw.is_finite() && to.translation.iter().all(|v| v.is_finite()))
-            || !gauge.iter().all(|v| v.is_finite())
-            || gauge.cholesky().is_none()
-        {
+        let finite = to.yaw.is_finite()
+            && to.translation.iter().all(|v| v.is_finite())
+            && gauge.iter().all(|v| v.is_finite());
+        if !finite || gauge.cholesky().is_none() {
             return Err(SlamError::InvalidConfig(
                 "frame change or gauge prior not finite / not positive definite".into(),
             ));

@@ -288,7 +288,7 @@ pub struct VehicleCounters {
     pub access_refused: std::collections::BTreeMap<String, u64>,
     /// Local SLAM in own frames: this vehicle's side of the team frame.
     #[serde(default)]
-    pub alignment: Option<crate::frames::AlignmentReport>,
+    pub alignment: Option<Box<crate::frames::AlignmentReport>>,
 }
 
 /// What the estimator did with one observation (the monitor audits it against the truth).
@@ -657,6 +657,7 @@ mod tests {
                 cov: [1.0, 0.1, 0.0, 2.0, 0.0, 3.0],
             }],
             merges: vec![canopy_fusion::keys::Merge { from: 9, into: 4 }],
+            frame_owner: Some(3),
         });
         assert_eq!(round_trip(&report).unwrap(), report);
         assert_eq!(round_trip(&Control::Shutdown).unwrap(), Control::Shutdown);
@@ -683,6 +684,7 @@ mod tests {
                 cov: [1.0, 0.0, 0.0, 1.0, 0.0, 1.0],
             }],
             merges: Vec::new(),
+            frame_owner: None,
         });
         assert!(matches!(
             round_trip(&nan),

@@ -376,7 +376,7 @@ impl Vehicle<'_> {
             merges_refused: self.view.node.merges_refused,
             peak_rss_bytes: super::peak_rss_bytes(),
             access_refused: super::access_refusals(),
-            alignment: self.view.alignment.clone(),
+            alignment: self.view.alignment.clone().map(Box::new),
         }
     }
 
