@@ -313,6 +313,11 @@ pub struct VehicleFusion {
     /// An alignment taken whose frame change waits for the neighbour's first information
     /// (module [`crate::frames`], step 4): the frame and the team frame's owner.
     awaiting_rebase: Option<(canopy_fusion::frames::Frame4, NodeId)>,
+    /// Own frames: neighbours whose link came up again while this vehicle is in the team
+    /// frame. One that restarted is in its own frame again, but this side's channel stays
+    /// paired with its dead incarnation until it speaks (and it says nothing before it has
+    /// aligned): it gets anchors until its information arrives.
+    reanchor: BTreeSet<NodeId>,
 }
 
 impl VehicleFusion {
@@ -349,6 +354,7 @@ impl VehicleFusion {
             own_keys: KeyMap::default(),
             team_frame: None,
             awaiting_rebase: None,
+            reanchor: BTreeSet::new(),
         })
     }
 
@@ -463,7 +469,7 @@ impl VehicleFusion {
         };
         let waiting: Vec<NodeId> = ddf
             .channels()
-            .filter(|c| !c.synced && c.link_up)
+            .filter(|c| (!c.synced || self.reanchor.contains(&c.peer)) && c.link_up)
             .map(|c| c.peer)
             .collect();
         if waiting.is_empty() {
@@ -742,6 +748,10 @@ impl VehicleFusion {
         if matches!(msg.body, Body::Anchor { .. }) || self.outside_team() {
             return self.on_message_outside_team(from, msg);
         }
+        if matches!(msg.body, Body::Delta { .. } | Body::Cumulative { .. }) {
+            // Information from it: it is in the team frame.
+            self.reanchor.remove(&from);
+        }
         let Some(ddf) = self.ddf.as_mut() else {
             unreachable!("checked above");
         };
@@ -805,6 +815,9 @@ impl VehicleFusion {
     pub fn on_link_up(&mut self, now: f64, peer: NodeId) -> Result<Vec<Outgoing>, AgentError> {
         // Outside the team frame the channel learns the link state but sends nothing yet.
         let outside = self.outside_team();
+        if self.team_frame.is_some() && !outside {
+            self.reanchor.insert(peer);
+        }
         match self.ddf.as_mut().map(|d| d.on_link_up(now, peer)) {
             Some(Ok(out)) => Ok(if outside { Vec::new() } else { out }),
             Some(Err(e)) => {
