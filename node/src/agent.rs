@@ -12,8 +12,8 @@
 
 use canopy_fusion::ci::{CiCriterion, Submap};
 use canopy_fusion::ddf::{
-    DdfConfig, DdfError, DdfMessage, DdfNode, FuseRejected, FuseTarget, InformationStore, Mode,
-    Outgoing,
+    Body, DdfConfig, DdfError, DdfMessage, DdfNode, FuseRejected, FuseTarget, InformationStore,
+    Mode, Outgoing,
 };
 use canopy_fusion::info::MapInformation;
 use canopy_fusion::keys::{KeyMap, Merge};
@@ -307,6 +307,17 @@ pub struct VehicleFusion {
     candidates_rejected: BTreeSet<(&'static str, FeatureId, FeatureId)>,
     /// Correspondences adopted without a DDF node (isolated mode: own duplicates only).
     own_keys: KeyMap,
+    /// Local SLAM in own frames: this vehicle's side of the team frame (`None`: one frame for
+    /// the whole team, the shared launch frame or ECEF).
+    team_frame: Option<crate::frames::TeamFrame>,
+    /// An alignment taken whose frame change waits for the neighbour's first information
+    /// (module [`crate::frames`], step 4): the frame and the team frame's owner.
+    awaiting_rebase: Option<(canopy_fusion::frames::Frame4, NodeId)>,
+    /// Own frames: neighbours whose link came up again while this vehicle is in the team
+    /// frame. One that restarted is in its own frame again, but this side's channel stays
+    /// paired with its dead incarnation until it speaks (and it says nothing before it has
+    /// aligned): it gets anchors until its information arrives.
+    reanchor: BTreeSet<NodeId>,
 }
 
 impl VehicleFusion {
@@ -341,7 +352,144 @@ impl VehicleFusion {
             correspondence: None,
             candidates_rejected: BTreeSet::new(),
             own_keys: KeyMap::default(),
+            team_frame: None,
+            awaiting_rebase: None,
+            reanchor: BTreeSet::new(),
         })
+    }
+
+    /// Local SLAM with every vehicle in its own frame (module [`crate::frames`]): this vehicle
+    /// joins the team frame of `root` through its neighbours' anchors; `max_distance` is the
+    /// descriptor distance of a candidate correspondence. Until then it takes no part in the
+    /// channel filters.
+    pub fn use_own_frame(&mut self, id: NodeId, root: NodeId, max_distance: Option<u32>) {
+        self.team_frame = Some(crate::frames::TeamFrame::new(id, root, max_distance));
+    }
+
+    /// This vehicle's side of the team frame (own frames only).
+    pub fn team_frame(&self) -> Option<&crate::frames::TeamFrame> {
+        self.team_frame.as_ref()
+    }
+
+    /// Whose own frame the filter this half fuses is in (`None`: the team's shared frame):
+    /// this vehicle's until the round that moves it into the team frame, the root's after.
+    pub fn frame_owner(&self) -> Option<NodeId> {
+        let tf = self.team_frame.as_ref()?;
+        Some(if tf.in_team() && self.awaiting_rebase.is_none() {
+            tf.root()
+        } else {
+            tf.id()
+        })
+    }
+
+    /// Whether this vehicle still waits to join the team frame.
+    fn outside_team(&self) -> bool {
+        self.team_frame.as_ref().is_some_and(|f| !f.in_team())
+    }
+
+    /// A round outside the team frame: own duplicates merged, an attempt to align with the
+    /// neighbours' anchors; on success the correspondences are adopted and the frame change is
+    /// handed to the caller. Nothing is sent.
+    fn round_outside_team(&mut self, filter: &mut SlamFilter, now: f64) {
+        self.correspond(filter);
+        let Some(tf) = self.team_frame.as_mut() else {
+            return;
+        };
+        let Some((frame, merges)) = tf.try_align(filter, now) else {
+            return;
+        };
+        let root = tf.root();
+        // The correspondences are keys only: adopted now, in this frame. The estimate stays in
+        // its own frame until the neighbour's information arrives (`round_awaiting_rebase`).
+        let mut errors = Vec::new();
+        if let Some(ddf) = self.ddf.as_mut() {
+            for m in merges {
+                let mut direct = DirectTarget {
+                    filter,
+                    error: None,
+                };
+                if ddf.adopt_merge(m.from, m.into, &mut direct).is_some() {
+                    self.counters.correspondences_found += 1;
+                }
+                if let Some(e) = direct.error {
+                    self.counters.merges_refused += 1;
+                    errors.push(e);
+                }
+            }
+        }
+        for e in errors {
+            self.reject("merge", &e, 1, &e);
+        }
+        self.awaiting_rebase = Some((frame, root));
+    }
+
+    /// A round between the alignment and the neighbour's first information (own frames): the
+    /// channels pair (Sync and Hello only: no channel of this vehicle is synced yet, or it
+    /// waits), nothing in this frame is sent. When the batch holds information (it is in the
+    /// team frame), the filter moves into the team frame with the wide gauge prior and the
+    /// batch is fused at once, with no filter step between: the gauge prior is a
+    /// linearisation at the aligned estimate for one linear step only (an EKF running with
+    /// 30° of yaw uncertainty gains spurious information on it). Returns `None` while waiting.
+    fn round_awaiting_rebase(
+        &mut self,
+        filter: &mut SlamFilter,
+        now: f64,
+    ) -> Option<Result<Vec<Outgoing>, AgentError>> {
+        let (frame, _root) = self.awaiting_rebase?;
+        if self.pending.sum.is_none() {
+            let ddf = self.ddf.as_mut()?;
+            if ddf.channels().any(|c| c.synced) {
+                return Some(Ok(Vec::new()));
+            }
+            return Some(match ddf.on_round(now, filter) {
+                Ok(out) => Ok(out.messages),
+                Err(e) => {
+                    self.counters.rounds_failed += 1;
+                    self.reject("round", &e, 1, &e);
+                    Err(e.into())
+                }
+            });
+        }
+        if let Err(e) = filter.rebase(&frame, &canopy_fusion::slam::default_gauge()) {
+            // Not applied: the batch (team frame) waits; counted, tried again next round.
+            self.reject("rebase", &e, 1, &e);
+            return Some(Ok(Vec::new()));
+        }
+        self.awaiting_rebase = None;
+        None
+    }
+
+    /// Anchors for the neighbours not paired yet (this vehicle in the team frame, own frames).
+    fn anchors(&mut self, filter: &SlamFilter, out: &mut Vec<Outgoing>) {
+        if !self.team_frame.as_ref().is_some_and(|f| f.in_team()) {
+            return;
+        }
+        let Some(ddf) = self.ddf.as_mut() else {
+            return;
+        };
+        let waiting: Vec<NodeId> = ddf
+            .channels()
+            .filter(|c| (!c.synced || self.reanchor.contains(&c.peer)) && c.link_up)
+            .map(|c| c.peer)
+            .collect();
+        if waiting.is_empty() {
+            return;
+        }
+        let perfect = self
+            .team_frame
+            .as_ref()
+            .is_some_and(|f| f.perfect_identities());
+        let body = crate::frames::TeamFrame::anchor(filter, perfect);
+        let mut errors = Vec::new();
+        for peer in waiting {
+            match ddf.message_to(peer, body.clone()) {
+                Ok(o) => out.push(o),
+                Err(e) => errors.push(e),
+            }
+        }
+        for e in errors {
+            self.reject("anchor", &e, 1, &e);
+        }
     }
 
     /// Searches the map for correspondences after every fusion (`Some`) or not. Set for
@@ -545,6 +693,13 @@ impl VehicleFusion {
             return Ok(Vec::new());
         }
         self.counters.rounds += 1;
+        if self.outside_team() {
+            self.round_outside_team(filter, now);
+            return Ok(Vec::new());
+        }
+        if let Some(waiting) = self.round_awaiting_rebase(filter, now) {
+            return waiting;
+        }
         self.flush(filter);
         self.correspond(filter);
         if self.correspondence.is_some() {
@@ -563,7 +718,11 @@ impl VehicleFusion {
             .expect("checked above")
             .on_round(now, filter);
         match out {
-            Ok(out) => Ok(out.messages),
+            Ok(out) => {
+                let mut messages = out.messages;
+                self.anchors(filter, &mut messages);
+                Ok(messages)
+            }
             Err(e) => {
                 self.counters.rounds_failed += 1;
                 self.reject("round", &e, 1, &e);
@@ -580,11 +739,21 @@ impl VehicleFusion {
         from: NodeId,
         msg: DdfMessage,
     ) -> Result<Vec<Outgoing>, AgentError> {
-        let Some(ddf) = self.ddf.as_mut() else {
+        if self.ddf.is_none() {
             let e = DdfError::UnknownSender(from);
             self.counters.messages_rejected += 1;
             self.reject("message", &e, 1, &e);
             return Err(AgentError::Ddf(e));
+        }
+        if matches!(msg.body, Body::Anchor { .. }) || self.outside_team() {
+            return self.on_message_outside_team(from, msg);
+        }
+        if matches!(msg.body, Body::Delta { .. } | Body::Cumulative { .. }) {
+            // Information from it: it is in the team frame.
+            self.reanchor.remove(&from);
+        }
+        let Some(ddf) = self.ddf.as_mut() else {
+            unreachable!("checked above");
         };
         let mut target = EkfTarget {
             pending: &mut self.pending,
@@ -599,10 +768,58 @@ impl VehicleFusion {
         })
     }
 
+    /// An anchor (kept while this vehicle is outside the team frame), or any other message
+    /// while it is outside (dropped and counted: it takes no part in the channel filters yet).
+    fn on_message_outside_team(
+        &mut self,
+        from: NodeId,
+        msg: DdfMessage,
+    ) -> Result<Vec<Outgoing>, AgentError> {
+        let Some(ddf) = self.ddf.as_ref() else {
+            return Ok(Vec::new());
+        };
+        if let Err(e) = ddf.validate(from, &msg) {
+            self.counters.messages_rejected += 1;
+            self.reject("message", &e, 1, &format!("from {from:?}: {e}"));
+            return Err(AgentError::Ddf(e));
+        }
+        match (msg.body, self.team_frame.as_mut()) {
+            (Body::Anchor { features }, Some(tf)) => tf.on_anchor(from, features),
+            (Body::Anchor { .. }, None) => {
+                self.rejections.add(
+                    "fusion.message.anchor_without_own_frames".into(),
+                    1,
+                    &format!("from {from:?}: anchors are for local SLAM in own frames"),
+                );
+            }
+            (body, _) => {
+                let kind = DdfMessage {
+                    header: msg.header,
+                    body,
+                }
+                .kind();
+                self.rejections.add(
+                    "fusion.message.outside_team_frame".into(),
+                    1,
+                    &format!(
+                        "{kind} from {from:?} dropped: this vehicle has not aligned its own \
+                         frame with the team's yet"
+                    ),
+                );
+            }
+        }
+        Ok(Vec::new())
+    }
+
     /// The link to `peer` came up.
     pub fn on_link_up(&mut self, now: f64, peer: NodeId) -> Result<Vec<Outgoing>, AgentError> {
+        // Outside the team frame the channel learns the link state but sends nothing yet.
+        let outside = self.outside_team();
+        if self.team_frame.is_some() && !outside {
+            self.reanchor.insert(peer);
+        }
         match self.ddf.as_mut().map(|d| d.on_link_up(now, peer)) {
-            Some(Ok(out)) => Ok(out),
+            Some(Ok(out)) => Ok(if outside { Vec::new() } else { out }),
             Some(Err(e)) => {
                 self.reject("link_up", &e, 1, &format!("peer {peer:?}: {e}"));
                 Err(e.into())
@@ -631,6 +848,9 @@ pub struct VehicleEstimator {
     lent: Option<Lent>,
     /// Zero-velocity updates over a known rest period.
     rest: Option<RestUpdates>,
+    /// Whose own frame the estimate is in (local SLAM in own frames; `None`: the frame shared
+    /// by the team, the launch frame or ECEF).
+    frame_owner: Option<NodeId>,
 }
 
 /// A filter lent out for a fusion round ([`VehicleEstimator::lend`]).
@@ -665,6 +885,7 @@ impl VehicleEstimator {
             rejections: Rejections::default(),
             lent: None,
             rest: None,
+            frame_owner: None,
         })
     }
 
@@ -771,6 +992,16 @@ impl VehicleEstimator {
     /// Whether the filter is out ([`lend`](Self::lend)).
     pub fn is_lent(&self) -> bool {
         self.lent.is_some()
+    }
+
+    /// Whose own frame the estimate is in (`None`: the team's shared frame).
+    pub fn frame_owner(&self) -> Option<NodeId> {
+        self.frame_owner
+    }
+
+    /// Starts in vehicle `owner`'s own frame (local SLAM in own frames: its own id).
+    pub fn set_frame_owner(&mut self, owner: Option<NodeId>) {
+        self.frame_owner = owner;
     }
 
     /// Takes the fused filter back and applies to it the IMU samples predicted since it was
@@ -986,7 +1217,27 @@ impl VehicleAgent {
 
     /// A fusion round at time `now`: the messages to send.
     pub fn on_round(&mut self, now: f64) -> Result<Vec<Outgoing>, AgentError> {
-        self.fusion.round(self.estimator.filter_mut(), now)
+        let out = self.fusion.round(self.estimator.filter_mut(), now);
+        // The round may have moved the filter into the team frame (own frames).
+        self.estimator.set_frame_owner(self.fusion.frame_owner());
+        out
+    }
+
+    /// Local SLAM in own frames: starts in this vehicle's own frame and joins the team frame
+    /// of `root` ([`VehicleFusion::use_own_frame`]).
+    pub fn use_own_frame(&mut self, root: NodeId, max_distance: Option<u32>) {
+        self.estimator.set_frame_owner(Some(self.id));
+        self.fusion.use_own_frame(self.id, root, max_distance);
+    }
+
+    /// Whose own frame the estimate is in (`None`: the team's shared frame).
+    pub fn frame_owner(&self) -> Option<NodeId> {
+        self.estimator.frame_owner()
+    }
+
+    /// The team frame state (own frames only).
+    pub fn team_frame(&self) -> Option<&crate::frames::TeamFrame> {
+        self.fusion.team_frame()
     }
 
     /// A DDF message from `from`: fuses what it carries, returns replies. An error means the

@@ -189,7 +189,7 @@ pub fn run_reference(
         .vehicles
         .iter()
         .zip(&sources)
-        .map(|(cfg, src)| estimator_setup(cfg, &src.initial_estimate()))
+        .map(|(cfg, src)| estimator_setup(cfg, &src.reference_initial_estimate()))
         .collect();
     let mut filter = reference_filter(s, &world, &setups)?;
     let mut run = BaselineRun {
@@ -254,7 +254,7 @@ pub fn run_reference(
             && t + eps >= tf
         {
             fixes.next();
-            if let Some(est) = sources[fi].restart_estimate(u64::from(inc)) {
+            if let Some(est) = sources[fi].reference_restart_estimate(u64::from(inc)) {
                 // A refused fix leaves the reference as it was (it then lacks that fix).
                 let _ = apply_restart_fix(&mut filter, fi, &est);
             }

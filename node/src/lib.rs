@@ -20,6 +20,8 @@
 //!   true feature, wrong associations and merges, duplicates, unmatched features.
 //! - [`output`]: summary.json, TUM trajectories, CSVs and report.html.
 //! - [`agent`]: the vehicle and hub agents (estimator + DDF node, sans-IO).
+//! - [`frames`]: local SLAM in own frames — anchors, the alignment of a vehicle's frame with
+//!   the team frame, joining the channel filters after it.
 //! - [`sim`]: `canopy sim`, the whole scenario in one deterministic process.
 //! - [`baseline`]: the centralized all-data reference EKF driver.
 //! - [`replay`]: recorded sensor logs (CSV) and the sensor sources of a run.
@@ -39,6 +41,7 @@ pub mod baseline;
 pub mod cli;
 pub mod deploy;
 pub mod eval;
+pub mod frames;
 pub mod import;
 pub mod metrics;
 pub mod network;

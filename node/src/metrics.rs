@@ -5,12 +5,13 @@
 use std::collections::{HashMap, HashSet};
 
 use canopy_fusion::consistency::vehicle_error;
+use canopy_fusion::frames::Frame4;
 use canopy_fusion::geodesy::{ecef_from_ned, ecef_to_geodetic};
 use canopy_fusion::ins::{VehicleCovariance, VehicleState};
 use canopy_fusion::rotation::{euler_from_nav_from_body, nav_from_body};
 use canopy_fusion::sensor::FeatureId;
 use canopy_fusion::slam::SlamFilter;
-use canopy_fusion::state::{ATT, NavFrame, POS};
+use canopy_fusion::state::{ATT, NavFrame, POS, VEL};
 use nalgebra::{Matrix3, Matrix6, Vector3, Vector6};
 
 use crate::record::{MapFeatureRecord, PoseSample};
@@ -75,6 +76,33 @@ fn arr9(m: &Matrix3<f64>) -> [f64; 9] {
 /// NEES of a small error/covariance pair; NaN when the covariance is not positive definite.
 fn nees6(e: &Vector6<f64>, p: &Matrix6<f64>) -> f64 {
     p.cholesky().map_or(f64::NAN, |c| e.dot(&c.solve(e)))
+}
+
+/// An estimate (state and covariance) re-expressed by the 4-DOF transform `frame`
+/// (x' = Rz(ψ)·x + t): positions and velocities rotate, the yaw shifts, roll, pitch and biases
+/// stay; the covariance is J P Jᵀ with J = blockdiag(R, R, I, I, I) (exact: the transform is
+/// known, `[world] frames = "own"`'s truth-side conversion to the launch frame).
+pub fn state_in(
+    frame: &Frame4,
+    est: &VehicleState,
+    cov: &VehicleCovariance,
+) -> (VehicleState, VehicleCovariance) {
+    let r = frame.rotation();
+    let mut j = VehicleCovariance::identity();
+    j.fixed_view_mut::<3, 3>(POS, POS).copy_from(&r);
+    j.fixed_view_mut::<3, 3>(VEL, VEL).copy_from(&r);
+    let mut attitude = est.attitude;
+    attitude.z = canopy_fusion::rotation::wrap_angle(attitude.z + frame.yaw);
+    (
+        VehicleState {
+            position: frame.apply(&est.position),
+            velocity: r * est.velocity,
+            attitude,
+            accel_bias: est.accel_bias,
+            gyro_bias: est.gyro_bias,
+        },
+        j * cov * j.transpose(),
+    )
 }
 
 /// One estimate-vs-truth sample. NEES is computed in the estimator's own frame (position error
@@ -187,11 +215,24 @@ pub fn map_records(
     filter: &SlamFilter,
     truth: impl Fn(FeatureId) -> Option<FeatureId>,
 ) -> Vec<MapFeatureRecord> {
+    map_records_in(world, &Frame4::identity(), filter, truth)
+}
+
+/// [`map_records`] of a filter whose frame is `launch_from_est` in the launch frame (own
+/// frames: the frame owner's true start).
+pub fn map_records_in(
+    world: &World,
+    launch_from_est: &Frame4,
+    filter: &SlamFilter,
+    truth: impl Fn(FeatureId) -> Option<FeatureId>,
+) -> Vec<MapFeatureRecord> {
+    let r = launch_from_est.rotation();
     filter
         .features()
         .into_iter()
         .filter_map(|(id, m)| {
             let cov = filter.feature_covariance(id)?;
+            let (m, cov) = (launch_from_est.apply(&m), r * cov * r.transpose());
             Some(feature_record(world, id, truth(id), &m, &cov))
         })
         .collect()
@@ -220,10 +261,22 @@ pub fn confidence_ratio(
     reference: &SlamFilter,
     reference_key: impl Fn(FeatureId) -> Option<FeatureId>,
 ) -> Option<(f64, FeatureId)> {
+    confidence_ratio_in(&Matrix3::identity(), filter, reference, reference_key)
+}
+
+/// [`confidence_ratio`] of a filter whose frame is rotated by `reference_from_est` from the
+/// reference's (own frames).
+pub fn confidence_ratio_in(
+    reference_from_est: &Matrix3<f64>,
+    filter: &SlamFilter,
+    reference: &SlamFilter,
+    reference_key: impl Fn(FeatureId) -> Option<FeatureId>,
+) -> Option<(f64, FeatureId)> {
+    let r = reference_from_est;
     let mut worst: Option<(f64, FeatureId)> = None;
     for (id, _) in filter.features() {
         let (Some(pi), Some(pr)) = (
-            filter.feature_covariance(id),
+            filter.feature_covariance(id).map(|p| r * p * r.transpose()),
             reference_key(id).and_then(|r| reference.feature_covariance(r)),
         ) else {
             continue;

@@ -99,6 +99,34 @@ pub struct VehicleRecord {
     /// `[secrets].zenoh_password`; empty otherwise).
     #[serde(default)]
     pub access_refused: std::collections::BTreeMap<String, u64>,
+    /// Local SLAM in own frames (`[world] frames = "own"`): how this vehicle joined the team
+    /// frame; `None` in a shared frame.
+    #[serde(default)]
+    pub frame_alignment: Option<FrameAlignmentRecord>,
+}
+
+/// How a vehicle's own frame was aligned with the team frame (`crate::frames`), and the
+/// alignment's error against the true relative frame (known to the harness only).
+#[derive(Clone, Debug, Default, Serialize, Deserialize, PartialEq)]
+pub struct FrameAlignmentRecord {
+    /// The vehicle holds the team frame (its own frame is the team's: nothing to align).
+    pub root: bool,
+    /// Simulation time the alignment was taken [s] (`None`: never, or the root).
+    pub aligned_at_s: Option<f64>,
+    /// The alignment's σ of the yaw [deg].
+    pub sigma_yaw_deg: Option<f64>,
+    /// The alignment's σ of the horizontal translation [m].
+    pub sigma_translation_m: Option<f64>,
+    /// Inlier correspondences of the alignment.
+    pub inliers: Option<usize>,
+    /// Yaw of the alignment minus the true one [deg] (truth).
+    pub yaw_error_deg: Option<f64>,
+    /// Horizontal translation of the alignment minus the true one [m] (truth).
+    pub translation_error_m: Option<f64>,
+    /// Attempts that gave no alignment, by reason (`too_few_candidates`, `no_consensus`,
+    /// `ambiguous`, `not_converged`, `singular`, `unconfirmed`: two consecutive rounds
+    /// disagreed).
+    pub attempts_failed: std::collections::BTreeMap<String, u64>,
 }
 
 /// One statistics sample of a link (cumulative counters at time `t`).

@@ -49,7 +49,7 @@ use nalgebra::{SMatrix, UnitQuaternion, Vector2, Vector3};
 use serde::{Deserialize, Serialize};
 
 use crate::scenario::{EarthModel, Scenario, ScenarioError, VehicleConfig, WorldConfig};
-use crate::world::{self, InitialEstimate, TruthSample, VehicleSim, World};
+use crate::world::{self, FrameEstimate, InitialEstimate, TruthSample, VehicleSim, World};
 
 /// Version of the log format this canopy writes (module docs).
 pub const FORMAT_VERSION: u32 = 2;
@@ -1174,6 +1174,26 @@ impl SensorSource {
         match self {
             SensorSource::Sim(s) => s.initial_estimate().clone(),
             SensorSource::Replay(r) => r.log.initial.clone(),
+        }
+    }
+
+    /// The initial estimate in the launch frame, for the centralized reference (differs from
+    /// [`Self::initial_estimate`] with `[world] frames = "own"` only).
+    pub fn reference_initial_estimate(&self) -> InitialEstimate {
+        match self {
+            SensorSource::Sim(s) => s.launch_from_own().apply_estimate(s.initial_estimate()),
+            SensorSource::Replay(r) => r.log.initial.clone(),
+        }
+    }
+
+    /// [`Self::restart_estimate`] in the launch frame, for the reference.
+    pub fn reference_restart_estimate(&self, draw: u64) -> Option<InitialEstimate> {
+        match self {
+            SensorSource::Sim(s) => Some(
+                s.launch_from_own()
+                    .apply_estimate(&s.restart_estimate(draw)),
+            ),
+            SensorSource::Replay(_) => None,
         }
     }
 

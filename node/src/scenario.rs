@@ -319,8 +319,37 @@ impl Scenario {
                 }
             }
         }
+        self.validate_frames()?;
         crate::network::validate(self)?;
         crate::deploy::validate(self)
+    }
+
+    /// `[world] frames = "own"`: local SLAM of simulated vehicles fusing decentralized (the
+    /// alignment runs over the channel filters' links; global SLAM has ECEF as a frame every
+    /// vehicle knows, a replayed vehicle's frame is its recording's).
+    fn validate_frames(&self) -> Result<(), ScenarioError> {
+        if self.world.frames != Frames::Own {
+            return Ok(());
+        }
+        if self.world.earth_model != EarthModel::Flat {
+            return Err(ScenarioError::invalid(
+                "world.frames",
+                "own frames need earth_model = \"flat\" (local SLAM); global SLAM shares ECEF",
+            ));
+        }
+        if self.fusion.mode != crate::network::FusionMode::Decentralized {
+            return Err(ScenarioError::invalid(
+                "world.frames",
+                "own frames need [fusion] mode = \"decentralized\" (vehicles align over their links)",
+            ));
+        }
+        if let Some(i) = self.vehicles.iter().position(|v| v.replay.is_some()) {
+            return Err(ScenarioError::invalid(
+                format!("vehicle[{i}].replay"),
+                "own frames are for simulated vehicles (a replayed vehicle's frame is its recording's)",
+            ));
+        }
+        Ok(())
     }
 }
 
@@ -372,6 +401,23 @@ pub struct WorldConfig {
     pub terrain: TerrainConfig,
     /// What the sensors tell about a feature's identity (`[world.appearance]`).
     pub appearance: AppearanceConfig,
+    /// Where the vehicles' estimates start (`earth_model = "flat"` only): `"shared"` (default:
+    /// every vehicle in the launch frame, a frame the team shares by truth) or `"own"` (each
+    /// vehicle in its own frame, its start position and heading; the vehicles align their
+    /// frames from corresponding features, `crate::frames`).
+    pub frames: Frames,
+}
+
+/// `[world] frames`: the frame each vehicle's estimate starts in.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "snake_case")]
+pub enum Frames {
+    /// The launch frame, known to every vehicle (an oracle: the ablation of `Own`).
+    #[default]
+    Shared,
+    /// Each vehicle's own start: origin at its true start position, north along its start
+    /// heading. Nobody knows the others' starts.
+    Own,
 }
 
 impl Default for WorldConfig {
@@ -385,6 +431,7 @@ impl Default for WorldConfig {
             features: FeatureConfig::default(),
             terrain: TerrainConfig::default(),
             appearance: AppearanceConfig::default(),
+            frames: Frames::Shared,
         }
     }
 }

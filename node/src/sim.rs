@@ -23,7 +23,10 @@ use canopy_transport::memory::{InMemoryHub, InMemoryLink};
 
 use crate::agent::{AgentError, HubAgent, VehicleAgent};
 use crate::baseline::estimator_setup;
-use crate::metrics::{HeldSince, confidence_ratio, estimate_sample, map_records, pose_sample};
+use crate::metrics::{
+    HeldSince, confidence_ratio_in, estimate_sample, map_records, map_records_in, pose_sample,
+    state_in,
+};
 use crate::network::{EventKind, FusionMode, effective_links, node_names, topology};
 use crate::process::protocol::FrameAssociations;
 use crate::record::{EventRecord, LinkRecord, LinkSample, RunRecord, VehicleRecord};
@@ -33,6 +36,7 @@ use crate::scenario::{Scenario, ScenarioError};
 use crate::truth::{TruthAudit, fill_record};
 use crate::wire::{decode_ddf, send_ddf};
 use crate::world::{self, InitialEstimate, World};
+use canopy_fusion::frames::Frame4;
 
 /// Options of a simulation run.
 #[derive(Default)]
@@ -257,6 +261,13 @@ pub fn vehicle_agent(
     if !s.fusion.map_correspondences {
         agent.set_correspondence(None);
     }
+    if s.world.frames == crate::scenario::Frames::Own {
+        let root = crate::frames::team_root(s).map_or(cfg.id, |r| r.0);
+        // Perfect identities (the ablation) pair the maps' features by key.
+        let distance = (s.world.appearance.identity == Identity::Appearance)
+            .then(|| s.world.appearance.association_distance());
+        agent.use_own_frame(NodeId(root), distance);
+    }
     // Capacity-limited links: sparsified channel filters (default) or CI submaps from the
     // first round (`fusion = "ci"`).
     for &(peer, fusion) in &radio_peers {
@@ -295,9 +306,20 @@ struct Sim<'s> {
     audit: TruthAudit,
     /// The same for the reference.
     baseline_audit: TruthAudit,
+    /// `[world] frames = "own"`: each vehicle's own frame in the launch frame (truth, for the
+    /// metrics only); empty with shared frames.
+    launch_from_own: BTreeMap<NodeId, Frame4>,
 }
 
 impl<'s> Sim<'s> {
+    /// The launch-frame transform of an estimate in `owner`'s own frame (identity with shared
+    /// frames).
+    fn launch_from(&self, owner: Option<NodeId>) -> Frame4 {
+        owner
+            .and_then(|o| self.launch_from_own.get(&o).copied())
+            .unwrap_or_else(Frame4::identity)
+    }
+
     fn vehicle_agent(
         &self,
         index: usize,
@@ -397,6 +419,7 @@ impl<'s> Sim<'s> {
                 let f = a.filter();
                 self.held[i].observe(now, f.features().into_iter().map(|x| x.0));
                 if let (Ok(est), Ok(cov)) = (f.vehicle_state(0), f.vehicle_covariance(0)) {
+                    let (est, cov) = state_in(&self.launch_from(a.frame_owner()), &est, &cov);
                     self.records[i].samples.push(match sim.truth() {
                         Some(truth) => pose_sample(&self.world, &est, &cov, truth),
                         None => estimate_sample(&self.world, sim.time(), &est, &cov),
@@ -420,10 +443,13 @@ impl<'s> Sim<'s> {
                 .nodes
                 .values()
                 .filter_map(|n| match n.agent.as_ref() {
-                    Some(Agent::Vehicle(a)) => match identity {
-                        Identity::Perfect => confidence_ratio(a.filter(), b, Some),
-                        Identity::Appearance => {
-                            confidence_ratio(a.filter(), b, |k| self.audit.truth_of(k))
+                    Some(Agent::Vehicle(a)) => {
+                        let r = self.launch_from(a.frame_owner()).rotation();
+                        match identity {
+                            Identity::Perfect => confidence_ratio_in(&r, a.filter(), b, Some),
+                            Identity::Appearance => {
+                                confidence_ratio_in(&r, a.filter(), b, |k| self.audit.truth_of(k))
+                            }
                         }
                     }
                     .map(|r| r.0),
@@ -502,7 +528,20 @@ pub fn simulate(s: &Scenario, mut opts: SimOptions<'_>) -> Result<SimOutcome, Si
     let dyn_clock: Arc<dyn Clock> = clock.clone();
     let with_baseline = opts.baseline.unwrap_or(s.run.baseline);
 
+    let launch_from_own: BTreeMap<NodeId, Frame4> = if world.own_frames() {
+        s.vehicles
+            .iter()
+            .zip(&vehicles)
+            .filter_map(|(cfg, v)| match v {
+                SensorSource::Sim(v) => Some((NodeId(cfg.id), v.launch_from_own())),
+                SensorSource::Replay(_) => None,
+            })
+            .collect()
+    } else {
+        BTreeMap::new()
+    };
     let mut sim = Sim {
+        launch_from_own,
         s,
         world: world.clone(),
         vehicles,
@@ -621,7 +660,7 @@ pub fn simulate(s: &Scenario, mut opts: SimOptions<'_>) -> Result<SimOutcome, Si
             .vehicles
             .iter()
             .zip(&s.vehicles)
-            .map(|(v, cfg)| estimator_setup(cfg, &v.initial_estimate()))
+            .map(|(v, cfg)| estimator_setup(cfg, &v.reference_initial_estimate()))
             .collect();
         // The reference associates by descriptor, verified by the gate (shared with the
         // monitor of multi-process runs).
@@ -735,8 +774,10 @@ pub fn simulate(s: &Scenario, mut opts: SimOptions<'_>) -> Result<SimOutcome, Si
                     continue;
                 };
                 // The reference gets the same external fix, so it still holds all the data.
-                if let Some(b) = sim.baseline.as_mut() {
-                    let _ = crate::baseline::apply_restart_fix(b, idx, &est);
+                if let Some(b) = sim.baseline.as_mut()
+                    && let Some(fix) = sim.vehicles[idx].reference_restart_estimate(u64::from(inc))
+                {
+                    let _ = crate::baseline::apply_restart_fix(b, idx, &fix);
                 }
                 let agent = sim.vehicle_agent(idx, &est, inc)?;
                 sim.nodes.get_mut(&target).expect("exists").agent =
@@ -874,12 +915,21 @@ pub fn simulate(s: &Scenario, mut opts: SimOptions<'_>) -> Result<SimOutcome, Si
         if let Some(node) = sim.nodes.get(&NodeId(cfg.id))
             && let Some(Agent::Vehicle(a)) = node.agent.as_ref()
         {
-            let mut map = map_records(&world, a.filter(), key_truth);
+            let frame = sim.launch_from(a.frame_owner());
+            let mut map = map_records_in(&world, &frame, a.filter(), key_truth);
             sim.held[i].stamp(end, &mut map);
             sim.records[i].map = map;
             let c = a.counters();
             sim.records[i].rejected_messages = c.fusion.messages_rejected;
             sim.records[i].rejections = a.rejections().counts.clone();
+            sim.records[i].frame_alignment = a.team_frame().map(|tf| {
+                // The true own → team frame: own → launch, then launch → the root's own.
+                let truth = sim
+                    .launch_from(Some(tf.root()))
+                    .inverse()
+                    .compose(&sim.launch_from(Some(NodeId(cfg.id))));
+                crate::frames::alignment_record(&tf.report(), &truth)
+            });
             sim.records[i].association.merges_refused =
                 a.ddf().map_or(0, |d| d.stats().merges_refused);
             sim.checks

@@ -94,8 +94,16 @@ fn refused_candidates(out: &SimOutcome) -> u64 {
         .sum()
 }
 
-/// Issue 12's bars for an appearance run against the perfect-identity run of the same seed.
-fn assert_bars(name: &str, out: &SimOutcome, sm: &RunSummary, perfect: &RunSummary) {
+/// Issue 12's bars for an appearance run against the perfect-identity run of the same seed;
+/// `confidence` is the run's confidence ratio against the reference (`max_ratio`, or
+/// `sustained_ratio` where a fresh feature's first second is left out).
+fn assert_bars(
+    name: &str,
+    out: &SimOutcome,
+    sm: &RunSummary,
+    perfect: &RunSummary,
+    confidence: f64,
+) {
     assert_eq!(sm.identity, "appearance", "{name}");
     // The same world and noise: both runs saw the same observations.
     assert_eq!(
@@ -162,8 +170,21 @@ fn assert_bars(name: &str, out: &SimOutcome, sm: &RunSummary, perfect: &RunSumma
     // Never more confident than the all-data reference, which associates by true ids (keys
     // mapped to their true features). 1.05: the perfect-identity run reaches 1.0005 by
     // linearisation, information counted twice would give about 2.
-    let r = max_ratio(out);
-    assert!(r <= 1.05, "{name}: confidence ratio {r}");
+    assert!(confidence <= 1.05, "{name}: confidence ratio {confidence}");
+}
+
+/// The largest confidence ratio held over two consecutive record times (1 s apart): a fresh
+/// feature's first second is left out. local-4's perfect-identity run has one such instant —
+/// uav2 at 11 s, alone on a feature it has just initialised, 1.785, and 1.040 a second later,
+/// every other sample of every vehicle 1.000 ± 0.002 — where the reference, the same filter
+/// on the same observations, took its observations of that feature differently. Information
+/// counted twice stays near 2 for as long as it is held.
+fn sustained_ratio(out: &SimOutcome) -> f64 {
+    out.checks
+        .confidence_ratio
+        .windows(2)
+        .map(|w| w[0].1.min(w[1].1))
+        .fold(f64::NAN, f64::max)
 }
 
 #[test]
@@ -202,8 +223,8 @@ fn shipped_appearance_scenarios_meet_the_perfect_identity_bars() {
         ),
         (0, 0)
     );
-    assert_bars("appearance", &app_out, &app, &per);
-    assert_bars("hard", &hard_out, &hard_sm, &per);
+    assert_bars("appearance", &app_out, &app, &per, max_ratio(&app_out));
+    assert_bars("hard", &hard_out, &hard_sm, &per, max_ratio(&hard_out));
     // The hard run's descriptors bring many look-alike candidates; each one refused is counted
     // (10 % confusable features and 20 % bit flips: hundreds of pairs over the team).
     assert!(refused_candidates(&hard_out) > refused_candidates(&app_out));
@@ -231,7 +252,13 @@ fn correspondences_are_found_after_a_partition_and_the_audit_sees_them_missing()
     ] {
         print(name, out, sm);
     }
-    assert_bars("partition-heal", &app_out, &app_sm, &per);
+    assert_bars(
+        "partition-heal",
+        &app_out,
+        &app_sm,
+        &per,
+        max_ratio(&app_out),
+    );
     // The halves initialised shared features apart: correspondences had to be found (28 on
     // the shipped seed), and none was wrong (asserted above).
     assert!(app_sm.association.merges_adopted > 0);
@@ -242,4 +269,199 @@ fn correspondences_are_found_after_a_partition_and_the_audit_sees_them_missing()
         abl.association.unmatched_features > 0 && abl.association.duplicate_features > 0,
         "the audit must see the duplicates the ablation leaves"
     );
+}
+
+/// The true own frames of `s`'s vehicles in the launch frame (their true starts).
+fn true_starts(s: &Scenario) -> Vec<canopy_fusion::frames::Frame4> {
+    let (_, sims) = canopy_node::world::build(s).expect("world builds");
+    sims.iter().map(|v| v.launch_from_own()).collect()
+}
+
+/// Local SLAM in own frames (`topologies/local-4.toml`, issue 12 item 4): every vehicle starts
+/// in its own frame (position and yaw unknown to the others), aligns with a neighbour in the
+/// team frame from corresponding features, and only then fuses.
+///
+/// What it proves:
+/// * the premise: the starts are ≥ 50 m and ≥ 30° of yaw apart (pairwise, from the truth);
+/// * the alignment converges: every vehicle but the root takes one, each consistent with the
+///   true relative frame (yaw and translation errors within 3σ of its own covariance);
+/// * the same bars as in the shared frame hold against the own-frame perfect-identity run
+///   (same seed, same observations): map RMSE ≤ 1.10×, pose and map ANEES ≤ 1.1×, no wrong
+///   correspondence, mature duplicates ≤ 2 %, never more confident than the reference beyond
+///   a fresh feature's first second (`sustained_ratio`; the reference knows every start
+///   exactly, the team only the root's);
+/// * and absolutely, so that a fault shared by both runs cannot hide behind the ratio: team
+///   pose and map ANEES ≤ 1.5 (the isolated vehicles' EKF-SLAM measures 1.16 on this world;
+///   the move into the team frame before its fix gave 2.07), and no estimate ever jumps — every
+///   position error below 10 m (vehicle σ < 1 m; the unfixed move gave 172 m).
+///
+/// Runtime (release): 2 × 200 s of the 4-UAV team with the reference, ≈ 50 s on 2 cores.
+#[test]
+fn own_frames_align_and_meet_the_perfect_identity_bars() {
+    const OWN_DURATION: f64 = 200.0;
+    let app = shipped("local-4");
+    assert_eq!(app.world.frames, canopy_node::scenario::Frames::Own);
+    assert_eq!(app.world.appearance.identity, Identity::Appearance);
+    let starts = true_starts(&app);
+    for (v, f) in app.vehicles.iter().zip(&starts) {
+        println!(
+            "{} starts at {:.0} m N, {:.0} m E, heading {:.0}°",
+            v.display_name(),
+            f.translation.x,
+            f.translation.y,
+            f.yaw.to_degrees()
+        );
+    }
+    for (i, a) in starts.iter().enumerate() {
+        for b in &starts[i + 1..] {
+            let d = a.translation - b.translation;
+            let yaw = canopy_fusion::rotation::wrap_angle(a.yaw - b.yaw).abs();
+            assert!(d.x.hypot(d.y) >= 50.0, "starts {:.0} m apart", d.norm());
+            assert!(
+                yaw >= 30f64.to_radians(),
+                "starts {:.0}° apart: {a:?} {b:?}",
+                yaw.to_degrees()
+            );
+        }
+    }
+    let mut perfect = app.clone();
+    perfect.world.appearance.identity = Identity::Perfect;
+    let run = |s: &Scenario| {
+        let out = simulate(
+            s,
+            SimOptions {
+                duration: Some(OWN_DURATION),
+                ..SimOptions::default()
+            },
+        )
+        .expect("simulation runs");
+        let sm = summarize(&out.record);
+        (out, sm)
+    };
+    let (per_out, per) = run(&perfect);
+    let (app_out, app_sm) = run(&app);
+    for (name, out, sm) in [
+        ("local-4 perfect", &per_out, &per),
+        ("local-4 appearance", &app_out, &app_sm),
+    ] {
+        print(name, out, sm);
+        for v in &sm.vehicles {
+            let f = v.frame_alignment.as_ref().expect("own frames report it");
+            println!("{name} {}: {f:?}", v.name);
+            if f.root {
+                assert_eq!(
+                    v.name, "uav1",
+                    "{name}: the smallest id holds the team frame"
+                );
+                continue;
+            }
+            let (Some(t), Some(sy), Some(st), Some(ey), Some(et)) = (
+                f.aligned_at_s,
+                f.sigma_yaw_deg,
+                f.sigma_translation_m,
+                f.yaw_error_deg,
+                f.translation_error_m,
+            ) else {
+                panic!("{name} {}: never aligned ({:?})", v.name, f.attempts_failed);
+            };
+            assert!(t < OWN_DURATION, "{name} {}", v.name);
+            assert!(
+                ey.abs() <= 3.0 * sy,
+                "{name} {}: yaw error {ey}° σ {sy}°",
+                v.name
+            );
+            assert!(
+                et <= 3.0 * st,
+                "{name} {}: translation error {et} m σ {st} m",
+                v.name
+            );
+        }
+        assert!(
+            sm.team.pose_anees <= 1.5,
+            "{name}: pose ANEES {}",
+            sm.team.pose_anees
+        );
+        assert!(
+            sm.team.map_anees <= 1.5,
+            "{name}: map ANEES {}",
+            sm.team.map_anees
+        );
+        for v in &out.record.vehicles {
+            let worst = v
+                .samples
+                .iter()
+                .map(|s| s.position_error())
+                .fold(0.0, f64::max);
+            assert!(
+                worst < 10.0,
+                "{name} {}: position error {worst:.1} m",
+                v.name
+            );
+        }
+    }
+    // A transient of a fresh feature is allowed (`sustained_ratio`), not a doubled one.
+    for (name, out) in [("perfect", &per_out), ("appearance", &app_out)] {
+        let (max, held) = (max_ratio(out), sustained_ratio(out));
+        println!("local-4 {name}: confidence ratio max {max:.3}, held {held:.3}");
+        assert!(max < 2.0, "local-4 {name}: confidence ratio {max}");
+    }
+    assert_bars(
+        "local-4",
+        &app_out,
+        &app_sm,
+        &per,
+        sustained_ratio(&app_out),
+    );
+}
+
+/// local-4 with uav4 killed at 150 s and restarted 10 s later (the crash fault of
+/// `topologies/crash-restart.toml`, here in own frames), 250 s.
+///
+/// What it proves: a vehicle that restarts in own frames — back in its own frame from a drawn
+/// fix, its neighbour's channel still paired with its dead incarnation — gets anchors again
+/// (the neighbour re-anchors a peer whose link came back until that peer's information
+/// arrives), aligns again after its restart, and the team stays consistent: no wrong
+/// correspondence, team pose and map ANEES ≤ 1.5 (as above), every position error below 10 m.
+/// Without the re-anchoring uav4 never aligned again (its map error 4.9 m, map ANEES 1.88).
+#[test]
+fn own_frames_realign_after_a_crash() {
+    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../topologies/local-4.toml");
+    let text = std::fs::read_to_string(&path).expect("local-4.toml");
+    let crash =
+        "\n[[event]]\nkind = \"crash\"\nvehicle = 4\nat_s = 150.0\nrestart_after_s = 10.0\n";
+    let s = Scenario::from_toml_str(&format!("{text}{crash}")).expect("scenario");
+    let out = simulate(
+        &s,
+        SimOptions {
+            duration: Some(250.0),
+            ..SimOptions::default()
+        },
+    )
+    .expect("simulation runs");
+    let sm = summarize(&out.record);
+    print("local-4 crash", &out, &sm);
+    let uav4 = sm.vehicles.iter().find(|v| v.name == "uav4").expect("uav4");
+    assert_eq!(uav4.restarts, 1);
+    let f = uav4.frame_alignment.as_ref().expect("own frames report it");
+    println!("uav4 after its restart: {f:?}");
+    let t = f.aligned_at_s.expect("uav4 aligned again");
+    assert!(
+        t > 160.0,
+        "uav4's alignment at {t} s is not after its restart"
+    );
+    assert_eq!(sm.association.wrong_merges, 0);
+    assert!(
+        sm.team.pose_anees <= 1.5,
+        "pose ANEES {}",
+        sm.team.pose_anees
+    );
+    assert!(sm.team.map_anees <= 1.5, "map ANEES {}", sm.team.map_anees);
+    for v in &out.record.vehicles {
+        let worst = v
+            .samples
+            .iter()
+            .map(|s| s.position_error())
+            .fold(0.0, f64::max);
+        assert!(worst < 10.0, "{}: position error {worst:.1} m", v.name);
+    }
 }

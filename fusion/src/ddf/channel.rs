@@ -332,7 +332,7 @@ impl Channel {
         }
     }
 
-    fn msg(&mut self, ctx: &NodeCtx<'_>, body: Body) -> DdfMessage {
+    pub(crate) fn msg(&mut self, ctx: &NodeCtx<'_>, body: Body) -> DdfMessage {
         self.stats.messages_sent += 1;
         DdfMessage {
             header: self.header(ctx),
@@ -735,7 +735,10 @@ impl Channel {
                 Ok(())
             }
             // Handled by the node (they concern every channel); nothing left to do here.
-            Body::Merges { .. } | Body::Describe { .. } | Body::DescribeRequest { .. } => Ok(()),
+            Body::Merges { .. }
+            | Body::Describe { .. }
+            | Body::DescribeRequest { .. }
+            | Body::Anchor { .. } => Ok(()),
             _ if self.mode == LinkMode::Ci || !addressed => {
                 // Exact-protocol messages on a CI link, or not addressed to this epoch.
                 self.stats.stale += 1;
@@ -1241,6 +1244,22 @@ impl Channel {
             }
             Body::Describe { features } => at_most("descriptors", MAX_LIST, features.len()),
             Body::DescribeRequest { keys } => at_most("describe request", MAX_LIST, keys.len()),
+            Body::Anchor { features } => {
+                at_most(
+                    "anchor features",
+                    super::message::MAX_ANCHOR_FEATURES,
+                    features.len(),
+                )?;
+                // A non-finite value or a covariance that is not positive definite.
+                match features.iter().position(|f| !f.is_valid()) {
+                    Some(row) => Err(InfoError::NonFinite {
+                        what: "anchor feature (or its covariance not positive definite)",
+                        row,
+                        col: 0,
+                    }),
+                    None => Ok(()),
+                }
+            }
             Body::Delta { info, .. } | Body::Cumulative { info, .. } => check(info),
             Body::Sync { baseline, .. } => check(baseline),
             Body::Submap { submap: s, .. } => {

@@ -125,6 +125,47 @@ pub enum Body {
         /// The keys (at most [`MAX_LIST`]).
         keys: Vec<FeatureId>,
     },
+    /// Local SLAM with each vehicle in its own frame (module [`crate::frames`]): a node already
+    /// in the team frame sends its best-localised features, with their descriptors, to a
+    /// neighbour it has not paired with, which aligns its own map to them before it joins the
+    /// channel filters. Not part of the channel-filter bookkeeping.
+    Anchor {
+        /// The features (at most [`MAX_ANCHOR_FEATURES`]).
+        features: Vec<AnchorFeature>,
+    },
+}
+
+/// Most features one [`Body::Anchor`] carries.
+pub const MAX_ANCHOR_FEATURES: usize = 1024;
+
+/// One feature of a [`Body::Anchor`], in the team frame.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct AnchorFeature {
+    /// The sender's key.
+    pub key: FeatureId,
+    /// Position [m].
+    pub position: [f64; 3],
+    /// Covariance, upper triangle row by row (xx, xy, xz, yy, yz, zz) [m²].
+    pub covariance: [f64; 6],
+    /// Appearance descriptor.
+    pub appearance: Appearance,
+}
+
+impl AnchorFeature {
+    /// The 3 × 3 covariance.
+    pub fn covariance(&self) -> nalgebra::Matrix3<f64> {
+        let c = &self.covariance;
+        nalgebra::Matrix3::new(c[0], c[1], c[2], c[1], c[3], c[4], c[2], c[4], c[5])
+    }
+
+    /// Finite position, positive definite covariance.
+    pub fn is_valid(&self) -> bool {
+        self.position
+            .iter()
+            .chain(&self.covariance)
+            .all(|v| v.is_finite())
+            && self.covariance().cholesky().is_some()
+    }
 }
 
 /// Most entries of one [`Body::Merges`] or [`Body::Describe`] (more is rejected as malformed).
@@ -156,6 +197,7 @@ impl DdfMessage {
             Body::Merges { .. } => "merges",
             Body::Describe { .. } => "describe",
             Body::DescribeRequest { .. } => "describe-request",
+            Body::Anchor { .. } => "anchor",
         }
     }
 
@@ -176,6 +218,7 @@ impl DdfMessage {
                 Body::Merges { merges } => 9 + 18 * merges.len(),
                 Body::Describe { features } => 9 + (9 + 4 * 9) * features.len(),
                 Body::DescribeRequest { keys } => 9 + 9 * keys.len(),
+                Body::Anchor { features } => 9 + (9 + 9 * 8 + 4 * 9) * features.len(),
             }
     }
 }

@@ -88,7 +88,10 @@ mod node;
 mod store;
 
 pub use channel::ChannelStats;
-pub use message::{Body, DdfMessage, Header, Hello, MAX_LIST, MAX_SUBMAP_ACKS, Outgoing};
+pub use message::{
+    AnchorFeature, Body, DdfMessage, Header, Hello, MAX_ANCHOR_FEATURES, MAX_LIST, MAX_SUBMAP_ACKS,
+    Outgoing,
+};
 pub use node::{ChannelView, DdfConfig, DdfError, DdfNode, DeltaPrecision, NodeStats, RoundOutput};
 
 use crate::ci::{CiCriterion, Submap};

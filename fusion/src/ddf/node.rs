@@ -374,6 +374,35 @@ impl DdfNode {
         }
     }
 
+    /// A message for neighbour `peer` outside the channel-filter bookkeeping (an
+    /// [`Body::Anchor`]), tagged with this node's epochs like any other.
+    pub fn message_to(&mut self, peer: NodeId, body: Body) -> Result<Outgoing, DdfError> {
+        let ctx = NodeCtx {
+            id: self.id,
+            epoch: self.epoch,
+            origin: self.origin,
+            config: &self.config,
+        };
+        let channel = self
+            .channels
+            .get_mut(&peer)
+            .ok_or(DdfError::UnknownNeighbour(peer))?;
+        Ok(Outgoing {
+            to: peer,
+            message: channel.msg(&ctx, body),
+        })
+    }
+
+    /// Validates a received message as [`DdfNode::on_message`] would (sender a neighbour,
+    /// payload well-formed), without acting on it: for messages the caller handles itself.
+    pub fn validate(&self, from: NodeId, message: &DdfMessage) -> Result<(), DdfError> {
+        if !self.channels.contains_key(&from) {
+            return Err(DdfError::UnknownSender(from));
+        }
+        Channel::validate_payload(message, self.origin)
+            .map_err(|source| DdfError::InvalidMessage { from, source })
+    }
+
     /// The correspondences this node adopted.
     pub fn keys(&self) -> &KeyMap {
         &self.keys
@@ -427,6 +456,10 @@ impl DdfNode {
                 target.describe(features);
                 return None;
             }
+            // Anchors are for a vehicle not yet in the team frame, handled by its driver before
+            // the node; one that reaches the node (the vehicle is in the team frame by now) has
+            // nothing for the channel filters.
+            Body::Anchor { .. } => return None,
             Body::DescribeRequest { keys } => {
                 if let Some(c) = self.channels.get_mut(&from) {
                     c.descriptors_requested(keys);

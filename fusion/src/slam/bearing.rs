@@ -346,6 +346,19 @@ pub(super) struct BearingState {
 }
 
 impl BearingState {
+    /// Applies `f` to the mean and covariance of every range hypothesis (a frame change of the
+    /// filter: `super::rebase`).
+    pub(super) fn transform_hypotheses(
+        &mut self,
+        f: impl Fn(&Vector3<f64>, &Matrix3<f64>) -> (Vector3<f64>, Matrix3<f64>),
+    ) {
+        for t in &mut self.tracks {
+            for h in &mut t.hypotheses {
+                (h.mean, h.covariance) = f(&h.mean, &h.covariance);
+            }
+        }
+    }
+
     /// A merged feature key: tracks that carried it as their descriptor carry the new one.
     pub(super) fn rename_descriptor(&mut self, from: FeatureId, into: FeatureId) {
         for t in &mut self.tracks {

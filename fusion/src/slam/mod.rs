@@ -34,6 +34,7 @@ mod fuse;
 mod info_cache;
 pub mod layout;
 mod multiview;
+mod rebase;
 mod source;
 pub mod triangulation;
 mod update;
@@ -43,6 +44,7 @@ pub use ci_fuse::CiReport;
 pub use correspond::{CorrespondenceConfig, CorrespondenceReport};
 pub use fuse::{ForgetReport, FuseMethod, FuseReport, Refused, VANISHED_RTOL};
 pub use layout::{Layout, PoseId, Slot, SlotKind};
+pub use rebase::{GAUGE_SIGMA_TRANSLATION_M, GAUGE_SIGMA_YAW_RAD, default_gauge};
 
 use crate::consistency::chi2_quantile;
 use crate::imu::ImuNoise;

@@ -88,6 +88,10 @@ pub struct VehicleSummary {
     /// empty without `[secrets].zenoh_password` or when nothing was refused.
     #[serde(default)]
     pub access_refused: std::collections::BTreeMap<String, u64>,
+    /// Local SLAM in own frames: how the vehicle's frame was aligned with the team frame
+    /// (`crate::record::FrameAlignmentRecord`); `null` in a shared frame.
+    #[serde(default)]
+    pub frame_alignment: Option<crate::record::FrameAlignmentRecord>,
 }
 
 /// The ATE of one vehicle: RMS over the samples with truth, after each alignment.
@@ -380,6 +384,7 @@ pub fn summarize_vehicle(v: &VehicleRecord) -> VehicleSummary {
         ate,
         peak_rss_mb: v.peak_rss_bytes.map(|b| b as f64 / 1e6),
         access_refused: v.access_refused.clone(),
+        frame_alignment: v.frame_alignment.clone(),
     }
 }
 
@@ -501,6 +506,23 @@ pub fn table(summaries: &[(&str, &Summary)]) -> String {
         }
     });
     push("map RMSE [m]", &|s| format!("{:.3}", s.team.map_rmse_m));
+    if summaries
+        .iter()
+        .any(|(_, s)| s.vehicles.iter().any(|v| v.frame_alignment.is_some()))
+    {
+        // Own frames: when each vehicle joined the team frame ("root" holds it, "-" never).
+        push("frames aligned at [s]", &|s| {
+            s.vehicles
+                .iter()
+                .map(|v| match &v.frame_alignment {
+                    Some(f) if f.root => "root".to_string(),
+                    Some(f) => f.aligned_at_s.map_or("-".into(), |t| format!("{t:.0}")),
+                    None => "-".into(),
+                })
+                .collect::<Vec<_>>()
+                .join(" ")
+        });
+    }
     push("peak RSS per vehicle [MB]", &|s| {
         s.vehicles
             .iter()

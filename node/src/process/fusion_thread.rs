@@ -72,6 +72,10 @@ pub struct FusionView {
     pub node: NodeStats,
     /// The correspondences the DDF node has adopted.
     pub merges: Vec<Merge>,
+    /// Whose own frame the filter is in after the job (own frames; `None`: shared frame).
+    pub frame_owner: Option<NodeId>,
+    /// This vehicle's side of the team frame (own frames).
+    pub alignment: Option<crate::frames::AlignmentReport>,
 }
 
 impl FusionView {
@@ -82,6 +86,8 @@ impl FusionView {
             rejections: f.rejections().counts.clone(),
             node: f.ddf().map(|d| d.stats()).unwrap_or_default(),
             merges: f.merges(),
+            frame_owner: f.frame_owner(),
+            alignment: f.team_frame().map(crate::frames::TeamFrame::report),
         }
     }
 

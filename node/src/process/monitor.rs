@@ -26,8 +26,10 @@ use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result};
+use canopy_fusion::frames::Frame4;
 use canopy_fusion::ins::{VehicleCovariance, VehicleState, VehicleVector};
 use canopy_fusion::sensor::FeatureId;
+use canopy_fusion::state::VEHICLE_DIM;
 use canopy_transport::iceoryx::{IceoryxLink, remove_run_leftovers, unique_run_prefix};
 use canopy_transport::link::{Link, PeerState};
 use canopy_transport::{MessageKind, NodeId};
@@ -401,6 +403,9 @@ struct Gathered {
 
 struct Monitor {
     s: Scenario,
+    /// Local SLAM in own frames: each simulated vehicle's own frame in the launch frame (truth,
+    /// from its true start), to express the estimates reported in it there. Empty otherwise.
+    launch_from_own: BTreeMap<u32, Frame4>,
     out: PathBuf,
     prefix: String,
     exe: PathBuf,
@@ -629,7 +634,10 @@ impl Monitor {
                 counters,
                 links,
                 associations,
+                frame_owner,
             }) => {
+                let (state, covariance) =
+                    in_launch_frame(&self.launch_from_own, frame_owner, state, covariance);
                 v.last_t = v.last_t.max(t);
                 // A final report at the time of the last one (the vehicle's end of stream)
                 // replaces it: one estimate per time.
@@ -646,7 +654,23 @@ impl Monitor {
                         .push(t, v.incarnation, l);
                 }
             }
-            Report::Map(m) => {
+            Report::Map(mut m) => {
+                if let Some(frame) = m.frame_owner.and_then(|o| self.launch_from_own.get(&o)) {
+                    let r = frame.rotation();
+                    for f in &mut m.features {
+                        let mean = frame.apply(&Vector3::from(f.mean));
+                        let c = r * f.covariance() * r.transpose();
+                        f.mean = [mean.x, mean.y, mean.z];
+                        f.cov = [
+                            c[(0, 0)],
+                            c[(0, 1)],
+                            c[(0, 2)],
+                            c[(1, 1)],
+                            c[(1, 2)],
+                            c[(2, 2)],
+                        ];
+                    }
+                }
                 v.last_t = v.last_t.max(m.t);
                 v.maps.push((m.t, m.features.clone()));
                 v.last_map = Some((m.t, m.features));
@@ -1399,8 +1423,19 @@ pub fn launch(mut s: Scenario, opts: &LaunchOptions) -> Result<LaunchOutcome> {
     let names = node_names(&s);
     let duration = s.run.duration_s;
 
+    let launch_from_own = if world.own_frames() {
+        let (_, sims) = crate::world::build_parts(&s).context("building the vehicles' starts")?;
+        s.vehicles
+            .iter()
+            .zip(sims)
+            .filter_map(|(cfg, v)| Some((cfg.id, v?.launch_from_own())))
+            .collect()
+    } else {
+        BTreeMap::new()
+    };
     let mut m = Monitor {
         s: s.clone(),
+        launch_from_own,
         out: opts.out.clone(),
         prefix: prefix.clone(),
         exe,
@@ -1821,6 +1856,23 @@ fn assemble(
             }
         }
         rec.peak_rss_bytes = v.counters.values().filter_map(|c| c.peak_rss_bytes).max();
+        // Own frames: the latest incarnation's alignment, judged against the true frames.
+        if let Some(a) = v
+            .counters
+            .values()
+            .next_back()
+            .and_then(|c| c.alignment.as_ref())
+        {
+            let root = crate::frames::team_root(s).map_or(cfg.id, |r| r.0);
+            let own = |id: u32| {
+                m.launch_from_own
+                    .get(&id)
+                    .copied()
+                    .unwrap_or(Frame4::identity())
+            };
+            let truth = own(root).inverse().compose(&own(cfg.id));
+            rec.frame_alignment = Some(crate::frames::alignment_record(a, &truth));
+        }
         for c in v.counters.values() {
             for (k, n) in &c.access_refused {
                 *rec.access_refused.entry(k.clone()).or_insert(0) += n;
@@ -2047,6 +2099,30 @@ fn audit(m: &Monitor) -> KeyTruth {
         audit.set_merges(id, v.merges.clone());
     }
     audit.finish()
+}
+
+/// A reported estimate (state, row-major covariance) in the launch frame: converted from the
+/// own frame of `owner` (local SLAM in own frames), unchanged in a shared frame.
+fn in_launch_frame(
+    launch_from_own: &BTreeMap<u32, Frame4>,
+    owner: Option<NodeId>,
+    state: Vec<f64>,
+    covariance: Vec<f64>,
+) -> (Vec<f64>, Vec<f64>) {
+    let Some(frame) = owner.and_then(|o| launch_from_own.get(&o)) else {
+        return (state, covariance);
+    };
+    if state.len() != VEHICLE_DIM || covariance.len() != VEHICLE_DIM * VEHICLE_DIM {
+        // Malformed: left as it is (the report's own validation judges it).
+        return (state, covariance);
+    }
+    let x = VehicleState::from_vector(&VehicleVector::from_column_slice(&state));
+    let p = VehicleCovariance::from_row_slice(&covariance);
+    let (x, p) = crate::metrics::state_in(frame, &x, &p);
+    (
+        x.to_vector().as_slice().to_vec(),
+        p.transpose().as_slice().to_vec(),
+    )
 }
 
 fn truth_sample(world: &World, r: &TruthReport) -> TruthSample {

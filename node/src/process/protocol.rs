@@ -245,7 +245,7 @@ pub struct LinkReport {
 }
 
 /// Counters of a vehicle process.
-#[derive(Clone, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct VehicleCounters {
     /// IMU samples applied.
     pub imu_samples: u64,
@@ -286,6 +286,9 @@ pub struct VehicleCounters {
     /// non-neighbour, or a session using a key of a link it is not part of.
     #[serde(default)]
     pub access_refused: std::collections::BTreeMap<String, u64>,
+    /// Local SLAM in own frames: this vehicle's side of the team frame.
+    #[serde(default)]
+    pub alignment: Option<Box<crate::frames::AlignmentReport>>,
 }
 
 /// What the estimator did with one observation (the monitor audits it against the truth).
@@ -349,6 +352,10 @@ pub struct EstimateReport {
     pub links: Vec<LinkReport>,
     /// Frames processed since the previous report.
     pub associations: Vec<FrameAssociations>,
+    /// Whose own frame the estimate is in (local SLAM in own frames; `None`: the team's
+    /// shared frame).
+    #[serde(default)]
+    pub frame_owner: Option<NodeId>,
 }
 
 /// One feature of a map report (estimator frame).
@@ -383,6 +390,9 @@ pub struct MapReport {
     /// key), for the monitor's truth metrics.
     #[serde(default)]
     pub merges: Vec<canopy_fusion::keys::Merge>,
+    /// Whose own frame the map is in (`None`: the team's shared frame).
+    #[serde(default)]
+    pub frame_owner: Option<NodeId>,
 }
 
 /// Truth of one vehicle at a record time (world → monitor only).
@@ -647,6 +657,7 @@ mod tests {
                 cov: [1.0, 0.1, 0.0, 2.0, 0.0, 3.0],
             }],
             merges: vec![canopy_fusion::keys::Merge { from: 9, into: 4 }],
+            frame_owner: Some(3),
         });
         assert_eq!(round_trip(&report).unwrap(), report);
         assert_eq!(round_trip(&Control::Shutdown).unwrap(), Control::Shutdown);
@@ -673,6 +684,7 @@ mod tests {
                 cov: [1.0, 0.0, 0.0, 1.0, 0.0, 1.0],
             }],
             merges: Vec::new(),
+            frame_owner: None,
         });
         assert!(matches!(
             round_trip(&nan),

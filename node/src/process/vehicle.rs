@@ -322,6 +322,8 @@ impl Vehicle<'_> {
                 if self.estimator.give_back(*filter).is_err() {
                     self.give_back_failed += 1;
                 }
+                // The round may have moved the filter into the team frame (own frames).
+                self.estimator.set_frame_owner(self.view.frame_owner);
                 self.stall.add(start, Work::Lend);
                 let start = StallMeter::mark();
                 self.links.send(now, out);
@@ -374,6 +376,7 @@ impl Vehicle<'_> {
             merges_refused: self.view.node.merges_refused,
             peak_rss_bytes: super::peak_rss_bytes(),
             access_refused: super::access_refusals(),
+            alignment: self.view.alignment.clone().map(Box::new),
         }
     }
 
@@ -397,6 +400,7 @@ impl Vehicle<'_> {
             counters: self.counters(),
             links,
             associations: std::mem::take(&mut self.associations),
+            frame_owner: self.estimator.frame_owner().map(|o| o.0),
         });
         self.report(&r);
         self.last_report = self.t;
@@ -426,6 +430,7 @@ impl Vehicle<'_> {
             last,
             features,
             merges: self.view.merges.clone(),
+            frame_owner: self.estimator.frame_owner().map(|o| o.0),
         });
         self.report(&r);
     }

@@ -44,7 +44,9 @@ pub use sensor::{
 };
 pub use terrain::Terrain;
 pub use trajectory::{FlightState, Kinematics, Trajectory, coordinated_attitude};
-pub use vehicle::{InitialEstimate, StepOutput, TruthSample, VehicleSim};
+pub use vehicle::{
+    FrameEstimate, InitialEstimate, StepOutput, TruthSample, VehicleSim, launch_from_own,
+};
 
 use std::sync::Arc;
 
@@ -120,6 +122,8 @@ pub struct World {
     features: Vec<Feature>,
     /// The features' descriptors (`identity = "appearance"` only).
     appearance: Option<appearance::AppearanceTable>,
+    /// `[world] frames = "own"`: each vehicle's estimate starts in its own frame.
+    own_frames: bool,
 }
 
 impl World {
@@ -166,12 +170,18 @@ impl World {
             terrain,
             features,
             appearance,
+            own_frames: cfg.frames == crate::scenario::Frames::Own,
         })
     }
 
     /// The features' appearance descriptors (`None` with perfect identities).
     pub fn appearance(&self) -> Option<&appearance::AppearanceTable> {
         self.appearance.as_ref()
+    }
+
+    /// Whether each vehicle's estimate starts in its own frame (`[world] frames = "own"`).
+    pub fn own_frames(&self) -> bool {
+        self.own_frames
     }
 
     /// The vehicles' navigation frame.

@@ -2,6 +2,7 @@
 
 use std::sync::Arc;
 
+use canopy_fusion::frames::Frame4;
 use canopy_fusion::geodesy::{ecef_from_ned, ecef_to_geodetic};
 use canopy_fusion::rotation::wrap_angle;
 use canopy_fusion::sensor::{ImuSample, SensorModel, SensorMount};
@@ -104,6 +105,69 @@ pub struct InitialEstimate {
     pub covariance: SMatrix<f64, VEHICLE_DIM, VEHICLE_DIM>,
 }
 
+/// The own frame of a vehicle whose start is `start` (local frame): x_launch = Rz(ψ₀)·x_own + p₀.
+pub fn launch_from_own(start: &TruthSample) -> Frame4 {
+    Frame4 {
+        yaw: start.attitude.z,
+        translation: start.position,
+    }
+}
+
+/// An own-frame start: the frame *is* the vehicle's start, so its position (0) and yaw (0) are
+/// known exactly there (σ 1 mm and 1e-3 mrad, kept positive definite); velocity, roll, pitch
+/// and biases keep their drawn errors and σ.
+fn own_start(e: &InitialEstimate) -> InitialEstimate {
+    let mut e = e.clone();
+    e.position = Vector3::zeros();
+    e.attitude.z = 0.0;
+    for k in [POS, POS + 1, POS + 2, ATT + 2] {
+        for j in 0..VEHICLE_DIM {
+            e.covariance[(k, j)] = 0.0;
+            e.covariance[(j, k)] = 0.0;
+        }
+    }
+    for k in [POS, POS + 1, POS + 2] {
+        e.covariance[(k, k)] = 1e-6;
+    }
+    e.covariance[(ATT + 2, ATT + 2)] = 1e-12;
+    e
+}
+
+/// Re-expressing an initial estimate in another frame.
+pub trait FrameEstimate {
+    /// The estimate `e` (in this transform's target frame) in its source frame.
+    fn inverse_estimate(&self, e: &InitialEstimate) -> InitialEstimate;
+    /// The estimate `e` (in this transform's source frame) in its target frame.
+    fn apply_estimate(&self, e: &InitialEstimate) -> InitialEstimate;
+}
+
+impl FrameEstimate for Frame4 {
+    fn inverse_estimate(&self, e: &InitialEstimate) -> InitialEstimate {
+        self.inverse().apply_estimate(e)
+    }
+
+    fn apply_estimate(&self, e: &InitialEstimate) -> InitialEstimate {
+        let inv = *self;
+        let r = inv.rotation();
+        // Positions and velocities rotate, the yaw shifts, roll, pitch and biases (body axes)
+        // stay: J = blockdiag(R, R, I, I, I) (`canopy_fusion::slam::SlamFilter::rebase`).
+        let mut j = SMatrix::<f64, VEHICLE_DIM, VEHICLE_DIM>::identity();
+        j.fixed_view_mut::<3, 3>(POS, POS).copy_from(&r);
+        j.fixed_view_mut::<3, 3>(VEL, VEL).copy_from(&r);
+        let mut attitude = e.attitude;
+        attitude.z = wrap_angle(attitude.z + inv.yaw);
+        InitialEstimate {
+            time: e.time,
+            position: inv.apply(&e.position),
+            velocity: r * e.velocity,
+            attitude,
+            accel_bias: e.accel_bias,
+            gyro_bias: e.gyro_bias,
+            covariance: j * e.covariance * j.transpose(),
+        }
+    }
+}
+
 /// One simulated vehicle.
 #[derive(Clone, Debug)]
 pub struct VehicleSim {
@@ -176,7 +240,11 @@ impl VehicleSim {
         );
         let truth = truth_at(&world, &trajectory, &imu, 0.0);
         let motion = world.body_motion(0.0, &trajectory.state(0.0));
-        let initial_estimate = draw_initial_estimate(cfg, &world, &truth, seed);
+        let mut initial_estimate = draw_initial_estimate(cfg, &world, &truth, seed);
+        if world.own_frames() {
+            initial_estimate =
+                own_start(&launch_from_own(&truth).inverse_estimate(&initial_estimate));
+        }
         let jitter = cfg.imu.timestamp_jitter_s;
         let mut jitter_rng = rng_stream(seed, STREAM_IMU_JITTER);
         let next_time = sample_time(1, dt, jitter, &mut jitter_rng);
@@ -213,7 +281,23 @@ impl VehicleSim {
     /// external fix. `draw` selects an independent offset (e.g. the restart count).
     pub fn restart_estimate(&self, draw: u64) -> InitialEstimate {
         let seed = super::splitmix64(self.seed ^ draw.wrapping_mul(0x9e37_79b9_7f4a_7c15));
-        draw_initial_estimate(&self.cfg, &self.world, &self.truth, seed)
+        let e = draw_initial_estimate(&self.cfg, &self.world, &self.truth, seed);
+        if self.world.own_frames() {
+            launch_from_own(&self.initial_truth).inverse_estimate(&e)
+        } else {
+            e
+        }
+    }
+
+    /// The vehicle's own frame in the launch frame (`[world] frames = "own"`): origin at its
+    /// true start position, north along its true start heading. Truth: for the monitor's
+    /// metrics only.
+    pub fn launch_from_own(&self) -> Frame4 {
+        if self.world.own_frames() {
+            launch_from_own(&self.initial_truth)
+        } else {
+            Frame4::identity()
+        }
     }
 
     /// Vehicle id.
