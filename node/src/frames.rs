@@ -39,7 +39,7 @@
 
 use std::collections::BTreeMap;
 
-use canopy_fusion::ddf::{AnchorFeature, Body, MAX_ANCHOR_FEATURES, MapSource};
+use canopy_fusion::ddf::{AnchorFeature, Body, MAX_ANCHOR_FEATURES, MapSource, upper_triangle};
 use canopy_fusion::frames::{AlignConfig, AlignError, Alignment, Candidate, Frame4, align};
 use canopy_fusion::keys::Merge;
 use canopy_fusion::rotation::wrap_angle;
@@ -250,14 +250,7 @@ impl TeamFrame {
             .map(|(key, appearance, p, c)| AnchorFeature {
                 key,
                 position: [p.x, p.y, p.z],
-                covariance: [
-                    c[(0, 0)],
-                    c[(0, 1)],
-                    c[(0, 2)],
-                    c[(1, 1)],
-                    c[(1, 2)],
-                    c[(2, 2)],
-                ],
+                covariance: upper_triangle(&c),
                 appearance,
             })
             .filter(AnchorFeature::is_valid)

@@ -129,6 +129,30 @@ pub struct FrameAlignmentRecord {
     pub attempts_failed: std::collections::BTreeMap<String, u64>,
 }
 
+impl FrameAlignmentRecord {
+    /// A vehicle that is not the root aligned, and its alignment's errors against the true
+    /// frame are within `k` σ of its own covariance (yaw, and horizontal translation against
+    /// the horizontal σ): its time if so, what is wrong otherwise.
+    pub fn consistent_within(&self, k: f64) -> Result<f64, String> {
+        let (Some(t), Some(sy), Some(st), Some(ey), Some(et)) = (
+            self.aligned_at_s,
+            self.sigma_yaw_deg,
+            self.sigma_translation_m,
+            self.yaw_error_deg,
+            self.translation_error_m,
+        ) else {
+            return Err(format!("never aligned ({:?})", self.attempts_failed));
+        };
+        if ey.abs() > k * sy {
+            return Err(format!("yaw error {ey}° against σ {sy}°"));
+        }
+        if et > k * st {
+            return Err(format!("translation error {et} m against σ {st} m"));
+        }
+        Ok(t)
+    }
+}
+
 /// One statistics sample of a link (cumulative counters at time `t`).
 #[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
 pub struct LinkSample {

@@ -271,6 +271,23 @@ fn correspondences_are_found_after_a_partition_and_the_audit_sees_them_missing()
     );
 }
 
+/// No vehicle's estimate ever jumps: every position error below 10 m (vehicle σ < 1 m in these
+/// runs; the move into the team frame before its fix jumped by 172 m).
+fn assert_no_jump(name: &str, out: &SimOutcome) {
+    for v in &out.record.vehicles {
+        let worst = v
+            .samples
+            .iter()
+            .map(|s| s.position_error())
+            .fold(0.0, f64::max);
+        assert!(
+            worst < 10.0,
+            "{name} {}: position error {worst:.1} m",
+            v.name
+        );
+    }
+}
+
 /// The true own frames of `s`'s vehicles in the launch frame (their true starts).
 fn true_starts(s: &Scenario) -> Vec<canopy_fusion::frames::Frame4> {
     let (_, sims) = canopy_node::world::build(s).expect("world builds");
@@ -355,26 +372,10 @@ fn own_frames_align_and_meet_the_perfect_identity_bars() {
                 );
                 continue;
             }
-            let (Some(t), Some(sy), Some(st), Some(ey), Some(et)) = (
-                f.aligned_at_s,
-                f.sigma_yaw_deg,
-                f.sigma_translation_m,
-                f.yaw_error_deg,
-                f.translation_error_m,
-            ) else {
-                panic!("{name} {}: never aligned ({:?})", v.name, f.attempts_failed);
-            };
+            let t = f
+                .consistent_within(3.0)
+                .unwrap_or_else(|e| panic!("{name} {}: {e}", v.name));
             assert!(t < OWN_DURATION, "{name} {}", v.name);
-            assert!(
-                ey.abs() <= 3.0 * sy,
-                "{name} {}: yaw error {ey}° σ {sy}°",
-                v.name
-            );
-            assert!(
-                et <= 3.0 * st,
-                "{name} {}: translation error {et} m σ {st} m",
-                v.name
-            );
         }
         assert!(
             sm.team.pose_anees <= 1.5,
@@ -386,18 +387,7 @@ fn own_frames_align_and_meet_the_perfect_identity_bars() {
             "{name}: map ANEES {}",
             sm.team.map_anees
         );
-        for v in &out.record.vehicles {
-            let worst = v
-                .samples
-                .iter()
-                .map(|s| s.position_error())
-                .fold(0.0, f64::max);
-            assert!(
-                worst < 10.0,
-                "{name} {}: position error {worst:.1} m",
-                v.name
-            );
-        }
+        assert_no_jump(name, out);
     }
     // A transient of a fresh feature is allowed (`sustained_ratio`), not a doubled one.
     for (name, out) in [("perfect", &per_out), ("appearance", &app_out)] {
@@ -456,12 +446,5 @@ fn own_frames_realign_after_a_crash() {
         sm.team.pose_anees
     );
     assert!(sm.team.map_anees <= 1.5, "map ANEES {}", sm.team.map_anees);
-    for v in &out.record.vehicles {
-        let worst = v
-            .samples
-            .iter()
-            .map(|s| s.position_error())
-            .fold(0.0, f64::max);
-        assert!(worst < 10.0, "{}: position error {worst:.1} m", v.name);
-    }
+    assert_no_jump("local-4 crash", &out);
 }

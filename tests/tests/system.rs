@@ -315,20 +315,9 @@ fn own_frames_align_as_processes() {
             assert_eq!(v.name, "uav1");
             continue;
         }
-        let (Some(sy), Some(st), Some(ey), Some(et)) = (
-            f.sigma_yaw_deg,
-            f.sigma_translation_m,
-            f.yaw_error_deg,
-            f.translation_error_m,
-        ) else {
-            panic!("{}: never aligned ({:?})", v.name, f.attempts_failed);
-        };
-        assert!(ey.abs() <= 3.0 * sy, "{}: yaw error {ey}° σ {sy}°", v.name);
-        assert!(
-            et <= 3.0 * st,
-            "{}: translation error {et} m σ {st} m",
-            v.name
-        );
+        if let Err(e) = f.consistent_within(3.0) {
+            panic!("{}: {e}", v.name);
+        }
         assert_eq!(v.association.wrong_merges, 0, "{}", v.name);
     }
     let team = &r.summary.team;

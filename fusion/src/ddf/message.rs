@@ -151,11 +151,28 @@ pub struct AnchorFeature {
     pub appearance: Appearance,
 }
 
+/// A symmetric 3 × 3 covariance as its upper triangle row by row (xx, xy, xz, yy, yz, zz), the
+/// form of [`AnchorFeature::covariance`] and of the vehicles' map reports.
+pub fn upper_triangle(c: &nalgebra::Matrix3<f64>) -> [f64; 6] {
+    [
+        c[(0, 0)],
+        c[(0, 1)],
+        c[(0, 2)],
+        c[(1, 1)],
+        c[(1, 2)],
+        c[(2, 2)],
+    ]
+}
+
+/// The symmetric 3 × 3 matrix of an [`upper_triangle`].
+pub fn from_upper_triangle(c: &[f64; 6]) -> nalgebra::Matrix3<f64> {
+    nalgebra::Matrix3::new(c[0], c[1], c[2], c[1], c[3], c[4], c[2], c[4], c[5])
+}
+
 impl AnchorFeature {
     /// The 3 × 3 covariance.
     pub fn covariance(&self) -> nalgebra::Matrix3<f64> {
-        let c = &self.covariance;
-        nalgebra::Matrix3::new(c[0], c[1], c[2], c[1], c[3], c[4], c[2], c[4], c[5])
+        from_upper_triangle(&self.covariance)
     }
 
     /// Finite position, positive definite covariance.

@@ -90,7 +90,7 @@ mod store;
 pub use channel::ChannelStats;
 pub use message::{
     AnchorFeature, Body, DdfMessage, Header, Hello, MAX_ANCHOR_FEATURES, MAX_LIST, MAX_SUBMAP_ACKS,
-    Outgoing,
+    Outgoing, from_upper_triangle, upper_triangle,
 };
 pub use node::{ChannelView, DdfConfig, DdfError, DdfNode, DeltaPrecision, NodeStats, RoundOutput};
 

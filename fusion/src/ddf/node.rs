@@ -374,9 +374,8 @@ impl DdfNode {
         }
     }
 
-    /// A message for neighbour `peer` outside the channel-filter bookkeeping (an
-    /// [`Body::Anchor`]), tagged with this node's epochs like any other.
-    pub fn message_to(&mut self, peer: NodeId, body: Body) -> Result<Outgoing, DdfError> {
+    /// The node's context and its channel to `peer`.
+    fn peer_channel(&mut self, peer: NodeId) -> Result<(NodeCtx<'_>, &mut Channel), DdfError> {
         let ctx = NodeCtx {
             id: self.id,
             epoch: self.epoch,
@@ -387,6 +386,13 @@ impl DdfNode {
             .channels
             .get_mut(&peer)
             .ok_or(DdfError::UnknownNeighbour(peer))?;
+        Ok((ctx, channel))
+    }
+
+    /// A message for neighbour `peer` outside the channel-filter bookkeeping (an
+    /// [`Body::Anchor`]), tagged with this node's epochs like any other.
+    pub fn message_to(&mut self, peer: NodeId, body: Body) -> Result<Outgoing, DdfError> {
+        let (ctx, channel) = self.peer_channel(peer)?;
         Ok(Outgoing {
             to: peer,
             message: channel.msg(&ctx, body),
@@ -533,16 +539,7 @@ impl DdfNode {
     /// gap without waiting for the next round.
     pub fn on_link_up(&mut self, now: f64, peer: NodeId) -> Result<Vec<Outgoing>, DdfError> {
         Self::check_time(now)?;
-        let ctx = NodeCtx {
-            id: self.id,
-            epoch: self.epoch,
-            origin: self.origin,
-            config: &self.config,
-        };
-        let channel = self
-            .channels
-            .get_mut(&peer)
-            .ok_or(DdfError::UnknownNeighbour(peer))?;
+        let (ctx, channel) = self.peer_channel(peer)?;
         Ok(channel
             .on_link_up(now, &ctx)
             .into_iter()

@@ -661,14 +661,7 @@ impl Monitor {
                         let mean = frame.apply(&Vector3::from(f.mean));
                         let c = r * f.covariance() * r.transpose();
                         f.mean = [mean.x, mean.y, mean.z];
-                        f.cov = [
-                            c[(0, 0)],
-                            c[(0, 1)],
-                            c[(0, 2)],
-                            c[(1, 1)],
-                            c[(1, 2)],
-                            c[(2, 2)],
-                        ];
+                        f.cov = canopy_fusion::ddf::upper_triangle(&c);
                     }
                 }
                 v.last_t = v.last_t.max(m.t);

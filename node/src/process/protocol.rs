@@ -372,8 +372,7 @@ pub struct FeatureReport {
 impl FeatureReport {
     /// The full 3×3 covariance.
     pub fn covariance(&self) -> nalgebra::Matrix3<f64> {
-        let c = &self.cov;
-        nalgebra::Matrix3::new(c[0], c[1], c[2], c[1], c[3], c[4], c[2], c[4], c[5])
+        canopy_fusion::ddf::from_upper_triangle(&self.cov)
     }
 }
 

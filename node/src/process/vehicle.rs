@@ -415,14 +415,7 @@ impl Vehicle<'_> {
             .map(|(id, m, c)| FeatureReport {
                 id: *id,
                 mean: [m.x, m.y, m.z],
-                cov: [
-                    c[(0, 0)],
-                    c[(0, 1)],
-                    c[(0, 2)],
-                    c[(1, 1)],
-                    c[(1, 2)],
-                    c[(2, 2)],
-                ],
+                cov: canopy_fusion::ddf::upper_triangle(c),
             })
             .collect();
         let r = Report::Map(MapReport {
