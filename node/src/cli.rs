@@ -429,6 +429,15 @@ fn cmd_check(path: &Path) -> Result<()> {
             s.world.area.size_east_m,
             s.world.appearance.identity
         );
+        if let (crate::scenario::Frames::Own, Some(root)) =
+            (s.world.frames, crate::frames::team_root(&s))
+        {
+            println!(
+                "  frames: each vehicle starts in its own frame; the team frame is `{}`'s, the \
+                 others join it by aligning their maps with a neighbour's",
+                names.get(&root.0).map_or("?", String::as_str)
+            );
+        }
     } else {
         println!(
             "  world: {} frame, origin {}°, {}°, {} m (every vehicle replayed: nothing simulated)",

@@ -154,10 +154,15 @@ fn a_non_neighbour_is_refused_and_counted() {
         1,
         "{r:?}"
     );
-    // uav3's own traffic was never refused.
+    // The team's own traffic was never refused: uav3's puts on link/3/2 are refused exactly the
+    // 10 forged times (above) and both of its messages arrived, and uav2's publications to uav3
+    // on link/2/3 never met an egress refusal. (An *ingress* refusal on link/2/3 can only be
+    // the intruder's: under load zenoh sometimes checks every action of an intruder's declared
+    // interest in that key at once — Put, Delete, Query, Reply, Liveliness, … one each — seen
+    // once in a loaded full-suite run.)
     assert!(
         !r.keys()
-            .any(|k| k.ends_with("link/2/3") && k.starts_with("Put")),
+            .any(|k| k.ends_with("link/2/3") && k.contains("(egress)") && k.starts_with("Put")),
         "{r:?}"
     );
     drop((own, forged, as_8, as_3));
