@@ -884,19 +884,7 @@ impl MapInformation {
         if !keys.touches(&self.ids) {
             return self.clone();
         }
-        let mut ids: Vec<FeatureId> = Vec::new();
-        let mut index: HashMap<FeatureId, usize> = HashMap::new();
-        let target: Vec<usize> = self
-            .ids
-            .iter()
-            .map(|&k| {
-                let c = keys.canonical(k);
-                *index.entry(c).or_insert_with(|| {
-                    ids.push(c);
-                    ids.len() - 1
-                })
-            })
-            .collect();
+        let (ids, _, target) = rekey_targets(&self.ids, keys);
         let n = FEATURE_DIM * ids.len();
         let mut matrix = Mat::zeros(n, n);
         let mut vector = Col::zeros(n);
@@ -1334,6 +1322,27 @@ impl<'de> serde::Deserialize<'de> for MapInformation {
         info.validate().map_err(D::Error::custom)?;
         Ok(info)
     }
+}
+
+/// The key space of `keys` for a list of feature ids: the canonical ids in order of first
+/// occurrence, their positions, and each listed id's position among them.
+pub(crate) fn rekey_targets(
+    ids: &[FeatureId],
+    keys: &crate::keys::KeyMap,
+) -> (Vec<FeatureId>, HashMap<FeatureId, usize>, Vec<usize>) {
+    let mut out: Vec<FeatureId> = Vec::new();
+    let mut index: HashMap<FeatureId, usize> = HashMap::new();
+    let target = ids
+        .iter()
+        .map(|&k| {
+            let c = keys.canonical(k);
+            *index.entry(c).or_insert_with(|| {
+                out.push(c);
+                out.len() - 1
+            })
+        })
+        .collect();
+    (out, index, target)
 }
 
 #[cfg(test)]
