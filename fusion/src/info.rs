@@ -434,6 +434,25 @@ pub(crate) fn spd_inverse_of_sum(
     spd_inverse_in(l)
 }
 
+/// [`spd_inverse_of_sum`] with the sum formed in `a`'s own buffer (`a` is consumed, also on
+/// an error): bit for bit the same (the same sums a + b, the same factorisation), one k × k
+/// buffer fewer.
+pub(crate) fn spd_inverse_of_sum_into(
+    mut a: Mat<f64>,
+    b: faer::MatRef<'_, f64>,
+) -> Result<Mat<f64>, LltError> {
+    let n = a.nrows();
+    assert!(b.nrows() == n && a.ncols() == n && b.ncols() == n);
+    for j in 0..n {
+        let cb = b.col(j);
+        let dst = &mut a.col_as_slice_mut(j)[j..];
+        for (k, d) in dst.iter_mut().enumerate() {
+            *d += cb[j + k];
+        }
+    }
+    spd_inverse_in(a)
+}
+
 /// [`spd_inverse`] from `l` holding the matrix's lower triangle (its upper one ignored).
 fn spd_inverse_in(mut l: Mat<f64>) -> Result<Mat<f64>, LltError> {
     use faer::dyn_stack::{MemBuffer, MemStack};
@@ -1438,8 +1457,9 @@ mod tests {
         assert!(spd_inverse(bad.as_ref()).is_err());
     }
 
-    /// The inverse of a sum formed in the factor's buffer is the inverse of the summed matrix,
-    /// bit for bit (the same additions), and a sum that is not positive definite is refused.
+    /// The inverse of a sum formed in the factor's buffer (a fresh one, or the first summand's)
+    /// is the inverse of the summed matrix, bit for bit (the same additions), and a sum that is
+    /// not positive definite is refused.
     #[test]
     fn spd_inverse_of_sum_equals_the_inverse_of_the_sum() {
         let mut rng = ChaCha8Rng::seed_from_u64(16);
@@ -1448,10 +1468,26 @@ mod tests {
             let sum = &a + &b;
             let want = spd_inverse(sum.as_ref()).unwrap();
             assert_eq!(spd_inverse_of_sum(a.as_ref(), b.as_ref()).unwrap(), want);
+            let bits = |m: &Mat<f64>| -> Vec<u64> {
+                (0..m.ncols())
+                    .flat_map(|j| (0..m.nrows()).map(move |i| (i, j)))
+                    .map(|(i, j)| m[(i, j)].to_bits())
+                    .collect()
+            };
+            // In a's buffer, whatever its upper triangle holds.
+            let mut a_junk = a.clone();
+            for j in 0..a_junk.ncols() {
+                for i in 0..j {
+                    a_junk[(i, j)] = f64::NAN;
+                }
+            }
+            let into = spd_inverse_of_sum_into(a_junk, b.as_ref()).unwrap();
+            assert_eq!(bits(&into), bits(&want));
         }
         let a = random_spd(&mut rng, 3);
         let minus = Mat::from_fn(9, 9, |i, j| -2.0 * a[(i, j)]);
         assert!(spd_inverse_of_sum(a.as_ref(), minus.as_ref()).is_err());
+        assert!(spd_inverse_of_sum_into(a.clone(), minus.as_ref()).is_err());
     }
 
     /// One pass for finiteness and the largest entry agrees with the separate checks.
