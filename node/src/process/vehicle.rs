@@ -272,6 +272,19 @@ impl Vehicle<'_> {
             }
             return;
         }
+        if self.estimator.is_lent() {
+            // The fusion thread is in a round and takes nothing else until it is done: what
+            // arrived meanwhile stays in the links' own buffers (an iceoryx2 sample in shared
+            // memory, a zenoh queue) instead of being decoded into dense map information to
+            // wait in the job queue beside the round's own k × k matrices (tree-8, three
+            // neighbours: ~65 MB of decoded deltas at the round's memory peak).
+            while let Some(done) = self.fusion.try_done() {
+                self.on_done(done);
+            }
+            if self.estimator.is_lent() {
+                return;
+            }
+        }
         let now = self.t;
         let polled = self.links.poll();
         let start = StallMeter::mark();
