@@ -532,7 +532,8 @@ impl FusionLinks {
     }
 
     /// [`FusionLinks::poll`] without decoding: the received messages as they came (their
-    /// bytes, out of the links' buffers), for [`decode_held`] later.
+    /// bytes, out of the links' buffers), to be decoded with [`decode_ddf`] where they are
+    /// used.
     pub fn poll_raw(&mut self) -> Vec<(NodeId, Vec<LinkEvent>, Vec<Received>)> {
         let mut out = Vec::new();
         for (&peer, link) in &mut self.links {
@@ -550,20 +551,7 @@ impl FusionLinks {
         }
         out
     }
-}
 
-/// The DDF messages of messages received by [`FusionLinks::poll_raw`], in order (other kinds
-/// skipped; bodies that fail to decode are counted by their link, `rejected.body`).
-pub fn decode_held(msgs: Vec<Received>) -> Vec<DdfMessage> {
-    msgs.iter()
-        .filter_map(|m| match decode_ddf(m) {
-            Some(Ok(msg)) => Some(msg),
-            _ => None,
-        })
-        .collect()
-}
-
-impl FusionLinks {
     /// [`FusionLinks::poll`] with each message's simulation time (its envelope's: the sender's
     /// time when it sent it) and each link's latest time marker
     /// ([`MessageKind::TIME_MARKER`], simulation-time delivery).

@@ -87,9 +87,6 @@ struct Vehicle<'s> {
     round_due: Option<f64>,
     /// The fusion thread ended while it held the filter (a bug): the process fails.
     fusion_lost: bool,
-    /// What the links delivered while the filter was lent to a round, not decoded yet
-    /// (`service_links`), per poll and peer in arrival order.
-    held: Vec<(WireId, Vec<LinkEvent>, Vec<canopy_transport::Received>)>,
     /// `[fusion] delivery = "simulation_time"`: what the links deliver waits for its round.
     delivery: Option<SimTimeDelivery>,
     /// SIGTERM / Ctrl-C.
@@ -275,28 +272,15 @@ impl Vehicle<'_> {
             }
             return;
         }
-        while let Some(done) = self.fusion.try_done() {
-            self.on_done(done);
-        }
-        let raw = self.links.poll_raw();
-        if self.estimator.is_lent() {
-            // The fusion thread is in a round and takes nothing else until it is done: what
-            // arrives meanwhile is held as received (its wire bytes, about half the dense form)
-            // instead of decoded into dense map information to wait in the job queue beside
-            // the round's own k × k matrices (tree-8, three neighbours: ~65 MB of decoded
-            // deltas at the round's memory peak). It is still taken off the links at once: a
-            // sample left in an iceoryx2 subscriber's buffer keeps the sender writing its
-            // next ones into other slots of its pool, each of which then stays resident.
-            self.held.extend(raw);
-            return;
-        }
-        let mut held = std::mem::take(&mut self.held);
-        held.extend(raw);
         let now = self.t;
-        let polled: Vec<_> = held
-            .into_iter()
-            .map(|(peer, events, msgs)| (peer, events, super::decode_held(msgs)))
-            .collect();
+        // Messages go to the fusion thread as received (their wire bytes, about half the dense
+        // form) and are decoded there one at a time when it takes them: decoded here, the
+        // dense deltas that arrive during a round waited in the job queue beside the round's
+        // own k × k matrices (tree-8, three neighbours: 65–130 MB at the memory peak). They
+        // are still taken off the links at once: a sample left in an iceoryx2 subscriber's
+        // buffer makes the sender write its next ones into further slots of its pool, each of
+        // which then stays resident.
+        let polled = self.links.poll_raw();
         let start = StallMeter::mark();
         let busy = !polled.is_empty();
         for (peer, events, msgs) in polled {
@@ -310,10 +294,10 @@ impl Vehicle<'_> {
                 });
             }
             for msg in msgs {
-                self.fusion.submit(Job::Message {
+                self.fusion.submit(Job::Received {
                     now,
                     from: NodeId(peer),
-                    msg: Box::new(msg),
+                    msg,
                 });
             }
         }
@@ -748,7 +732,6 @@ pub fn run(c: &RoleCommon, id: WireId, incarnation: u32) -> Result<()> {
         give_back_failed: 0,
         round_due: None,
         fusion_lost: false,
-        held: Vec::new(),
         delivery,
         stop: stop.clone(),
         shutdown: false,
