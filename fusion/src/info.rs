@@ -434,6 +434,25 @@ pub(crate) fn spd_inverse_of_sum(
     spd_inverse_in(l)
 }
 
+/// [`spd_inverse_of_sum`] with the sum formed in `a`'s own buffer (`a` is consumed, also on
+/// an error): bit for bit the same (the same sums a + b, the same factorisation), one k × k
+/// buffer fewer.
+pub(crate) fn spd_inverse_of_sum_into(
+    mut a: Mat<f64>,
+    b: faer::MatRef<'_, f64>,
+) -> Result<Mat<f64>, LltError> {
+    let n = a.nrows();
+    assert!(b.nrows() == n && a.ncols() == n && b.ncols() == n);
+    for j in 0..n {
+        let cb = b.col(j);
+        let dst = &mut a.col_as_slice_mut(j)[j..];
+        for (k, d) in dst.iter_mut().enumerate() {
+            *d += cb[j + k];
+        }
+    }
+    spd_inverse_in(a)
+}
+
 /// [`spd_inverse`] from `l` holding the matrix's lower triangle (its upper one ignored).
 fn spd_inverse_in(mut l: Mat<f64>) -> Result<Mat<f64>, LltError> {
     use faer::dyn_stack::{MemBuffer, MemStack};
@@ -884,19 +903,7 @@ impl MapInformation {
         if !keys.touches(&self.ids) {
             return self.clone();
         }
-        let mut ids: Vec<FeatureId> = Vec::new();
-        let mut index: HashMap<FeatureId, usize> = HashMap::new();
-        let target: Vec<usize> = self
-            .ids
-            .iter()
-            .map(|&k| {
-                let c = keys.canonical(k);
-                *index.entry(c).or_insert_with(|| {
-                    ids.push(c);
-                    ids.len() - 1
-                })
-            })
-            .collect();
+        let (ids, _, target) = rekey_targets(&self.ids, keys);
         let n = FEATURE_DIM * ids.len();
         let mut matrix = Mat::zeros(n, n);
         let mut vector = Col::zeros(n);
@@ -1336,6 +1343,27 @@ impl<'de> serde::Deserialize<'de> for MapInformation {
     }
 }
 
+/// The key space of `keys` for a list of feature ids: the canonical ids in order of first
+/// occurrence, their positions, and each listed id's position among them.
+pub(crate) fn rekey_targets(
+    ids: &[FeatureId],
+    keys: &crate::keys::KeyMap,
+) -> (Vec<FeatureId>, HashMap<FeatureId, usize>, Vec<usize>) {
+    let mut out: Vec<FeatureId> = Vec::new();
+    let mut index: HashMap<FeatureId, usize> = HashMap::new();
+    let target = ids
+        .iter()
+        .map(|&k| {
+            let c = keys.canonical(k);
+            *index.entry(c).or_insert_with(|| {
+                out.push(c);
+                out.len() - 1
+            })
+        })
+        .collect();
+    (out, index, target)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -1429,8 +1457,9 @@ mod tests {
         assert!(spd_inverse(bad.as_ref()).is_err());
     }
 
-    /// The inverse of a sum formed in the factor's buffer is the inverse of the summed matrix,
-    /// bit for bit (the same additions), and a sum that is not positive definite is refused.
+    /// The inverse of a sum formed in the factor's buffer (a fresh one, or the first summand's)
+    /// is the inverse of the summed matrix, bit for bit (the same additions), and a sum that is
+    /// not positive definite is refused.
     #[test]
     fn spd_inverse_of_sum_equals_the_inverse_of_the_sum() {
         let mut rng = ChaCha8Rng::seed_from_u64(16);
@@ -1439,10 +1468,26 @@ mod tests {
             let sum = &a + &b;
             let want = spd_inverse(sum.as_ref()).unwrap();
             assert_eq!(spd_inverse_of_sum(a.as_ref(), b.as_ref()).unwrap(), want);
+            let bits = |m: &Mat<f64>| -> Vec<u64> {
+                (0..m.ncols())
+                    .flat_map(|j| (0..m.nrows()).map(move |i| (i, j)))
+                    .map(|(i, j)| m[(i, j)].to_bits())
+                    .collect()
+            };
+            // In a's buffer, whatever its upper triangle holds.
+            let mut a_junk = a.clone();
+            for j in 0..a_junk.ncols() {
+                for i in 0..j {
+                    a_junk[(i, j)] = f64::NAN;
+                }
+            }
+            let into = spd_inverse_of_sum_into(a_junk, b.as_ref()).unwrap();
+            assert_eq!(bits(&into), bits(&want));
         }
         let a = random_spd(&mut rng, 3);
         let minus = Mat::from_fn(9, 9, |i, j| -2.0 * a[(i, j)]);
         assert!(spd_inverse_of_sum(a.as_ref(), minus.as_ref()).is_err());
+        assert!(spd_inverse_of_sum_into(a.clone(), minus.as_ref()).is_err());
     }
 
     /// One pass for finiteness and the largest entry agrees with the separate checks.

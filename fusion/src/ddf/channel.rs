@@ -406,14 +406,16 @@ impl Channel {
     /// Applies a merge to everything this channel holds (module [`crate::keys`]): S, R,
     /// R_total, buffered deltas and a pending Sync baseline; the fact is queued for the peer.
     pub(crate) fn rekey(&mut self, keys: &KeyMap, fact: Merge) {
-        self.sent = self.sent.rekeyed(keys);
-        self.received = self.received.rekeyed(keys);
-        self.total_offset = self.total_offset.as_ref().map(|o| o.rekeyed(keys));
+        self.sent.rekey(keys);
+        self.received.rekey(keys);
+        if let Some(o) = self.total_offset.as_mut() {
+            o.rekey(keys);
+        }
         for d in self.buffer.values_mut() {
-            *d = d.rekeyed(keys);
+            d.rekey(keys);
         }
         if let Pair::Initiating { baseline, .. } = &mut self.pair {
-            *baseline = baseline.rekeyed(keys);
+            baseline.rekey(keys);
         }
         self.facts_out.push(fact);
     }

@@ -273,6 +273,18 @@ impl SlamFilter {
         if nk + nu == 0 {
             return Ok(report);
         }
+        if nu > 0 {
+            // Room for the new features in P and in the maintained Y first: a re-allocation
+            // copies the matrix, and done here the old and the new copy are not alive beside
+            // the k × k temporaries below (capacity only: no number changes).
+            self.reserve_states(nu);
+            if self.info_cache_current()
+                && let Some(y) = self.info_cache.y.as_mut()
+            {
+                let n = y.nrows() + nu;
+                super::info_cache::reserve_square(y, n);
+            }
+        }
         let xk_minus_o = Col::from_fn(nk, |i| self.x[known_state[i]] - o[i % 3]);
         let dy_k = Col::from_fn(nk, |i| delta.vector[i]);
         // Deltas on at least half the state go through the map information (module docs).
@@ -321,7 +333,10 @@ impl SlamFilter {
             let y_uu_inv = llt.inverse();
             let b = llt.solve(&y_uk); // ΔY_uu⁻¹ ΔY_uk
             let a = llt.solve(dy_u.as_mat()); // ΔY_uu⁻¹ Δy_u
-            let schur = &y_kk - y_uk.transpose() * &b;
+            // Ȳ = ΔY_kk − ΔY_ukᵀ B in ΔY_kk's own buffer (the same elementwise differences as
+            // `&y_kk - …`, without a third k × k alive beside ΔY_kk and the product).
+            let mut schur = y_kk;
+            schur -= y_uk.transpose() * &b;
             let schur_vec = &dy_k - y_uk.transpose() * a.col(0);
             let x_u = Col::from_fn(nu, |i| a[(i, 0)] + o[i % 3]) - &b * &xk_minus_o;
             (schur, schur_vec, Some((b, y_uu_inv, x_u)))
@@ -346,7 +361,10 @@ impl SlamFilter {
         } else {
             let g = &schur_vec - &schur * &xk_minus_o;
             let prepared = if map_route {
-                self.prepare_map_route(&known_state, schur, g)
+                // Ȳ + Y_aa is needed after the factorisation only as the whole map's new
+                // information (and Ȳ on a refusal only as the delta given back): otherwise
+                // the factor is formed in Ȳ's own buffer.
+                self.prepare_map_route(&known_state, schur, g, whole_map)
             } else {
                 self.prepare_pseudo_route(&known_state, &schur, g)
                     .map_err(|e| (e, schur))
@@ -368,23 +386,35 @@ impl SlamFilter {
         self.bump_map_generation(false);
         let n0 = self.dim();
         if let Some((b, y_uu_inv, x_u)) = &new_block {
-            // P_u· = −B P_k·, P_uu = ΔY_uu⁻¹ + B P_kk Bᵀ.
-            let p_k_all = Mat::from_fn(nk, n0, |i, j| self.p[(known_state[i], j)]);
+            // P_u· = −B P_k·, P_uu = ΔY_uu⁻¹ + B P_kk Bᵀ. The known states are one run of P
+            // (the usual batch: every known feature) and are then read in place; a k × n and a
+            // k × k copy of P otherwise, one at a time.
             let mut p_u_all = Mat::zeros(nu, n0);
-            if nk > 0 {
-                matmul(
-                    p_u_all.as_mut(),
-                    Accum::Replace,
-                    b.as_ref(),
-                    p_k_all.as_ref(),
-                    -1.0,
-                    Par::Seq,
-                );
-            }
             let mut p_uu = y_uu_inv.clone();
             if nk > 0 {
-                let p_kk = gather(self.p.as_ref(), &known_state, &known_state);
-                p_uu += b * &p_kk * b.transpose();
+                let b_p_k = |p_k: MatRef<'_, f64>, out: &mut Mat<f64>| {
+                    matmul(
+                        out.as_mut(),
+                        Accum::Replace,
+                        b.as_ref(),
+                        p_k,
+                        -1.0,
+                        Par::Seq,
+                    );
+                };
+                match contiguous(&known_state) {
+                    Some(k0) => {
+                        b_p_k(self.p.as_ref().subrows(k0, nk), &mut p_u_all);
+                        p_uu += b * self.p.as_ref().submatrix(k0, k0, nk, nk) * b.transpose();
+                    }
+                    None => {
+                        let p_k_all = Mat::from_fn(nk, n0, |i, j| self.p[(known_state[i], j)]);
+                        b_p_k(p_k_all.as_ref(), &mut p_u_all);
+                        drop(p_k_all);
+                        let p_kk = gather(self.p.as_ref(), &known_state, &known_state);
+                        p_uu += b * &p_kk * b.transpose();
+                    }
+                }
             }
             self.grow(nu);
             for (f, &id) in new_ids.iter().enumerate() {
@@ -424,7 +454,7 @@ impl SlamFilter {
                     None => Err(SlamError::NumericalFailure("map-information cache")),
                 };
                 // Y_aa⁺: the whole map's new information when the delta is the whole map.
-                map_route_post = Some(post);
+                map_route_post = post;
                 r
             }
         };
@@ -586,6 +616,7 @@ impl SlamFilter {
         known_state: &[usize],
         schur: Mat<f64>,
         g: Col<f64>,
+        keep_post: bool,
     ) -> Result<Route, (SlamError, Mat<f64>)> {
         let cached = self
             .info_cache
@@ -660,11 +691,26 @@ impl SlamFilter {
             }
         };
         // P_aa⁺ = (Ȳ + Y_aa)⁻¹, the sum formed straight into the factor's buffer (its Cholesky
-        // is the PD check); Ȳ stays as it is until everything that can fail has passed.
-        let p_aa_post = match crate::info::spd_inverse_of_sum(schur.as_ref(), y_aa_ref.as_ref()) {
-            Ok(p) => p,
-            Err(_) => {
-                return Err((SlamError::NotPositiveDefinite("fused information"), schur));
+        // is the PD check). With `keep_post`, Ȳ stays as it is until everything that can fail
+        // has passed, and Ȳ + Y_aa is then formed in its buffer (the same sums the factor was
+        // formed from); without, the factor's buffer is Ȳ's own (one k × k less at the peak
+        // of a round; Ȳ is not needed after a refusal then).
+        let (p_aa_post, post) = if keep_post {
+            match crate::info::spd_inverse_of_sum(schur.as_ref(), y_aa_ref.as_ref()) {
+                Ok(p) => (p, Some(schur)),
+                Err(_) => {
+                    return Err((SlamError::NotPositiveDefinite("fused information"), schur));
+                }
+            }
+        } else {
+            match crate::info::spd_inverse_of_sum_into(schur, y_aa_ref.as_ref()) {
+                Ok(p) => (p, None),
+                Err(_) => {
+                    return Err((
+                        SlamError::NotPositiveDefinite("fused information"),
+                        Mat::new(),
+                    ));
+                }
             }
         };
         let dx_a = &p_aa_post * &g;
@@ -672,11 +718,13 @@ impl SlamFilter {
             || !all_finite(y_aa_ref.as_ref())
             || !all_finite(dx_a.as_mat())
         {
+            let schur = post.unwrap_or_else(Mat::new);
             return Err((SlamError::NumericalFailure("map-information fusion"), schur));
         }
-        // Y_aa + Ȳ in Ȳ's buffer: the same sums the factor was formed from.
-        let mut post = schur;
-        post += y_aa_ref;
+        let post = post.map(|mut post| {
+            post += y_aa_ref;
+            post
+        });
         Ok(Route::Map {
             p_aa_post,
             y_aa,
@@ -770,8 +818,9 @@ enum Route {
         /// Y_aa, or `None` when it is the maintained map information itself.
         y_aa: Option<Mat<f64>>,
         dx_a: Col<f64>,
-        /// Y_aa + Ȳ: the fused marginal information of the delta's features.
-        post: Mat<f64>,
+        /// Y_aa + Ȳ: the fused marginal information of the delta's features (only when asked
+        /// for: the whole map's).
+        post: Option<Mat<f64>>,
     },
 }
 

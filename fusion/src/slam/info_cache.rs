@@ -224,13 +224,19 @@ pub(super) fn grow_square(m: &mut Mat<f64>, n: usize) {
     if n <= m.nrows() {
         return;
     }
+    reserve_square(m, n);
+    m.resize_with(n, n, |_, _| 0.0);
+}
+
+/// Makes room in a square matrix for `n` × `n` without changing it (the re-allocation of
+/// [`grow_square`], done ahead: a caller about to form large temporaries does it first).
+pub(super) fn reserve_square(m: &mut Mat<f64>, n: usize) {
     // faer re-allocates only when the capacity is short; the columns then keep a stride of the
     // reserved row capacity (every access here is by column or through views).
-    let cap = n.max(m.nrows() + m.nrows() / 2);
     if n > capacity(m) {
+        let cap = n.max(m.nrows() + m.nrows() / 2);
         m.reserve(cap, cap);
     }
-    m.resize_with(n, n, |_, _| 0.0);
 }
 
 /// Rows the columns of `m` have room for (its column stride).

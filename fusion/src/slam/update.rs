@@ -373,16 +373,24 @@ impl SlamFilter {
 
     /// Grows x and P by `k` states (zero-filled), keeping capacity to amortize later growth.
     pub(super) fn grow(&mut self, k: usize) {
-        let n = self.dim();
-        let new_n = n + k;
+        let new_n = self.dim() + k;
+        self.reserve_states(k);
+        self.p.resize_with(new_n, new_n, |_, _| 0.0);
+        self.x.resize_with(new_n, |_| 0.0);
+    }
+
+    /// Makes room in P for `k` more states without changing it (the re-allocation, when
+    /// needed, copies P: a caller about to form large temporaries does it first, so that the
+    /// old and the new P are not alive beside them).
+    pub(super) fn reserve_states(&mut self, k: usize) {
+        let new_n = self.dim() + k;
         // Geometric (×1.5) capacity growth keeps repeated augmentation amortized O(n²) in total
-        // copying while bounding the unused memory to ≈ 2.25× of P at worst.
+        // copying while bounding the unused memory to ≈ 2.25× of P at worst (only the part in
+        // use is ever written, so the rest is never made resident).
         if new_n > self.capacity {
             self.capacity = new_n.max(self.capacity + self.capacity / 2);
             self.p.reserve(self.capacity, self.capacity);
         }
-        self.p.resize_with(new_n, new_n, |_, _| 0.0);
-        self.x.resize_with(new_n, |_| 0.0);
     }
 
     /// Shrinks x and P back to `n` states (rollback of a failed augmentation).

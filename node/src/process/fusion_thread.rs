@@ -35,6 +35,17 @@ pub enum Job {
         /// The message (boxed: deltas are large, link events small).
         msg: Box<DdfMessage>,
     },
+    /// A message from a neighbour as received, decoded here when the thread takes it (the
+    /// wire form is about half the dense one; see `Vehicle::service_links`). Other kinds than
+    /// DDF messages are skipped; a body that fails to decode is counted by its link.
+    Received {
+        /// Simulation time of receipt [s].
+        now: f64,
+        /// Sender.
+        from: NodeId,
+        /// The message.
+        msg: canopy_transport::Received,
+    },
     /// The link to `peer` came up.
     LinkUp {
         /// Simulation time [s].
@@ -144,6 +155,19 @@ impl FusionThread {
                             now,
                             // A rejected message is counted by reason by the fusion half.
                             out: fusion.on_message(now, from, *msg).unwrap_or_default(),
+                            view: FusionView::of(&fusion),
+                        },
+                        Job::Received { now, from, msg } => Done::Replies {
+                            now,
+                            // A rejected message is counted by reason by the fusion half.
+                            out: match crate::wire::decode_ddf(&msg) {
+                                Some(Ok(m)) => {
+                                    drop(msg);
+                                    fusion.on_message(now, from, m).unwrap_or_default()
+                                }
+                                // Not a DDF message, or counted by the link.
+                                _ => Vec::new(),
+                            },
                             view: FusionView::of(&fusion),
                         },
                         Job::LinkUp { now, peer } => Done::Replies {

@@ -531,6 +531,27 @@ impl FusionLinks {
             .collect()
     }
 
+    /// [`FusionLinks::poll`] without decoding: the received messages as they came (their
+    /// bytes, out of the links' buffers), to be decoded with [`decode_ddf`] where they are
+    /// used.
+    pub fn poll_raw(&mut self) -> Vec<(NodeId, Vec<LinkEvent>, Vec<Received>)> {
+        let mut out = Vec::new();
+        for (&peer, link) in &mut self.links {
+            let mut events = Vec::new();
+            while let Some(e) = link.poll_event() {
+                events.push(e);
+            }
+            let mut msgs = Vec::new();
+            while let Ok(Some(m)) = link.try_recv() {
+                msgs.push(m);
+            }
+            if !events.is_empty() || !msgs.is_empty() {
+                out.push((peer, events, msgs));
+            }
+        }
+        out
+    }
+
     /// [`FusionLinks::poll`] with each message's simulation time (its envelope's: the sender's
     /// time when it sent it) and each link's latest time marker
     /// ([`MessageKind::TIME_MARKER`], simulation-time delivery).

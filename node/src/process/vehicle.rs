@@ -273,7 +273,14 @@ impl Vehicle<'_> {
             return;
         }
         let now = self.t;
-        let polled = self.links.poll();
+        // Messages go to the fusion thread as received (their wire bytes, about half the dense
+        // form) and are decoded there one at a time when it takes them: decoded here, the
+        // dense deltas that arrive during a round waited in the job queue beside the round's
+        // own k × k matrices (tree-8, three neighbours: 65–130 MB at the memory peak). They
+        // are still taken off the links at once: a sample left in an iceoryx2 subscriber's
+        // buffer makes the sender write its next ones into further slots of its pool, each of
+        // which then stays resident.
+        let polled = self.links.poll_raw();
         let start = StallMeter::mark();
         let busy = !polled.is_empty();
         for (peer, events, msgs) in polled {
@@ -287,10 +294,10 @@ impl Vehicle<'_> {
                 });
             }
             for msg in msgs {
-                self.fusion.submit(Job::Message {
+                self.fusion.submit(Job::Received {
                     now,
                     from: NodeId(peer),
-                    msg: Box::new(msg),
+                    msg,
                 });
             }
         }
