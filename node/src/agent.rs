@@ -312,7 +312,7 @@ pub struct VehicleFusion {
     team_frame: Option<crate::frames::TeamFrame>,
     /// An alignment taken whose frame change waits for the neighbour's first information
     /// (module [`crate::frames`], step 4): the frame and the team frame's owner.
-    awaiting_rebase: Option<(canopy_fusion::frames::Frame4, NodeId)>,
+    awaiting_rebase: Option<canopy_fusion::frames::Frame4>,
     /// Own frames: neighbours whose link came up again while this vehicle is in the team
     /// frame. One that restarted is in its own frame again, but this side's channel stays
     /// paired with its dead incarnation until it speaks (and it says nothing before it has
@@ -398,7 +398,6 @@ impl VehicleFusion {
         let Some((frame, merges)) = tf.try_align(filter, now) else {
             return;
         };
-        let root = tf.root();
         // The correspondences are keys only: adopted now, in this frame. The estimate stays in
         // its own frame until the neighbour's information arrives (`round_awaiting_rebase`).
         let mut errors = Vec::new();
@@ -420,7 +419,7 @@ impl VehicleFusion {
         for e in errors {
             self.reject("merge", &e, 1, &e);
         }
-        self.awaiting_rebase = Some((frame, root));
+        self.awaiting_rebase = Some(frame);
     }
 
     /// A round between the alignment and the neighbour's first information (own frames): the
@@ -435,7 +434,7 @@ impl VehicleFusion {
         filter: &mut SlamFilter,
         now: f64,
     ) -> Option<Result<Vec<Outgoing>, AgentError>> {
-        let (frame, _root) = self.awaiting_rebase?;
+        let frame = self.awaiting_rebase?;
         if self.pending.sum.is_none() {
             let ddf = self.ddf.as_mut()?;
             if ddf.channels().any(|c| c.synced) {
@@ -461,12 +460,12 @@ impl VehicleFusion {
 
     /// Anchors for the neighbours not paired yet (this vehicle in the team frame, own frames).
     fn anchors(&mut self, filter: &SlamFilter, out: &mut Vec<Outgoing>) {
-        if !self.team_frame.as_ref().is_some_and(|f| f.in_team()) {
-            return;
-        }
-        let Some(ddf) = self.ddf.as_mut() else {
+        let (Some(tf), Some(ddf)) = (self.team_frame.as_ref(), self.ddf.as_mut()) else {
             return;
         };
+        if !tf.in_team() {
+            return;
+        }
         let waiting: Vec<NodeId> = ddf
             .channels()
             .filter(|c| (!c.synced || self.reanchor.contains(&c.peer)) && c.link_up)
@@ -475,11 +474,7 @@ impl VehicleFusion {
         if waiting.is_empty() {
             return;
         }
-        let perfect = self
-            .team_frame
-            .as_ref()
-            .is_some_and(|f| f.perfect_identities());
-        let body = crate::frames::TeamFrame::anchor(filter, perfect);
+        let body = tf.anchor(filter);
         let mut errors = Vec::new();
         for peer in waiting {
             match ddf.message_to(peer, body.clone()) {
@@ -739,22 +734,21 @@ impl VehicleFusion {
         from: NodeId,
         msg: DdfMessage,
     ) -> Result<Vec<Outgoing>, AgentError> {
-        if self.ddf.is_none() {
-            let e = DdfError::UnknownSender(from);
-            self.counters.messages_rejected += 1;
-            self.reject("message", &e, 1, &e);
-            return Err(AgentError::Ddf(e));
-        }
-        if matches!(msg.body, Body::Anchor { .. }) || self.outside_team() {
-            return self.on_message_outside_team(from, msg);
-        }
-        if matches!(msg.body, Body::Delta { .. } | Body::Cumulative { .. }) {
+        let outside = self.outside_team();
+        if !outside && matches!(msg.body, Body::Delta { .. } | Body::Cumulative { .. }) {
             // Information from it: it is in the team frame.
             self.reanchor.remove(&from);
         }
         let Some(ddf) = self.ddf.as_mut() else {
-            unreachable!("checked above");
+            let e = DdfError::UnknownSender(from);
+            self.counters.messages_rejected += 1;
+            self.reject("message", &e, 1, &e);
+            return Err(AgentError::Ddf(e));
         };
+        if outside || matches!(msg.body, Body::Anchor { .. }) {
+            let validated = ddf.validate(from, &msg);
+            return self.on_message_outside_team(from, msg, validated);
+        }
         let mut target = EkfTarget {
             pending: &mut self.pending,
         };
@@ -769,16 +763,15 @@ impl VehicleFusion {
     }
 
     /// An anchor (kept while this vehicle is outside the team frame), or any other message
-    /// while it is outside (dropped and counted: it takes no part in the channel filters yet).
+    /// while it is outside (dropped and counted: it takes no part in the channel filters yet);
+    /// `validated` is the DDF node's verdict on the message.
     fn on_message_outside_team(
         &mut self,
         from: NodeId,
         msg: DdfMessage,
+        validated: Result<(), DdfError>,
     ) -> Result<Vec<Outgoing>, AgentError> {
-        let Some(ddf) = self.ddf.as_ref() else {
-            return Ok(Vec::new());
-        };
-        if let Err(e) = ddf.validate(from, &msg) {
+        if let Err(e) = validated {
             self.counters.messages_rejected += 1;
             self.reject("message", &e, 1, &format!("from {from:?}: {e}"));
             return Err(AgentError::Ddf(e));
@@ -830,9 +823,12 @@ impl VehicleFusion {
 
     /// The link to `peer` went down.
     pub fn on_link_down(&mut self, peer: NodeId) -> Result<(), AgentError> {
-        match self.ddf.as_mut() {
-            Some(d) => Ok(d.on_link_down(peer)?),
-            None => Ok(()),
+        match self.ddf.as_mut().map(|d| d.on_link_down(peer)) {
+            Some(Err(e)) => {
+                self.reject("link_down", &e, 1, &format!("peer {peer:?}: {e}"));
+                Err(e.into())
+            }
+            Some(Ok(())) | None => Ok(()),
         }
     }
 }

@@ -121,7 +121,7 @@ impl TeamFrame {
     }
 
     /// Whether candidates are paired by key (perfect identities, the ablation).
-    pub fn perfect_identities(&self) -> bool {
+    fn perfect_identities(&self) -> bool {
         self.max_distance.is_none()
     }
 
@@ -166,7 +166,7 @@ impl TeamFrame {
         if self.in_team() || self.anchors.is_empty() {
             return None;
         }
-        let own = described(filter, self.max_distance.is_none());
+        let own = described(filter, self.perfect_identities());
         let mut theirs: BTreeMap<FeatureId, &AnchorFeature> = BTreeMap::new();
         for a in self.anchors.values().flatten() {
             theirs.entry(a.key).or_insert(a);
@@ -244,8 +244,8 @@ impl TeamFrame {
     /// The anchor this vehicle (in the team frame) sends a neighbour that is not: its
     /// best-localised features (smallest covariance trace) that have a descriptor (every
     /// feature, with a zero descriptor, under perfect identities).
-    pub fn anchor(filter: &SlamFilter, perfect_identities: bool) -> Body {
-        let mut features: Vec<AnchorFeature> = described(filter, perfect_identities)
+    pub fn anchor(&self, filter: &SlamFilter) -> Body {
+        let mut features: Vec<AnchorFeature> = described(filter, self.perfect_identities())
             .into_iter()
             .map(|(key, appearance, p, c)| AnchorFeature {
                 key,

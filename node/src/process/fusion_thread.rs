@@ -133,6 +133,13 @@ pub enum Done {
     },
 }
 
+/// The messages to send after a call into the fusion half. An error it returns it has already
+/// counted by reason and logged once with its cause (`VehicleFusion::reject`, visible in
+/// `checks.json`), and the refused input changed nothing, so there is nothing to send.
+fn replies(r: Result<Vec<Outgoing>, crate::agent::AgentError>) -> Vec<Outgoing> {
+    r.unwrap_or_else(|_counted| Vec::new())
+}
+
 /// The estimator thread's handle on the fusion thread.
 #[derive(Debug)]
 pub struct FusionThread {
@@ -153,30 +160,30 @@ impl FusionThread {
                     let msg = match job {
                         Job::Message { now, from, msg } => Done::Replies {
                             now,
-                            // A rejected message is counted by reason by the fusion half.
-                            out: fusion.on_message(now, from, *msg).unwrap_or_default(),
+                            out: replies(fusion.on_message(now, from, *msg)),
                             view: FusionView::of(&fusion),
                         },
                         Job::Received { now, from, msg } => Done::Replies {
                             now,
-                            // A rejected message is counted by reason by the fusion half.
                             out: match crate::wire::decode_ddf(&msg) {
                                 Some(Ok(m)) => {
                                     drop(msg);
-                                    fusion.on_message(now, from, m).unwrap_or_default()
+                                    replies(fusion.on_message(now, from, m))
                                 }
-                                // Not a DDF message, or counted by the link.
+                                // Not a DDF message, or one that failed to decode (counted by
+                                // its link, `rejected.body`).
                                 _ => Vec::new(),
                             },
                             view: FusionView::of(&fusion),
                         },
                         Job::LinkUp { now, peer } => Done::Replies {
                             now,
-                            out: fusion.on_link_up(now, peer).unwrap_or_default(),
+                            out: replies(fusion.on_link_up(now, peer)),
                             view: FusionView::of(&fusion),
                         },
                         Job::LinkDown { peer } => {
-                            let _ = fusion.on_link_down(peer);
+                            // Refused (an unknown peer): counted by the fusion half.
+                            let _counted = fusion.on_link_down(peer);
                             Done::Replies {
                                 now: f64::NAN,
                                 out: Vec::new(),
@@ -189,8 +196,8 @@ impl FusionThread {
                             budgets,
                         } => {
                             // A refused budget is counted by reason by the fusion half.
-                            let _ = fusion.set_link_budgets(&budgets);
-                            let out = fusion.round(&mut filter, now).unwrap_or_default();
+                            let _counted = fusion.set_link_budgets(&budgets);
+                            let out = replies(fusion.round(&mut filter, now));
                             Done::Round {
                                 now,
                                 filter,
