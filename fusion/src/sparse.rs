@@ -27,9 +27,24 @@
 //! sparsified rounds — would otherwise amplify round-off without bound). With δ > 0,
 //! D − pad(D') = Gᵀ(D_RR + δI)⁻¹G − pad_R(δI) with G = [D_RS, D_RR + δI], so
 //! pad(D') ⪯ D + δ·pad_R(I): the claim can exceed D by at most δ (1e-9 of the largest
-//! information change) along directions of the *unsent* features. The marginal is evaluated
+//! information change) along directions of the *unsent* features (see Booking). The marginal is evaluated
 //! about the sender's estimate ([`schur_marginal_about`]) so that the term δ D_SR (D_RR + δI)⁻¹ x
 //! that d' picks up is in the sender's error, not in positions ~1e3 m from the origin.
+//!
+//! Booking. The marginal is the *exact* marginal of the shifted delta
+//! (D + pad_R(δ I), d + pad_R(δ x̄_R)) ([`Shift`]). The sender books D' − pad_R(δ I) (and
+//! d' − pad_R(δ x̄_R)) as sent, so the residual left in Y_i − C_ik is the exact Schur residual
+//! of the shifted delta, Gᵀ(D_RR + δI)⁻¹G with G = [D_RS, D_RR + δI]: positive semi-definite
+//! whatever δ was. Booked as D' alone, the residual would be that minus pad_R(δ I): negative
+//! at the floor's own size, and round after round such negativity met the next floor — the
+//! next D_RR + δI was near-singular (garbage marginals) or not positive definite (refused),
+//! which stalled the radio links (measured on the default team at 32 kB/s, 300 s: 929 refused
+//! rounds, 757 of them at λ_min(D_RR) ≥ −2e-9 · max diag; team map RMSE 25× the
+//! reference; booked with the shift: none refused, 1.10×). The price: the receiver holds
+//! what it was sent, so the δ I it was sent beyond the delta stays with it — the team's maps
+//! can exceed the centralized sum by Σ δ over the sparsified deltas (1e-9 of each one's
+//! largest held-back diagonal; [`crate::ddf::ChannelView::sparse_shift`] adds them up per
+//! link, and `fusion/tests/ddf_sparse.rs` asserts the bound run by run).
 //!
 //! A D_RR that is not positive definite at the floor (indefinite beyond round-off:
 //! relinearisation or a removed feature made Y_i − C indefinite) is refused
@@ -112,9 +127,22 @@ pub enum SparsifyError {
     },
 }
 
+/// The regularisation δ of a marginal as information: δ I on each held-back feature's
+/// diagonal block and δ x̄_f in its vector (x̄ the reference the marginal was evaluated about,
+/// origin-relative). The marginal is the exact marginal of (D + pad_R(δ I), d + pad_R(δ x̄_R)).
+#[derive(Clone, Debug, Default)]
+pub struct Shift {
+    /// δ.
+    pub delta: f64,
+    /// The held-back features R and their reference positions x̄_f.
+    pub features: Vec<(FeatureId, Vector3<f64>)>,
+}
+
 /// The marginal information of a delta on the selected features.
 #[derive(Clone, Debug)]
 pub struct Marginal {
+    /// The shift added to the delta before marginalising (module docs).
+    pub shift: Shift,
     /// (D', d') over the selected features present in the delta, in the order they were given.
     pub info: MapInformation,
     /// δ added to D_RR (0 only when nothing was held back).
@@ -328,7 +356,21 @@ pub fn schur_marginal_about(
             return Err(SparsifyError::TooNegative { min, max });
         }
     }
+    let shift = Shift {
+        delta: regularisation,
+        features: r_blocks
+            .iter()
+            .map(|&k| {
+                let b = FEATURE_DIM * k;
+                (
+                    delta.ids[k],
+                    Vector3::new(xbar[b], xbar[b + 1], xbar[b + 2]),
+                )
+            })
+            .collect(),
+    };
     Ok(Marginal {
+        shift,
         info: MapInformation {
             ids: s_blocks.iter().map(|&k| delta.ids[k]).collect(),
             origin: delta.origin,
@@ -455,6 +497,79 @@ mod tests {
         // −3 on the S diagonal of these matrices (eigenvalues ~0.1–30) makes every marginal
         // clearly negative: all refused, none sent.
         assert_eq!(refused, 15, "indefinite trials refused");
+    }
+
+    /// Round after round of sparsifying the same low-rank residual (singular D_RR: the floor
+    /// is in use every round): booked with its shift (D' − pad_R(δ I), the channel's booking)
+    /// the residual stays positive semi-definite and no round is refused; booked as D' alone
+    /// the regularisation leaves a residual negative at the floor's size, which the next
+    /// rounds marginalise near-singularly or refuse — what stalled the radio links
+    /// (docs/arch/ddf.md, "Booking").
+    #[test]
+    fn booking_the_shift_keeps_the_residual_positive_semi_definite() {
+        let ids = [1u64, 2, 3, 4, 5];
+        let n = 3 * ids.len();
+        let run = |book_shift: bool| -> (usize, f64) {
+            let mut rng = ChaCha8Rng::seed_from_u64(21);
+            let mut residual = info(&ids, random_psd(n, 6, &mut rng), &mut rng);
+            let (mut refused, mut worst) = (0, f64::INFINITY);
+            for round in 0..40 {
+                let keep = [ids[round % 5], ids[(round + 2) % 5]];
+                let m = match schur_marginal(&residual, &keep) {
+                    Ok(m) => m,
+                    Err(_) => {
+                        refused += 1;
+                        continue;
+                    }
+                };
+                for (bi, &id) in m.info.ids.iter().enumerate() {
+                    let k = ids.iter().position(|&x| x == id).expect("kept id");
+                    for (bj, &jd) in m.info.ids.iter().enumerate() {
+                        let l = ids.iter().position(|&x| x == jd).expect("kept id");
+                        for a in 0..3 {
+                            for b in 0..3 {
+                                residual.matrix[(3 * k + a, 3 * l + b)] -=
+                                    m.info.matrix[(3 * bi + a, 3 * bj + b)];
+                            }
+                        }
+                    }
+                    for a in 0..3 {
+                        residual.vector[3 * k + a] -= m.info.vector[3 * bi + a];
+                    }
+                }
+                if book_shift {
+                    for (id, x) in &m.shift.features {
+                        let k = ids.iter().position(|i| i == id).expect("held-back id");
+                        for a in 0..3 {
+                            residual.matrix[(3 * k + a, 3 * k + a)] += m.shift.delta;
+                            residual.vector[3 * k + a] += m.shift.delta * x[a];
+                        }
+                    }
+                }
+                let low = residual
+                    .matrix
+                    .as_ref()
+                    .self_adjoint_eigenvalues(Side::Lower)
+                    .expect("eig")[0];
+                // Against the residual's own size: the floor δ is relative to it.
+                worst = worst.min(low / residual.matrix_norm_max());
+            }
+            (refused, worst)
+        };
+        let (refused, worst) = run(true);
+        // Round-off only: 1e-12 of the residual's largest entry (sums of 40 Schur complements
+        // of condition ≲ 1e9 at the floor, each exact to ~1e-16 · condition on the S block).
+        assert_eq!(refused, 0, "booked with the shift: nothing refused");
+        assert!(worst >= -1e-12, "booked with the shift: λ_min {worst:.2e}");
+        let (refused, worst) = run(false);
+        // Booked as D' alone, the residual is indefinite at the floor's own size (measured:
+        // λ_min −9.0e-10 of max|residual|, floor 1e-9): the next round's D_RR + δI is then
+        // near-singular (condition ~1e10, garbage marginals) or, once a larger negative
+        // direction meets a smaller D_RR, not positive definite (refused).
+        assert!(
+            refused > 0 || worst < -0.5 * REGULARISATION_FLOOR_REL,
+            "without the shift: refused {refused}, λ_min {worst:.2e}"
+        );
     }
 
     /// Keeping every feature returns the delta itself; all-zero features are not held back.

@@ -136,6 +136,8 @@ struct Outcome {
     lifted: Vec<f64>,
     /// Largest relative difference to the centralized sum after the budget was lifted.
     max_difference: f64,
+    /// Largest Σ δ / max|Y| over the runs.
+    max_shift: f64,
     /// Deltas sent / of them sparsified, during the observation phase (all links, all runs).
     deltas: (u64, u64),
     /// Sparsified deltas that needed regularisation, and refused rounds.
@@ -149,6 +151,7 @@ fn library_network(topology: fn() -> Topology, budget: Option<usize>, seed: u64)
     let mut sparse_sum = vec![0.0; nodes];
     let mut lifted_sum = vec![0.0; nodes];
     let mut max_difference: f64 = 0.0;
+    let mut max_shift: f64 = 0.0;
     let (mut sent, mut sparsified, mut regularised, mut refused) = (0, 0, 0, 0);
     let diameter = topology().diameter().expect("connected");
     for _ in 0..RUNS {
@@ -200,7 +203,38 @@ fn library_network(topology: fn() -> Topology, budget: Option<usize>, seed: u64)
         for _ in 0..diameter + 1 {
             sim.round();
         }
-        max_difference = max_difference.max(sim.max_relative_difference(&sim.all_ever.clone()));
+        let scale = sim.all_ever.matrix_norm_max();
+        let shift: f64 = links
+            .iter()
+            .map(|&(a, b)| sim.nodes[&a].ddf.channel(b).unwrap().sparse_shift)
+            .sum();
+        let diff = sim.max_relative_difference(&sim.all_ever.clone());
+        // Exact again up to the booked shifts (module `sparse`, "Booking"): each sparsified
+        // marginal claimed at most its δ I beyond the delta along held-back features, and
+        // what reached a node beyond the centralized sum is that claim forwarded, at most
+        // Σ δ over every link: λ_max(Y_node − Y_all) ≤ Σ δ, no entry of Y differs by more
+        // than Σ δ and no entry of y by more than Σ δ · max|x̄| (the shift's vector is δ x̄_R,
+        // x̄ the sender's estimate: within 1.1 × the largest true coordinate, the estimates'
+        // errors being metres against coordinates of hundreds). 1e-12: the round-off of sums
+        // of a few hundred deltas with entries up to ~1e2 (~1e-14) and the Schur complements'
+        // (condition ≲ 1e4).
+        let x_max = feats
+            .iter()
+            .map(|(_, p)| (p - origin()).amax())
+            .fold(0.0, f64::max);
+        let y_max = sim.all_ever.vector_norm_max();
+        let bound = (shift / scale).max(shift * 1.1 * x_max / y_max) + 1e-12;
+        assert!(
+            sim.max_psd_excess() <= bound,
+            "over-claim {:.2e} beyond the booked shifts {bound:.2e}",
+            sim.max_psd_excess()
+        );
+        assert!(
+            diff <= bound,
+            "difference {diff:.2e} to the centralized sum beyond {bound:.2e}"
+        );
+        max_shift = max_shift.max(shift / scale);
+        max_difference = max_difference.max(diff);
         for (k, s) in lifted_sum.iter_mut().enumerate() {
             *s += nees(&sim.nodes[&NodeId(k as u32)].estimate, &feats);
         }
@@ -210,6 +244,7 @@ fn library_network(topology: fn() -> Topology, budget: Option<usize>, seed: u64)
         sparse: mean(sparse_sum),
         lifted: mean(lifted_sum),
         max_difference,
+        max_shift,
         deltas: (sent, sparsified),
         regularised,
         refused,
@@ -311,7 +346,8 @@ fn check(name: &str, topology: fn() -> Topology) {
          after lifting the budget:         {}\n  \
          block extraction (broken):        {}\n  \
          deltas sent {} of which sparsified {}, regularised {}, refused {}; \
-         max relative difference to the centralized sum after lifting {:.1e}",
+         max relative difference to the centralized sum after lifting {:.1e} \
+         (booked shifts Σ δ / max|Y| up to {:.1e})",
         fmt(&exact.sparse),
         fmt(&sparse.sparse),
         fmt(&sparse.lifted),
@@ -321,6 +357,7 @@ fn check(name: &str, topology: fn() -> Topology) {
         sparse.regularised,
         sparse.refused,
         sparse.max_difference,
+        sparse.max_shift,
     );
     assert_eq!(exact.deltas.1, 0, "{name}: unlimited links never sparsify");
     assert_eq!(
@@ -341,14 +378,10 @@ fn check(name: &str, topology: fn() -> Topology) {
         // Lifted: the centralized estimate again, in the band.
         assert!(l >= lo && l <= hi, "{name} lifted node {k}: {l}");
     }
-    // Exact again once the budget is lifted: the residuals were kept, nothing lost or counted
-    // twice. 1e-9 relative: sums of a few hundred deltas of entries up to ~1e2 in f64, with the
-    // Schur complements' round-off (condition ≲ 1e4) booked on both ends alike.
-    assert!(
-        sparse.max_difference <= 1e-9,
-        "{name}: {:.1e}",
-        sparse.max_difference
-    );
+    // Exact again once the budget is lifted, up to the booked shifts (asserted run by run in
+    // `library_network`); and no round was refused: the booking leaves every residual positive
+    // semi-definite.
+    assert_eq!(sparse.refused, 0, "{name}: refused rounds");
     assert!(
         broken.iter().any(|&x| x > hi),
         "{name}: block extraction NEES {} inside band",

@@ -130,6 +130,8 @@ pub(crate) struct Channel {
     sync_gen: u64,
     /// S: cumulative information sent in the current epoch pair (packed: `store` module).
     sent: PackedInformation,
+    /// Σ δ of the sparsified marginals sent ([`super::ChannelView::sparse_shift`]).
+    sparse_shift: f64,
     /// R: cumulative information received from the peer and applied in the current pair.
     received: PackedInformation,
     seq_sent: u64,
@@ -276,6 +278,7 @@ impl Channel {
             pair: Pair::Unpaired,
             sync_gen: 0,
             sent: PackedInformation::zero(origin),
+            sparse_shift: 0.0,
             received: PackedInformation::zero(origin),
             seq_sent: 0,
             applied: 0,
@@ -304,6 +307,10 @@ impl Channel {
 
     pub(crate) fn is_synced(&self) -> bool {
         matches!(self.pair, Pair::Synced)
+    }
+
+    pub(crate) fn sparse_shift(&self) -> f64 {
+        self.sparse_shift
     }
 
     pub(crate) fn link_up(&self) -> bool {
@@ -1058,7 +1065,15 @@ impl Channel {
                     return Ok(());
                 }
                 match self.sparsify(&d, b, lazy.source(), ctx) {
-                    Some(d) => d,
+                    Some((d, shift)) => {
+                        // Booked: D' − pad_R(δ I) (module `sparse`, "Booking"): the residual
+                        // left in Y_i − C_ik is the exact Schur residual, positive
+                        // semi-definite, so the regularisation never piles up into an
+                        // indefinite residual block that stalls the link.
+                        self.sent.add_diagonal_shift(&shift, -1.0);
+                        self.sparse_shift += shift.delta;
+                        d
+                    }
                     None => return Ok(()),
                 }
             }
@@ -1090,7 +1105,7 @@ impl Channel {
         budget: usize,
         source: &dyn MapSource,
         ctx: &NodeCtx<'_>,
-    ) -> Option<MapInformation> {
+    ) -> Option<(MapInformation, sparse::Shift)> {
         let covariances: HashMap<FeatureId, Matrix3<f64>> =
             source.feature_covariances().into_iter().collect();
         // Blocks in f32 only when the node sends f32 deltas anyway (`delta_precision`): in the
@@ -1153,7 +1168,7 @@ impl Channel {
             if m.escalated {
                 self.stats.sparse_regularised += 1;
             }
-            return Some(info);
+            return Some((info, m.shift));
         }
     }
 

@@ -150,7 +150,7 @@ pub struct RoundOutput {
 }
 
 /// A read-only view of one channel.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[derive(Clone, Copy, Debug, PartialEq)]
 pub struct ChannelView {
     /// The neighbour.
     pub peer: NodeId,
@@ -162,6 +162,11 @@ pub struct ChannelView {
     pub link_up: bool,
     /// Counters.
     pub stats: ChannelStats,
+    /// Σ δ of the sparsified marginals sent on this link ([`crate::sparse::Shift`]): the
+    /// information each of them claimed beyond the delta along held-back features is at most
+    /// its δ (times the identity), so a receiver's map information can exceed the centralized
+    /// sum by at most this much (plus what other links add).
+    pub sparse_shift: f64,
 }
 
 /// The DDF state machine of one process (vehicle or hub). Sans-IO: the caller feeds time,
@@ -271,6 +276,7 @@ impl DdfNode {
             synced: c.is_synced(),
             link_up: c.link_up(),
             stats: c.stats,
+            sparse_shift: c.sparse_shift(),
         })
     }
 

@@ -129,6 +129,20 @@ impl PackedInformation {
         Ok(())
     }
 
+    /// self += sign · (δ I, δ x̄) on each listed feature's diagonal block (ids appended when
+    /// new): the shift a regularised sparsified marginal was the exact marginal of
+    /// ([`crate::sparse::Marginal::shift`]).
+    pub(crate) fn add_diagonal_shift(&mut self, shift: &crate::sparse::Shift, sign: f64) {
+        for (id, x) in &shift.features {
+            let k = self.slot(*id);
+            let diag = &mut self.cols[k][BLOCK * k..BLOCK * (k + 1)];
+            for a in 0..FEATURE_DIM {
+                diag[FEATURE_DIM * a + a] += sign * shift.delta;
+                self.vector[FEATURE_DIM * k + a] += sign * shift.delta * x[a];
+            }
+        }
+    }
+
     /// self += sign · other over the union of ids (order-stable like
     /// [`accumulate`](Self::accumulate)). Both must hold the same origin (every sum of one
     /// channel does: they are built from the node's own and validated received information).
