@@ -43,11 +43,12 @@
 //! reference; booked with the shift: none refused, 1.10×). The price: the receiver holds
 //! what it was sent, so the δ I it was sent beyond the delta stays with it — the team's maps
 //! can exceed the centralized sum by Σ δ over the sparsified deltas (1e-9 of each one's
-//! largest held-back diagonal; [`crate::ddf::ChannelView::sparse_shift`] adds them up per
+//! largest held-back diagonal, up to [`MAX_REGULARISATION_REL`] when D_RR needed more;
+//! [`crate::ddf::ChannelView::sparse_shift`] adds them up per
 //! link, and `fusion/tests/ddf_sparse.rs` asserts the bound run by run).
 //!
-//! A D_RR that is not positive definite at the floor (indefinite beyond round-off:
-//! relinearisation or a removed feature made Y_i − C indefinite) is refused
+//! A D_RR that is not positive definite at [`MAX_REGULARISATION_REL`] (indefinite beyond
+//! round-off: relinearisation or a removed feature made Y_i − C indefinite) is refused
 //! ([`SparsifyError::Indefinite`], naming the feature of the failing pivot): no D' supported on
 //! S alone can be ⪯ D then (take x = (0, v), v a negative direction of D_RR), and the Schur
 //! complement is no marginalisation. The channel first retries with that feature moved into S
@@ -75,18 +76,21 @@ use std::collections::HashMap;
 /// information change.
 pub const REGULARISATION_FLOOR_REL: f64 = 1e-9;
 
-/// Largest regularisation accepted, relative to max diag D_RR (beyond it: refused): the floor
-/// itself, so a D_RR that is not positive definite at the floor is refused.
+/// Largest regularisation accepted, relative to max diag D_RR (beyond it: refused); δ rises
+/// tenfold from the floor until D_RR + δI is positive definite.
 ///
-/// Why: with D_RR indefinite the Schur complement is no marginalisation (the quadratic form is
-/// unbounded below in x_R), and a regularised one over-claims without a useful bound. Measured
-/// with 1e-2 (escalating tenfold from the floor): `canopy sim` radio-8k had uav2 6.5× more
-/// confident than the centralized reference (median over its features) — a very negative D'
-/// the receiver's estimator refused after both ends booked it, whose compensation then came
-/// twice; refusing D' with λ_min(D') < −1e-3 λ_max(D_SS) fixed that in `canopy sim`, but the
-/// multi-process radio-32k run still had uav4 9.5× over-confident (43 of its 48 sparsified
-/// deltas regularised). At the floor both were sound.
-pub const MAX_REGULARISATION_REL: f64 = 1e-9;
+/// Why 1e-7: since the regularisation is booked (module docs, "Booking") a larger δ no longer
+/// piles up in the residual; it only raises the bounded claim Σ δ. What is left to absorb is
+/// the estimator's own round-off in Y_i (a map information formed from a strongly correlated
+/// covariance): on the default team at 64 kB/s (300 s, `canopy sim`) uav1's delta to uav3 sat
+/// at λ_min ≈ −1.5e-8 of its max diag for most of the run (worst −1.1e-6), refused 163 times
+/// at the floor, and uav2 ended with features 20–28 m off (team map RMSE 1.47× the
+/// reference); with 1e-7 (and 1e-6: the same run to the last digit) nothing was refused and it
+/// was 1.12×. Before the booking, escalating to 1e-2 was unsound (radio-8k uav2 6.5× more
+/// confident than the reference: very negative D' that the receiver's estimator refused after
+/// both ends booked it); that case is refused by [`MAX_NEGATIVE_REL`]. Over 300 rounds the
+/// bound Σ δ stays below 3e-5 of the largest held-back diagonal.
+pub const MAX_REGULARISATION_REL: f64 = 1e-7;
 
 /// Largest information removal accepted from a marginal: λ_min(D') ≥ −`MAX_NEGATIVE_REL` ·
 /// λ_max(D_SS), else refused.
