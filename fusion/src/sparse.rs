@@ -76,8 +76,9 @@ use std::collections::HashMap;
 /// information change.
 pub const REGULARISATION_FLOOR_REL: f64 = 1e-9;
 
-/// Largest regularisation accepted, relative to max diag D_RR (beyond it: refused); δ rises
-/// tenfold from the floor until D_RR + δI is positive definite.
+/// Largest regularisation searched, relative to max diag D_RR (beyond it: refused); δ rises
+/// tenfold from the floor until D_RR + δI is positive definite, then one step more for a
+/// well-conditioned solve (so the δ used is at most ten times this).
 ///
 /// Why 1e-7: since the regularisation is booked (module docs, "Booking") a larger δ no longer
 /// piles up in the residual; it only raises the bounded claim Σ δ. What is left to absorb is
@@ -303,11 +304,19 @@ pub fn schur_marginal_about(
         });
         let max_diag = (0..nr).map(|i| d_rr[(i, i)].abs()).fold(0.0_f64, f64::max);
         regularisation = REGULARISATION_FLOOR_REL * max_diag;
+        let mut margin = false;
         let llt = loop {
             let a = Mat::from_fn(nr, nr, |i, j| {
                 d_rr[(i, j)] + if i == j { regularisation } else { 0.0 }
             });
             match a.as_ref().llt(Side::Lower) {
+                // Escalated: one more step, so that λ_min(D_RR + δI) ≥ 0.9 δ (D_RR + δI/10 was
+                // positive definite) and the solve amplifies d_R's round-off by at most
+                // 1/(0.9 δ), not by 1/(δ − |λ_min(D_RR)|), which may be tiny.
+                Ok(_) if escalated && !margin => {
+                    margin = true;
+                    regularisation *= REGULARISATION_STEP;
+                }
                 Ok(llt) => break llt,
                 Err(faer::linalg::solvers::LltError::NonPositivePivot { index }) => {
                     let feature = r_blocks
