@@ -32,15 +32,15 @@ use procs::{assert_in_band, assert_sound, run, serial, topology};
 const CAPACITY: f64 = 32_000.0;
 /// Queue of each direction [bytes] (the scenario's `queue_bytes`).
 const QUEUE: f64 = 32_000.0;
-/// Largest team map RMSE / reference accepted (pooled final maps). Not the 1.15:
-/// multi-process runs of the committed code (`canopy run topologies/radio-32k.toml` and this
-/// test) gave 1.05, 1.05, 1.13 and 1.48 (`canopy sim`: 1.28). The spread comes from rounds
-/// whose residual block is not positive definite or whose marginal comes out negative: they
-/// are refused (nothing sent, counted in `sparse_refused`), and which link stalls for how long
-/// depends on process scheduling. 2.0 keeps the guard below isolated vehicles (2.15 in
-/// `canopy sim`) and CI on these links (2.90 in `canopy sim`, 3.20–5.63 multi-process), with a
-/// margin of 0.5 over the largest run seen; it also catches a diverged map (a run before the
-/// negative-marginal refusal had uav1's map RMSE at 816 m, 198×).
+/// Largest team map RMSE / reference accepted (pooled final maps). Not the 1.15 (its
+/// bar is for 300 s: `canopy sim` 1.12, `canopy run` 1.11, 1.11, 1.17; docs/benchmarks.md):
+/// this 90 s team is mid-catch-up and its multi-process runs spread with process timing —
+/// 1.16, 1.26, 1.28 on 2026-12-05 with the machine loaded (0.99 idle with an earlier build of
+/// the day; 1.05–1.48 before the regularisation was booked, docs/arch/ddf.md). 2.0 keeps the
+/// guard below isolated vehicles (2.15 in `canopy sim`) and CI on these links (2.90 in
+/// `canopy sim`, 3.20–5.63 multi-process), with a margin of 0.7 over the largest run seen; it
+/// also catches a diverged map (before the negative-marginal refusal uav1's map RMSE was
+/// 816 m, 198×).
 const MAX_MAP_RATIO: f64 = 2.0;
 /// Window over which links.csv's sent bytes are compared with the capacity [s]: ten rounds.
 const WINDOW_S: f64 = 10.0;
