@@ -55,6 +55,18 @@ fn pooled_rmse<'a>(maps: impl IntoIterator<Item = &'a BTreeMap<u64, (f64, f64, f
     (errs.iter().map(|e| e * e).sum::<f64>() / errs.len().max(1) as f64).sqrt()
 }
 
+/// Team map RMSE (every vehicle's final map, pooled) and the centralized reference's [m].
+fn team_and_reference_rmse(r: &procs::Run) -> (f64, f64) {
+    let maps = r.maps();
+    let base = pooled_rmse(maps.get("baseline"));
+    let team = pooled_rmse(
+        maps.iter()
+            .filter(|(k, _)| k.as_str() != "baseline")
+            .map(|(_, m)| m),
+    );
+    (team, base)
+}
+
 #[test]
 fn radio_32k() {
     let _g = serial();
@@ -160,13 +172,7 @@ fn radio_32k() {
     );
 
     // Team map RMSE (every vehicle's final map, pooled) against the centralized reference.
-    let maps = r.maps();
-    let base = pooled_rmse(maps.get("baseline"));
-    let team = pooled_rmse(
-        maps.iter()
-            .filter(|(k, _)| k.as_str() != "baseline")
-            .map(|(_, m)| m),
-    );
+    let (team, base) = team_and_reference_rmse(&r);
     let ratio = team / base;
     // Guard: MAX_MAP_RATIO (see its comment for the measured figures and the margin).
     eprintln!("radio-32k: team map RMSE {team:.2} m, reference {base:.2} m, ratio {ratio:.2}");
@@ -230,13 +236,7 @@ fn radio_range() {
         let rate = e.report.sent_bytes as f64 / r.summary.duration_s;
         assert!(rate <= CAPACITY, "{}->{}: {rate:.0} B/s", e.node, e.peer);
     }
-    let maps = r.maps();
-    let base = pooled_rmse(maps.get("baseline"));
-    let team = pooled_rmse(
-        maps.iter()
-            .filter(|(k, _)| k.as_str() != "baseline")
-            .map(|(_, m)| m),
-    );
+    let (team, base) = team_and_reference_rmse(&r);
     // Printed, not judged: a vehicle that joins late keeps some features of σ 0.1–2 km from
     // the sparsified catch-up (consistent, but they dominate a pooled RMSE; docs/arch/ddf.md).
     eprintln!(
