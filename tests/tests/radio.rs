@@ -27,7 +27,9 @@ use canopy_node::network::node_names;
 use canopy_node::radio::TrueSeparation;
 use canopy_node::scenario::Scenario;
 use canopy_transport::fault::Separation;
-use procs::{assert_in_band, assert_sound, run, serial, topology};
+use procs::{
+    assert_clean_and_never_over_confident, assert_in_band, assert_sound, run, serial, topology,
+};
 
 /// Capacity of each direction of every radio-32k link [bytes/s] (the scenario's `radio`).
 const CAPACITY: f64 = 32_000.0;
@@ -195,9 +197,10 @@ const RANGE_SETTLE_M: f64 = 100.0;
 
 /// radio-range.toml: the links follow the vehicles' true separation (down beyond 1200 m, up
 /// within it), some link goes both down and up during the run, every end stays within the
-/// capacity, the run completes with every process exiting cleanly, and no vehicle is ever more
-/// confident about a feature than the centralized reference. The outage suite's pose checks
-/// are [`radio_range_is_sound`]'s, ignored while they fail (see there).
+/// capacity, and [`procs::assert_clean_and_never_over_confident`] holds (clean processes, no
+/// lost input, no vehicle ever more confident about a feature than the centralized
+/// reference). The outage suite's pose checks are [`radio_range_is_sound`]'s, ignored while
+/// they fail (see there).
 #[test]
 fn radio_range_links_follow_the_separation() {
     let _g = serial();
@@ -205,23 +208,7 @@ fn radio_range_links_follow_the_separation() {
     let s = Scenario::load(&file).expect("loads");
     let r = run(&file, &["--quiet"]);
     r.print_standing("radio-range");
-    assert!(
-        r.checks.failure.is_none(),
-        "run failed: {:?}",
-        r.checks.failure
-    );
-    assert!(!r.checks.interrupted, "run interrupted");
-    for p in &r.checks.processes {
-        assert!(p.clean_exit(), "{} did not exit cleanly", p.name);
-    }
-    let worst = r
-        .checks
-        .max_confidence_ratio
-        .expect("map reports were checked against the reference");
-    assert!(
-        worst <= procs::CONFIDENCE_TOL,
-        "a vehicle is {worst:.3}× more confident about a feature than the reference"
-    );
+    assert_clean_and_never_over_confident(&r);
     let (mut downs, mut ups) = (0, 0);
     for l in &s.links {
         let radio = l.radio.as_ref().expect("every link is a radio");
