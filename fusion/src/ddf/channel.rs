@@ -132,6 +132,10 @@ pub(crate) struct Channel {
     sent: PackedInformation,
     /// Σ δ of the sparsified marginals sent ([`super::ChannelView::sparse_shift`]).
     sparse_shift: f64,
+    /// Σ pad_R(δ I, δ x̄) of the sparsified marginals sent in the current pair, per held-back
+    /// feature: `sent` books D' − pad_R(δ I) while the peer received and booked D', so what
+    /// the peer holds of us is `sent` plus this ([`Self::wire_sent`]).
+    booked_shift: BTreeMap<FeatureId, (f64, Vector3<f64>)>,
     /// R: cumulative information received from the peer and applied in the current pair.
     received: PackedInformation,
     seq_sent: u64,
@@ -279,6 +283,7 @@ impl Channel {
             sync_gen: 0,
             sent: PackedInformation::zero(origin),
             sparse_shift: 0.0,
+            booked_shift: BTreeMap::new(),
             received: PackedInformation::zero(origin),
             seq_sent: 0,
             applied: 0,
@@ -381,6 +386,7 @@ impl Channel {
     fn reset_pair(&mut self, origin: Vector3<f64>) {
         self.pair = Pair::Unpaired;
         self.sent = PackedInformation::zero(origin);
+        self.booked_shift.clear();
         self.set_received(PackedInformation::zero(origin));
         self.seq_sent = 0;
         self.applied = 0;
@@ -414,6 +420,17 @@ impl Channel {
     /// R_total, buffered deltas and a pending Sync baseline; the fact is queued for the peer.
     pub(crate) fn rekey(&mut self, keys: &KeyMap, fact: Merge) {
         self.sent.rekey(keys);
+        if keys.touches(&self.booked_shift.keys().copied().collect::<Vec<_>>()) {
+            let mut merged: BTreeMap<FeatureId, (f64, Vector3<f64>)> = BTreeMap::new();
+            for (id, (a, v)) in std::mem::take(&mut self.booked_shift) {
+                let e = merged
+                    .entry(keys.canonical(id))
+                    .or_insert((0.0, Vector3::zeros()));
+                e.0 += a;
+                e.1 += v;
+            }
+            self.booked_shift = merged;
+        }
         self.received.rekey(keys);
         if let Some(o) = self.total_offset.as_mut() {
             o.rekey(keys);
@@ -536,6 +553,7 @@ impl Channel {
         let total = self.received_total();
         let baseline = total.to_dense();
         self.sent = total;
+        self.booked_shift.clear();
         self.set_received(PackedInformation::zero(ctx.origin));
         self.stats.syncs_initiated += 1;
         self.pair = Pair::Initiating {
@@ -834,6 +852,7 @@ impl Channel {
             }
         };
         self.sent = PackedInformation::zero(ctx.origin);
+        self.booked_shift.clear();
         self.set_received(baseline);
         self.seq_sent = 0;
         self.applied = 0;
@@ -896,11 +915,21 @@ impl Channel {
             self.stats.cumulatives_sent += 1;
             let body = Body::Cumulative {
                 upto: self.seq_sent,
-                info: self.sent.to_dense(),
+                info: self.wire_sent().to_dense(),
             };
             let msg = self.msg(ctx, body);
             out.push(msg);
         }
+    }
+
+    /// What the peer received from us in this pair and booked as R: S plus the shifts booked
+    /// beside the sparsified marginals (they went on the wire as D'). A Cumulative carries it:
+    /// carrying S itself would hand the peer −δ I on held-back features it may not hold
+    /// (refused by its estimator as new features whose information is not positive definite).
+    fn wire_sent(&self) -> PackedInformation {
+        let mut wire = self.sent.clone();
+        wire.add_diagonal(self.booked_shift.iter().map(|(id, (a, v))| (*id, *a, *v)));
+        wire
     }
 
     fn on_cumulative(
@@ -1070,7 +1099,20 @@ impl Channel {
                         // left in Y_i − C_ik is the exact Schur residual, positive
                         // semi-definite, so the regularisation never piles up into an
                         // indefinite residual block that stalls the link.
-                        self.sent.add_diagonal_shift(&shift, -1.0);
+                        let booked = shift
+                            .features
+                            .iter()
+                            .map(|(id, x)| (*id, shift.delta, shift.delta * x));
+                        for (id, a, v) in booked.clone() {
+                            let e = self
+                                .booked_shift
+                                .entry(id)
+                                .or_insert((0.0, Vector3::zeros()));
+                            e.0 += a;
+                            e.1 += v;
+                        }
+                        self.sent
+                            .add_diagonal(booked.map(|(id, a, v)| (id, -a, -v)));
                         self.sparse_shift += shift.delta;
                         d
                     }

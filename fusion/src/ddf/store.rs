@@ -129,16 +129,19 @@ impl PackedInformation {
         Ok(())
     }
 
-    /// self += sign · (δ I, δ x̄) on each listed feature's diagonal block (ids appended when
-    /// new): the shift a regularised sparsified marginal was the exact marginal of
-    /// ([`crate::sparse::Marginal::shift`]).
-    pub(crate) fn add_diagonal_shift(&mut self, shift: &crate::sparse::Shift, sign: f64) {
-        for (id, x) in &shift.features {
-            let k = self.slot(*id);
+    /// Adds `(id, a, v)`: a·I to the feature's diagonal block and v to its vector (ids appended
+    /// when new). The shifts of regularised sparsified marginals
+    /// ([`crate::sparse::Marginal::shift`]: a = ∓δ, v = ∓δ x̄) are booked with it.
+    pub(crate) fn add_diagonal(
+        &mut self,
+        entries: impl IntoIterator<Item = (FeatureId, f64, Vector3<f64>)>,
+    ) {
+        for (id, a, v) in entries {
+            let k = self.slot(id);
             let diag = &mut self.cols[k][BLOCK * k..BLOCK * (k + 1)];
-            for a in 0..FEATURE_DIM {
-                diag[FEATURE_DIM * a + a] += sign * shift.delta;
-                self.vector[FEATURE_DIM * k + a] += sign * shift.delta * x[a];
+            for i in 0..FEATURE_DIM {
+                diag[FEATURE_DIM * i + i] += a;
+                self.vector[FEATURE_DIM * k + i] += v[i];
             }
         }
     }
