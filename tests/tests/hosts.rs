@@ -566,8 +566,9 @@ fn assert_converged(r: &procs::Run, label: &str) {
         assert!(s.coverage >= 0.8, "{name}: coverage {:.2}", s.coverage);
         assert!(
             (s.share - 1.0).abs() <= 0.05,
-            "{name}: information share {:.2}",
-            s.share
+            "{name}: information share {:.2}\n{}",
+            s.share,
+            r.diagnosis(&name)
         );
     }
 }

@@ -43,8 +43,9 @@ fn central_4_runs_with_a_hub() {
         assert!(s.coverage >= 0.8, "{name}: coverage {:.2}", s.coverage);
         assert!(
             (s.share - 1.0).abs() <= 0.05,
-            "{name}: share {:.2}",
-            s.share
+            "{name}: share {:.2}\n{}",
+            s.share,
+            r.diagnosis(&name)
         );
     }
 }

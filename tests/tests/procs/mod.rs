@@ -198,6 +198,31 @@ impl Run {
         standing
     }
 
+    /// What a failed check on `vehicle` prints besides its figures: its counters and
+    /// rejections per incarnation, its last map reports (time, features) and the channel of
+    /// every link end it has, in both directions — enough to tell a lost map report, a
+    /// refused fusion, a resynchronisation or a stalled link apart from a test's tolerance.
+    pub fn diagnosis(&self, vehicle: &str) -> String {
+        let mut out = String::new();
+        if let Some(v) = self.checks.vehicles.iter().find(|v| v.name == vehicle) {
+            let tail = v.map_sizes.len().saturating_sub(6);
+            out += &format!(
+                "{vehicle}: last estimate report {} s, map reports (t, features) …{:?}\n",
+                v.last_report_t,
+                &v.map_sizes[tail..]
+            );
+            for (i, c) in v.counters.iter().enumerate() {
+                out += &format!("  incarnation {i}: {c:?}\n");
+            }
+        }
+        for l in &self.checks.link_ends {
+            if l.node == vehicle || l.peer == vehicle {
+                out += &format!("  {}->{}: {:?}\n", l.node, l.peer, l.report);
+            }
+        }
+        out
+    }
+
     /// `up` of one link in links.csv over time: (t, up).
     pub fn link_up(&self, link: &str) -> Vec<(f64, bool)> {
         self.csv("links.csv")
