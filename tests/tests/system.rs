@@ -14,8 +14,9 @@ use procs::{assert_sound, canopy_bin, run, serial, topology};
 /// sound (no panic, clean exits, the confidence bound at every map report, NEES), the hub and
 /// every vehicle exit cleanly, every vehicle fused the hub's feedback, and the vehicles end
 /// holding the team map (coverage ≥ 0.8: features first seen in the last round or two have not
-/// been fed back yet; share within 0.05 of the reference: the hub's sum is the centralized
-/// information up to linearisation).
+/// been fed back yet; the information share the run's timing allows, `procs::assert_holds_the_team_map`:
+/// the hub's sum is the centralized information up to linearisation, less what is still on its
+/// way at the end).
 #[test]
 fn central_4_runs_with_a_hub() {
     let _g = serial();
@@ -39,15 +40,7 @@ fn central_4_runs_with_a_hub() {
             v.name
         );
     }
-    for (name, s) in r.print_standing(&r.summary.scenario) {
-        assert!(s.coverage >= 0.8, "{name}: coverage {:.2}", s.coverage);
-        assert!(
-            (s.share - 1.0).abs() <= 0.05,
-            "{name}: share {:.2}\n{}",
-            s.share,
-            r.diagnosis(&name)
-        );
-    }
+    procs::assert_holds_the_team_map(&r, &r.summary.scenario, 0.8);
 }
 
 /// central-4.toml over its full 300 s: the hub keeps pace with the team to the end. The world
@@ -245,8 +238,8 @@ fn ctrl_c_stops_every_process_and_writes_the_outputs() {
 /// validated, but the per-host launch is not built — docs/arch/deploy.md), for 30 s. The run is
 /// sound, both cross-"host" links are zenoh (`net`) and carried fusion traffic both ways on
 /// every end with no rejection, and the team converges as in the netns test (coverage ≥ 0.8:
-/// features first seen in the last rounds have not crossed the tree yet; share within 0.05 of
-/// the reference's information: linearisation differences only).
+/// features first seen in the last rounds have not crossed the tree yet; the information share
+/// the run's timing allows, `procs::assert_holds_the_team_map`).
 #[test]
 fn two_hosts_example_runs_on_one_machine() {
     let _g = serial();
@@ -282,14 +275,7 @@ fn two_hosts_example_runs_on_one_machine() {
         );
         assert_eq!(end.report.rejected_transport, 0, "{node}->{peer}");
     }
-    for (name, s) in r.print_standing(&r.summary.scenario) {
-        assert!(s.coverage >= 0.8, "{name}: coverage {:.2}", s.coverage);
-        assert!(
-            (s.share - 1.0).abs() <= 0.05,
-            "{name}: information share {:.2}",
-            s.share
-        );
-    }
+    procs::assert_holds_the_team_map(&r, &r.summary.scenario, 0.8);
 }
 
 /// local-4.toml (local SLAM, every vehicle in its own frame) for 200 s as real processes: the
