@@ -13,9 +13,9 @@
 use canopy_fusion::ci::{CiCriterion, Submap};
 use canopy_fusion::ddf::{
     Body, DdfConfig, DdfError, DdfMessage, DdfNode, FuseRejected, FuseTarget, InformationStore,
-    Mode, Outgoing,
+    MapSource, Mode, Outgoing,
 };
-use canopy_fusion::info::MapInformation;
+use canopy_fusion::info::{InfoError, MapInformation, MapMarginal};
 use canopy_fusion::keys::{KeyMap, Merge};
 use canopy_fusion::sensor::{FeatureId, ImuSample, ObservationFrame};
 use canopy_fusion::slam::{
@@ -172,8 +172,13 @@ pub fn variant_key(debug: &str) -> String {
 /// Received deltas are batched: they are summed (information adds, aligned by id) and fused into
 /// the EKF in one go before the next round reads the map information, so a round costs one
 /// fusion whatever the number of neighbours. The DDF validated each delta (finite, symmetric,
-/// right origin) before handing it over; a batch the EKF then refuses (a non positive definite
-/// result) is dropped and counted: information lost, never counted twice.
+/// right origin) before handing it over and its channels booked it as received. A batch the
+/// EKF then refuses (a non positive definite result) is kept and tried again at the next round
+/// with what arrived meanwhile (information on a new feature may come in parts), at most
+/// [`MAX_FUSE_ATTEMPTS`] times; meanwhile the channels read the estimate as the filter's map
+/// information plus the batch ([`WithHeldBatch`]), because a delta formed without it would take
+/// it back from its sender (d = Y_i − S − R, R holding the batch). After the last attempt it is
+/// dropped and counted: information lost, never counted twice.
 ///
 /// Submaps of CI links and adopted key merges wait for the round the same way, in arrival order
 /// (a submap the EKF then refuses is counted in `ci_refused`; it was acknowledged on arrival).
@@ -181,12 +186,19 @@ struct EkfTarget<'a> {
     pending: &'a mut Pending,
 }
 
+/// Rounds a refused batch is tried before it is dropped ([`EkfTarget`]): the first refusal
+/// and two retries with what arrives in the next two rounds.
+pub const MAX_FUSE_ATTEMPTS: u32 = 3;
+
 /// What a vehicle received since its last round.
 #[derive(Debug, Default)]
 struct Pending {
     /// Sum of the received deltas.
     sum: Option<MapInformation>,
     count: u64,
+    /// Rounds in a row the estimator refused `sum` (kept for a retry while below
+    /// [`MAX_FUSE_ATTEMPTS`]).
+    refused_rounds: u32,
     /// Submaps of CI links, in arrival order.
     submaps: Vec<(Submap, CiCriterion)>,
     /// Key merges adopted by the DDF node, in order.
@@ -219,6 +231,39 @@ impl FuseTarget for EkfTarget<'_> {
 
     fn describe(&mut self, features: &[(FeatureId, canopy_fusion::sensor::Appearance)]) {
         self.pending.described.extend_from_slice(features);
+    }
+}
+
+/// The estimate as the channels see it while a refused batch waits for its retry
+/// ([`EkfTarget`]): the filter's map information plus the batch, which the channels booked as
+/// received. The filter keeps its maintained Y (a copy is handed out: rare).
+struct WithHeldBatch<'a> {
+    filter: &'a mut SlamFilter,
+    held: &'a MapInformation,
+}
+
+impl MapSource for WithHeldBatch<'_> {
+    fn information(&mut self) -> Result<MapInformation, InfoError> {
+        let y = self.filter.information()?;
+        let mut with_held = y.clone();
+        self.filter.restore_information(y);
+        with_held.add_assign(self.held)?;
+        Ok(with_held)
+    }
+
+    fn feature_covariances(&self) -> Vec<(FeatureId, Matrix3<f64>)> {
+        self.filter.feature_covariances()
+    }
+
+    fn marginal(&self, ids: &[FeatureId]) -> MapMarginal {
+        self.filter.marginal(ids)
+    }
+
+    fn descriptors(
+        &self,
+        ids: &[FeatureId],
+    ) -> Vec<(FeatureId, canopy_fusion::sensor::Appearance)> {
+        self.filter.descriptors(ids)
     }
 }
 
@@ -591,20 +636,48 @@ impl VehicleFusion {
         if !described.is_empty() {
             FuseTarget::describe(filter, &described);
         }
-        if let Some(sum) = self.pending.sum.take() {
-            let n = std::mem::take(&mut self.pending.count);
+        if let Some(mut sum) = self.pending.sum.take() {
+            // A batch kept from an earlier round may name features merged since.
+            if self.pending.refused_rounds > 0
+                && let Some(ddf) = self.ddf.as_ref()
+                && ddf.keys().touches(&sum.ids)
+            {
+                sum = sum.rekeyed(ddf.keys());
+            }
             // Features whose information the batch cancels exactly (a resynchronisation after a
             // neighbour restarted) are removed, not refused
             // (`SlamFilter::fuse_map_information_forgetting`).
             // By value: the batch is fused in its own buffer (k × k less at the round's peak).
             match filter.fuse_map_information_forgetting_owned(sum) {
                 Ok(r) => {
-                    self.counters.fused += n;
+                    self.counters.fused += std::mem::take(&mut self.pending.count);
                     self.counters.features_forgotten += r.forgotten.len() as u64;
+                    self.pending.refused_rounds = 0;
                 }
-                Err(e) => {
-                    self.counters.fuse_refused += n;
-                    self.reject("fuse", &e, n, &e);
+                Err(refused) => {
+                    let (e, back) = *refused;
+                    self.pending.refused_rounds += 1;
+                    match back {
+                        Some(batch) if self.pending.refused_rounds < MAX_FUSE_ATTEMPTS => {
+                            let cause = format!(
+                                "{e}; kept for attempt {} of {MAX_FUSE_ATTEMPTS} with what \
+                                 arrives meanwhile",
+                                self.pending.refused_rounds + 1
+                            );
+                            self.reject("fuse_retry", &e, 1, &cause);
+                            self.pending.sum = Some(batch);
+                        }
+                        _ => {
+                            let n = std::mem::take(&mut self.pending.count);
+                            self.counters.fuse_refused += n;
+                            self.pending.refused_rounds = 0;
+                            let cause = format!(
+                                "{e}; {n} deltas dropped after {MAX_FUSE_ATTEMPTS} attempts \
+                                 (their information is lost to this vehicle)"
+                            );
+                            self.reject("fuse", &e, n, &cause);
+                        }
+                    }
                 }
             }
         }
@@ -706,12 +779,14 @@ impl VehicleFusion {
             }
         }
         // The DDF reads Y only if an exact link sends a delta, and covariance blocks for CI
-        // links.
-        let out = self
-            .ddf
-            .as_mut()
-            .expect("checked above")
-            .on_round(now, filter);
+        // links; with a refused batch kept for a retry, Y plus that batch.
+        let ddf = self.ddf.as_mut().expect("checked above");
+        let out = match self.pending.sum.as_ref() {
+            Some(held) if self.pending.refused_rounds > 0 => {
+                ddf.on_round(now, &mut WithHeldBatch { filter, held })
+            }
+            _ => ddf.on_round(now, filter),
+        };
         match out {
             Ok(out) => {
                 let mut messages = out.messages;
@@ -1538,5 +1613,232 @@ mod rejection_tests {
         ];
         let got: Vec<(&str, u64)> = r.counts.iter().map(|(k, v)| (k.as_str(), *v)).collect();
         assert_eq!(got, want);
+    }
+}
+
+#[cfg(test)]
+mod held_batch_tests {
+    use super::*;
+
+    const F: FeatureId = 7_001;
+    const G: FeatureId = 7_002;
+
+    /// Node 1 is a vehicle (`VehicleFusion` over a real `SlamFilter`), node 2 a bare DDF node
+    /// whose estimate is an information accumulator the test writes into: it can send what no
+    /// EKF would, a new feature whose information is indefinite.
+    struct Pair {
+        fusion: VehicleFusion,
+        filter: SlamFilter,
+        peer: DdfNode,
+        peer_estimate: MapInformation,
+        now: f64,
+        /// Deltas node 1 sent node 2.
+        sent_to_peer: Vec<MapInformation>,
+    }
+
+    impl Pair {
+        fn new() -> Self {
+            let s = crate::scenario::Scenario::builtin_default();
+            let (world, sources) = crate::replay::SensorSource::for_scenario(&s).unwrap();
+            let est = sources[0].initial_estimate();
+            let filter = crate::sim::vehicle_agent(&s, &s.vehicles[0], &world, &est, 0, 7)
+                .unwrap()
+                .into_parts()
+                .0
+                .filter()
+                .clone();
+            let origin = filter.origin();
+            let topo = Topology::tree([NodeId(1), NodeId(2)], [(NodeId(1), NodeId(2))]).unwrap();
+            let cfg = DdfConfig::default();
+            let fusion = VehicleFusion::new(
+                NodeId(1),
+                11,
+                origin,
+                Mode::Decentralized,
+                &topo,
+                cfg.clone(),
+                &[],
+            )
+            .unwrap();
+            let peer =
+                DdfNode::for_mode(Mode::Decentralized, NodeId(2), 22, &topo, origin, cfg).unwrap();
+            let mut pair = Pair {
+                fusion,
+                filter,
+                peer,
+                peer_estimate: MapInformation::zero(origin),
+                now: 0.0,
+                sent_to_peer: Vec::new(),
+            };
+            let out = pair.fusion.on_link_up(0.0, NodeId(2)).unwrap();
+            pair.deliver_to_peer(out);
+            let out = pair.peer.on_link_up(0.0, NodeId(1)).unwrap();
+            pair.deliver_to_vehicle(out);
+            for _ in 0..5 {
+                pair.round();
+            }
+            assert!(
+                pair.peer.channel(NodeId(1)).unwrap().synced,
+                "the pair did not synchronise"
+            );
+            pair
+        }
+
+        fn deliver_to_peer(&mut self, out: Vec<Outgoing>) {
+            let mut queue = out;
+            while !queue.is_empty() {
+                let mut back = Vec::new();
+                for o in queue {
+                    if let Body::Delta { info, .. } = &o.message.body {
+                        self.sent_to_peer.push(info.clone());
+                    }
+                    back.extend(
+                        self.peer
+                            .on_message(self.now, NodeId(1), o.message, &mut self.peer_estimate)
+                            .unwrap(),
+                    );
+                }
+                queue = Vec::new();
+                for o in back {
+                    queue.extend(
+                        self.fusion
+                            .on_message(self.now, NodeId(2), o.message)
+                            .unwrap(),
+                    );
+                }
+            }
+        }
+
+        fn deliver_to_vehicle(&mut self, out: Vec<Outgoing>) {
+            let mut replies = Vec::new();
+            for o in out {
+                replies.extend(
+                    self.fusion
+                        .on_message(self.now, NodeId(2), o.message)
+                        .unwrap(),
+                );
+            }
+            self.deliver_to_peer(replies);
+        }
+
+        /// One round at both ends (the peer first: what it sends is fused at the vehicle's).
+        fn round(&mut self) {
+            self.now += 1.0;
+            let out = self
+                .peer
+                .on_round(self.now, &mut self.peer_estimate)
+                .unwrap()
+                .messages;
+            self.deliver_to_vehicle(out);
+            let out = self.fusion.round(&mut self.filter, self.now).unwrap();
+            self.deliver_to_peer(out);
+        }
+
+        /// The peer's estimate gains `diag` on `id`'s diagonal block (and the matching vector
+        /// for a feature at `at`, origin-relative).
+        fn peer_gains(&mut self, id: FeatureId, diag: [f64; 3], at: Vector3<f64>) {
+            let m = Matrix3::from_diagonal(&Vector3::from(diag));
+            let v = m * at;
+            let origin = self.peer_estimate.origin;
+            self.peer_estimate
+                .add_assign(&MapInformation {
+                    ids: vec![id],
+                    origin,
+                    matrix: faer::Mat::from_fn(3, 3, |i, j| m[(i, j)]),
+                    vector: faer::Col::from_fn(3, |i| v[i]),
+                })
+                .unwrap();
+        }
+
+        fn retries(&self) -> u64 {
+            self.fusion
+                .rejections()
+                .counts
+                .iter()
+                .filter(|(k, _)| k.starts_with("fusion.fuse_retry."))
+                .map(|(_, n)| n)
+                .sum()
+        }
+    }
+
+    /// A batch the EKF refuses is kept and fused when the rest of its information arrives, and
+    /// meanwhile the vehicle's deltas do not take it back from its sender: the peer sends a new
+    /// feature with information diag(1, 1, −0.5) (indefinite: refused), then diag(0, 0, 1); the
+    /// vehicle fuses the sum diag(1, 1, 0.5) one round later (covariance diag(1, 1, 2), a
+    /// closed form), nothing is counted lost, and no delta it sent carried the feature.
+    /// Dropped before (the design until 2026-12-05), the batch was lost and the next delta
+    /// carried −diag(1, 1, −0.5) back to the peer.
+    #[test]
+    fn a_refused_batch_is_retried_and_not_taken_back_from_its_sender() {
+        let mut p = Pair::new();
+        let at = Vector3::new(40.0, -25.0, 3.0);
+        p.peer_gains(F, [1.0, 1.0, -0.5], at);
+        p.round();
+        assert_eq!(p.retries(), 1, "{:?}", p.fusion.rejections().counts);
+        assert_eq!(p.fusion.counters().fuse_refused, 0);
+        assert!(
+            p.filter.feature(F).is_none(),
+            "an indefinite batch was fused"
+        );
+        p.peer_gains(F, [0.0, 0.0, 1.0], at);
+        p.round();
+        assert!(
+            p.filter.feature(F).is_some(),
+            "the completed batch was not fused"
+        );
+        assert_eq!(p.fusion.counters().fuse_refused, 0);
+        assert_eq!(p.retries(), 1);
+        let m = p.filter.marginal(&[F]);
+        let at_abs = p.filter.origin() + at;
+        for (i, want) in [1.0, 1.0, 2.0].into_iter().enumerate() {
+            // 1e-9: the inversion of a 3 × 3 block beside a vehicle block it is not coupled to.
+            assert!(
+                (m.covariance[(i, i)] - want).abs() < 1e-9,
+                "σ²[{i}] = {} (want {want})",
+                m.covariance[(i, i)]
+            );
+            // 1e-6 m: coordinates of ~6e6 m (the marginal's mean is absolute).
+            assert!((m.mean[i] - at_abs[i]).abs() < 1e-6, "mean {:?}", m.mean);
+        }
+        for d in &p.sent_to_peer {
+            if let Some(k) = d.ids.iter().position(|&id| id == F) {
+                let block_max = (0..3)
+                    .flat_map(|i| (0..3).map(move |j| (i, j)))
+                    .map(|(i, j)| d.matrix[(3 * k + i, 3 * k + j)].abs())
+                    .fold(0.0, f64::max);
+                assert!(block_max < 1e-9, "a delta carried F back: {block_max:.3e}");
+            }
+        }
+    }
+
+    /// A batch that stays refused is dropped after [`MAX_FUSE_ATTEMPTS`] rounds, counted in
+    /// `fuse_refused` (per delta) and under `fusion.fuse.<reason>` with its cause, and fusion
+    /// goes on: a later, positive definite feature is fused.
+    #[test]
+    fn a_batch_refused_at_every_attempt_is_dropped_and_counted() {
+        let mut p = Pair::new();
+        let at = Vector3::new(-30.0, 10.0, 2.0);
+        p.peer_gains(G, [1.0, -1.0, 1.0], at);
+        for _ in 0..MAX_FUSE_ATTEMPTS {
+            p.round();
+        }
+        assert_eq!(p.fusion.counters().fuse_refused, 1);
+        assert_eq!(p.retries(), u64::from(MAX_FUSE_ATTEMPTS - 1));
+        assert_eq!(
+            p.fusion
+                .rejections()
+                .counts
+                .get("fusion.fuse.not_positive_definite"),
+            Some(&1),
+            "{:?}",
+            p.fusion.rejections().counts
+        );
+        assert!(p.filter.feature(G).is_none());
+        p.peer_gains(F, [2.0, 2.0, 2.0], at);
+        p.round();
+        assert!(
+            p.filter.feature(F).is_some(),
+            "fusion stopped after a dropped batch"
+        );
     }
 }

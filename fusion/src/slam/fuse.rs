@@ -886,14 +886,16 @@ impl SlamFilter {
         delta: &MapInformation,
     ) -> Result<ForgetReport, SlamError> {
         self.fuse_map_information_forgetting_owned(delta.clone())
+            .map_err(|r| r.0)
     }
 
     /// [`SlamFilter::fuse_map_information_forgetting`] taking the delta by value (see
-    /// [`SlamFilter::fuse_map_information_owned`]).
+    /// [`SlamFilter::fuse_map_information_owned`]); a refusal that changed nothing gives the
+    /// delta back (the caller may retry it with what arrives meanwhile).
     pub fn fuse_map_information_forgetting_owned(
         &mut self,
         delta: MapInformation,
-    ) -> Result<ForgetReport, SlamError> {
+    ) -> Result<ForgetReport, Refused> {
         let (err, delta) = match self.fuse_map_information_owned(delta) {
             Ok(fused) => {
                 return Ok(ForgetReport {
@@ -903,10 +905,13 @@ impl SlamFilter {
             }
             Err(r) => match *r {
                 (e @ SlamError::NotPositiveDefinite(_), Some(delta)) => (e, delta),
-                (e, _) => return Err(e),
+                other => return Err(Box::new(other)),
             },
         };
-        let y = self.map_information()?;
+        let y = match self.map_information() {
+            Ok(y) => y,
+            Err(e) => return Err(Box::new((e, Some(delta)))),
+        };
         let scale = y.matrix_norm_max().max(delta.matrix_norm_max());
         let mut vanished = HashSet::new();
         for (b, &id) in delta.ids.iter().enumerate() {
@@ -924,7 +929,7 @@ impl SlamFilter {
             }
         }
         if vanished.is_empty() {
-            return Err(err);
+            return Err(Box::new((err, Some(delta))));
         }
         // ΔY with the vanished features' own blocks zeroed (known ones) or removed (new ones).
         let keep: Vec<FeatureId> = delta
@@ -952,7 +957,9 @@ impl SlamFilter {
             .copied()
             .filter(|id| vanished.contains(id) && !self.layout.has_feature(*id))
             .collect();
-        let fused = self.fuse_map_information_owned(reduced).map_err(|r| r.0)?;
+        let fused = self
+            .fuse_map_information_owned(reduced)
+            .map_err(|r| Box::new((r.0, None)))?;
         self.forget_features(&forgotten);
         Ok(ForgetReport {
             fused,
