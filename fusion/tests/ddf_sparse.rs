@@ -193,12 +193,7 @@ fn library_network(topology: fn() -> Topology, budget: Option<usize>, seed: u64)
         }
         // Lift the budget: the residuals go out, exact again.
         for &(a, b) in &links {
-            sim.nodes
-                .get_mut(&a)
-                .unwrap()
-                .ddf
-                .set_link_budget(b, None)
-                .unwrap();
+            lift_budget(&mut sim, a, b);
         }
         for _ in 0..diameter + 1 {
             sim.round();
@@ -316,6 +311,16 @@ fn sum_observation(feats: &[(FeatureId, Vector3<f64>)], rng: &mut ChaCha8Rng) ->
         matrix: faer::Mat::from_fn(n, n, |i, j| if i % 3 == j % 3 { 1.0 / sigma2 } else { 0.0 }),
         vector: faer::Col::from_fn(n, |i| z[i % 3] / sigma2),
     }
+}
+
+/// Lifts the byte budget of `a`'s link to `b`: its deltas go out whole again.
+fn lift_budget(sim: &mut Sim, a: NodeId, b: NodeId) {
+    sim.nodes
+        .get_mut(&a)
+        .unwrap()
+        .ddf
+        .set_link_budget(b, None)
+        .unwrap();
 }
 
 fn fmt(v: &[f64]) -> String {
@@ -550,12 +555,7 @@ fn a_cumulative_on_a_sparsified_link_carries_what_the_peer_received() {
     );
     assert!(sparsified >= 10, "only {sparsified} deltas were sparsified");
     sim.faults.loss = 0.0;
-    sim.nodes
-        .get_mut(&a)
-        .unwrap()
-        .ddf
-        .set_link_budget(b, None)
-        .unwrap();
+    lift_budget(&mut sim, a, b);
     for round in 0..6 {
         sim.round();
         check_node_1(&sim, &format!("lifted round {round}"));

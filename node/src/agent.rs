@@ -600,8 +600,10 @@ impl VehicleFusion {
         }
     }
 
-    /// The failures on the fusion path, by reason: `fusion.fuse.<error>` (a batch of deltas
-    /// the estimator refused, counted per delta), `fusion.merge.<error>`, `fusion.ci.<error>`,
+    /// The failures on the fusion path, by reason: `fusion.fuse_retry.<error>` (a batch of
+    /// deltas the estimator refused, kept for the next round; per refusal),
+    /// `fusion.fuse.<error>` (a batch dropped after [`MAX_FUSE_ATTEMPTS`] refusals, counted
+    /// per delta), `fusion.merge.<error>`, `fusion.ci.<error>`,
     /// `fusion.round.<error>`, `fusion.message.<error>` (a received message rejected) and
     /// `fusion.link_up.<error>`.
     pub fn rejections(&self) -> &Rejections {
