@@ -17,7 +17,7 @@
 //! reported down exactly while its vehicles are out of range, within its capacity, and no
 //! vehicle is more confident about a feature than the reference; the outage suite's full
 //! consistency checks are an ignored test while a late-joining vehicle fails them in about
-//! three runs of ten (issue 13, open).
+//! one run of ten (issue 13, open).
 
 mod procs;
 

@@ -421,13 +421,9 @@ impl Channel {
     pub(crate) fn rekey(&mut self, keys: &KeyMap, fact: Merge) {
         self.sent.rekey(keys);
         if keys.touches(&self.booked_shift.keys().copied().collect::<Vec<_>>()) {
-            let mut merged: BTreeMap<FeatureId, (f64, Vector3<f64>)> = BTreeMap::new();
+            let mut merged = BTreeMap::new();
             for (id, (a, v)) in std::mem::take(&mut self.booked_shift) {
-                let e = merged
-                    .entry(keys.canonical(id))
-                    .or_insert((0.0, Vector3::zeros()));
-                e.0 += a;
-                e.1 += v;
+                book_shift(&mut merged, keys.canonical(id), a, v);
             }
             self.booked_shift = merged;
         }
@@ -1104,12 +1100,7 @@ impl Channel {
                             .iter()
                             .map(|(id, x)| (*id, shift.delta, shift.delta * x));
                         for (id, a, v) in booked.clone() {
-                            let e = self
-                                .booked_shift
-                                .entry(id)
-                                .or_insert((0.0, Vector3::zeros()));
-                            e.0 += a;
-                            e.1 += v;
+                            book_shift(&mut self.booked_shift, id, a, v);
                         }
                         self.sent
                             .add_diagonal(booked.map(|(id, a, v)| (id, -a, -v)));
@@ -1333,4 +1324,16 @@ impl Channel {
             }
         }
     }
+}
+
+/// Adds (a, v) to `id`'s entry of a channel's booked shifts ([`Channel::wire_sent`]).
+fn book_shift(
+    book: &mut BTreeMap<FeatureId, (f64, Vector3<f64>)>,
+    id: FeatureId,
+    a: f64,
+    v: Vector3<f64>,
+) {
+    let e = book.entry(id).or_insert((0.0, Vector3::zeros()));
+    e.0 += a;
+    e.1 += v;
 }
