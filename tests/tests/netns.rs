@@ -6,8 +6,8 @@
 //!
 //! Layout (uav3 stays in the launcher's namespace; the world and monitor processes reach every
 //! vehicle over iceoryx2 shared memory, which is not network-namespaced: `ip netns exec` only
-//! changes the network namespace and remounts /sys, /dev/shm and /tmp/iceoryx2 — the service
-//! files and the event sockets, bound to file-system paths — stay shared):
+//! changes the network namespace and remounts /sys; /dev/shm, which holds iceoryx2's segments
+//! and, under /dev/shm/iceoryx2, its service files and path-bound event sockets, stays shared):
 //!
 //! ```text
 //!   netns A           netns B

@@ -138,6 +138,9 @@ fn iox_config(prefix: &str) -> Result<Config, LinkError> {
     let mut cfg = Config::default();
     cfg.global.prefix = FileName::new(format!("{prefix}_").as_bytes())
         .map_err(|e| LinkError::Config(format!("iceoryx2 prefix: {e:?}")))?;
+    if let Some(root) = tmpfs_root() {
+        cfg.global.set_root_path(root);
+    }
     // Dead nodes are cleaned once per process and prefix (`create_node`), not on every node
     // creation and service open: each of those lists every node of the run and parses its
     // details file, which made starting a team O(nodes²) (6 listings per link).
@@ -145,6 +148,23 @@ fn iox_config(prefix: &str) -> Result<Config, LinkError> {
     cfg.global.node.cleanup_dead_nodes_on_destruction = false;
     cfg.global.service.cleanup_dead_nodes_on_open = false;
     Ok(cfg)
+}
+
+/// Where iceoryx2 keeps its node and service files: `/dev/shm/iceoryx2/` (tmpfs, beside the
+/// shared-memory segments themselves) where `/dev/shm` is a directory, else iceoryx2's default
+/// (`/tmp/iceoryx2/` on Linux). Starting a team creates a few files per link end (node details,
+/// monitor, static service configs, event sockets); on an ext4 `/tmp` that had seen many files
+/// come and go, inode allocation (`ext4_create` → `recently_deleted`) took ≈ 0.7 s of CPU to
+/// start 24 vehicles (docs/benchmarks.md). Every process of a host derives the same root.
+fn tmpfs_root() -> Option<&'static Path> {
+    static ROOT: std::sync::OnceLock<Option<Path>> = std::sync::OnceLock::new();
+    ROOT.get_or_init(|| {
+        std::path::Path::new("/dev/shm")
+            .is_dir()
+            .then(|| Path::new(b"/dev/shm/iceoryx2/").ok())
+            .flatten()
+    })
+    .as_ref()
 }
 
 /// Run prefixes whose dead nodes this process has cleaned ([`create_node`]).
