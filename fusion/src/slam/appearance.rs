@@ -10,11 +10,14 @@
 use crate::sensor::{Appearance, FeatureId, hamming};
 use std::collections::HashMap;
 
-/// Counts of set bits over the descriptors a feature was seen with.
+/// Counts of set bits over the descriptors a feature was seen with, and their bitwise majority
+/// (kept current by [`Vote::add`] and [`Vote::absorb`]: it is read for every feature at every
+/// fusion round and correspondence step, far more often than a vote changes).
 #[derive(Clone, Debug)]
 pub(super) struct Vote {
     counts: [u16; 256],
     n: u16,
+    major: Appearance,
 }
 
 impl Vote {
@@ -22,6 +25,7 @@ impl Vote {
         Self {
             counts: [0; 256],
             n: 0,
+            major: [0; 4],
         }
     }
 
@@ -39,6 +43,7 @@ impl Vote {
                 *c += 1;
             }
         }
+        self.major = self.majority();
     }
 
     fn absorb(&mut self, other: &Vote) {
@@ -46,6 +51,7 @@ impl Vote {
             *c = c.saturating_add(*o);
         }
         self.n = self.n.saturating_add(other.n);
+        self.major = self.majority();
     }
 
     /// Bitwise majority (ties: set).
@@ -75,7 +81,12 @@ pub(super) struct AppearanceBook {
 impl AppearanceBook {
     /// What feature `f` looks like, if known.
     pub(super) fn of(&self, f: FeatureId) -> Option<Appearance> {
-        self.features.get(&f).map(Vote::majority)
+        self.features.get(&f).map(|v| v.major)
+    }
+
+    /// Whether feature `f` has a known appearance.
+    pub(super) fn knows(&self, f: FeatureId) -> bool {
+        self.features.contains_key(&f)
     }
 
     /// Hamming distance between an observation's descriptor and feature `f`'s (`None` when

@@ -266,7 +266,7 @@ impl SlamFilter {
         }
         self.layout
             .features()
-            .filter(|&(id, _)| self.appearance.of(id).is_none())
+            .filter(|&(id, _)| !self.appearance.knows(id))
             .map(|(id, _)| id)
             .collect()
     }
