@@ -1851,3 +1851,63 @@ fn fusing_by_value_equals_fusing_by_reference() {
     assert_eq!(col_to_dense(&back.vector), col_to_dense(&expect.vector));
     assert_eq!((col_to_dense(&f.x), to_dense(&f.p)), before);
 }
+
+/// A batch that misses a few of the map's features (the vehicle's own newest ones, which no
+/// neighbour holds yet) is fused as a whole-map delta with zero information on them
+/// (`padded_to_map`): the result equals the dense information-form reference (an independent
+/// nalgebra inverse of the joint information plus ΔY), the maintained map information equals
+/// a dense inverse of the fused P_mm, and the route taken is the map route over the whole
+/// map. With and without new features in the batch, and in a shuffled order.
+#[test]
+fn a_batch_missing_a_few_features_is_fused_as_a_whole_map_delta() {
+    let mut rng = ChaCha8Rng::seed_from_u64(33);
+    for (trial, new_features) in [0u64, 2, 0, 3].into_iter().enumerate() {
+        let mut f = random_local_filter(40, &mut rng);
+        f.map_information().unwrap();
+        assert!(f.info_cache_current());
+        // Two features missing (40 ≥ 16 × 2), the rest in a shuffled order, then new ones.
+        let mut ids: Vec<FeatureId> = (100..140).filter(|id| *id != 107 && *id != 131).collect();
+        for i in (1..ids.len()).rev() {
+            ids.swap(i, rng.random_range(0..=i));
+        }
+        ids.extend((0..new_features).map(|j| 900 + j));
+        let k = 3 * ids.len();
+        let y = if trial % 2 == 0 {
+            random_spd(k, 1.0, &mut rng)
+        } else {
+            // Low rank on the known features, positive definite on the new ones.
+            let u = DMatrix::from_fn(k, 12, |_, _| rng.random::<f64>() - 0.5);
+            let mut y = &u * u.transpose();
+            for i in k - 3 * new_features as usize..k {
+                y[(i, i)] += 1.0;
+            }
+            y
+        };
+        let target = DVector::from_fn(k, |_, _| rng.random_range(-30.0..30.0));
+        let d = delta(ids, y, &target, f.origin());
+        let (x_ref, p_ref) = dense_fusion_reference(&f, &d);
+        let rep = f.fuse_map_information(&d).unwrap();
+        assert_eq!(rep.method, FuseMethod::MapInformation, "trial {trial}");
+        // Counted over the padded delta: every map feature.
+        assert_eq!(
+            rep.known_features, 40,
+            "trial {trial}: not fused as a whole-map delta"
+        );
+        assert_eq!(rep.new_features.len(), new_features as usize);
+        // ≤ 140 states, κ ≲ 1e3: 1e-8 relative covers the dense inverses' round-off (as in
+        // `randomized_fusions_match_the_dense_information_form`).
+        let p = to_dense(&f.p);
+        let x = col_to_dense(&f.x);
+        let ep = (&p - &p_ref).abs().max() / p_ref.abs().max();
+        let ex = (&x - &x_ref).abs().max() / x_ref.abs().max();
+        assert!(ep < 1e-8 && ex < 1e-8, "trial {trial}: P {ep:e}, x {ex:e}");
+        assert!(
+            f.info_cache_current(),
+            "trial {trial}: map information not kept"
+        );
+        let (_, y_dense, _) = marginal_information(&f);
+        let c = to_dense(f.info_cache.y.as_ref().unwrap());
+        let ey = (&c - &y_dense).abs().max() / y_dense.abs().max();
+        assert!(ey < 1e-8, "trial {trial}: maintained Y off by {ey:e}");
+    }
+}
