@@ -76,28 +76,36 @@ pub(super) fn gather(m: MatRef<'_, f64>, ri: &[usize], ci: &[usize]) -> Mat<f64>
         // Contiguous index ranges (the common case: a delta in state order) copy whole columns.
         (Some(r0), Some(c0)) => m.submatrix(r0, c0, ri.len(), ci.len()).to_owned(),
         _ => {
-            // Copy contiguous runs of row indices (features are 3-blocks, often consecutive)
-            // column by column instead of element by element.
-            let mut runs: Vec<(usize, usize, usize)> = Vec::new(); // (src, dst, len)
-            for (d, &r) in ri.iter().enumerate() {
-                match runs.last_mut() {
-                    Some((s0, d0, len)) if *s0 + *len == r && *d0 + *len == d => *len += 1,
-                    _ => runs.push((r, d, 1)),
-                }
-            }
-            let mut out = Mat::zeros(ri.len(), ci.len());
-            for (jj, &j) in ci.iter().enumerate() {
-                let src = m.col(j);
-                let mut dst = out.as_mut().col_mut(jj);
-                for &(s0, d0, len) in &runs {
-                    dst.as_mut()
-                        .subrows_mut(d0, len)
-                        .copy_from(src.subrows(s0, len));
-                }
-            }
-            out
+            let some = |idx: &[usize]| idx.iter().map(|&i| Some(i)).collect::<Vec<_>>();
+            gather_padded(m, &some(ri), &some(ci))
         }
     }
+}
+
+/// m[ri, ci] with zero rows (columns) where `ri` (`ci`) has `None`: contiguous runs of row
+/// indices (features are 3-blocks, often consecutive) are copied column by column instead of
+/// element by element, into a zeroed result.
+fn gather_padded(m: MatRef<'_, f64>, ri: &[Option<usize>], ci: &[Option<usize>]) -> Mat<f64> {
+    let mut runs: Vec<(usize, usize, usize)> = Vec::new(); // (src, dst, len)
+    for (d, r) in ri.iter().enumerate() {
+        let Some(r) = *r else { continue };
+        match runs.last_mut() {
+            Some((s0, d0, len)) if *s0 + *len == r && *d0 + *len == d => *len += 1,
+            _ => runs.push((r, d, 1)),
+        }
+    }
+    let mut out = Mat::zeros(ri.len(), ci.len());
+    for (jj, j) in ci.iter().enumerate() {
+        let Some(j) = *j else { continue };
+        let src = m.col(j);
+        let mut dst = out.as_mut().col_mut(jj);
+        for &(s0, d0, len) in &runs {
+            dst.as_mut()
+                .subrows_mut(d0, len)
+                .copy_from(src.subrows(s0, len));
+        }
+    }
+    out
 }
 
 /// The first index if `idx` is `first, first+1, …`.
@@ -193,6 +201,15 @@ impl SlamFilter {
     /// permutation of rows and columns (exact); no copy when it is in that order already.
     /// Fusing in the filter's order lets the maintained map information be used as it is
     /// (no permuted copy of Y_mm) and be updated by a plain sum.
+    ///
+    /// A delta that misses a few of the map's features (1/16 of those it holds at most: the
+    /// round's batch lacks this vehicle's features no neighbour has yet) gets zero information
+    /// for them in the same copy, so that it is fused as a whole-map delta: the maintained map
+    /// information is then Y_aa itself, where the map route otherwise forms Y_aa as the Schur
+    /// complement Y_aa − Y_ab Y_bb⁻¹ Y_ba in a k × k buffer of its own (27 MB at 620 features,
+    /// at the peak of the round). The same fusion in exact arithmetic (zero information on b
+    /// changes nothing; eq. 21.92); the inverse is k³ instead of k_a³ (≤ 1.2 × with this
+    /// bound). Not padded when the cache is not current or the map route would not be taken.
     fn in_filter_order(&self, delta: MapInformation) -> MapInformation {
         let nf = delta.ids.len();
         let mut order: Vec<(usize, usize)> = delta
@@ -205,15 +222,50 @@ impl SlamFilter {
             })
             .collect();
         order.sort_unstable();
-        if order.iter().enumerate().all(|(i, &(_, b))| i == b) {
-            return delta;
-        }
-        let rows: Vec<usize> = order.iter().flat_map(|&(_, b)| 3 * b..3 * b + 3).collect();
+        let known = order
+            .iter()
+            .take_while(|(off, _)| *off != usize::MAX)
+            .count();
+        let missing = self.layout.num_features().saturating_sub(known);
+        let pad = self.info_cache_current()
+            && known > 0
+            && missing > 0
+            && 16 * missing <= known
+            && 2 * 3 * known >= self.dim() + 3 * (nf - known);
+        // The result's blocks: (id, the delta's block, or None for zero information).
+        let blocks: Vec<(FeatureId, Option<usize>)> = if pad {
+            let mut next = 0;
+            let mut blocks: Vec<(FeatureId, Option<usize>)> = self
+                .layout
+                .features()
+                .map(|(id, off)| match order.get(next) {
+                    Some(&(o, b)) if next < known && o == off => {
+                        next += 1;
+                        (id, Some(b))
+                    }
+                    _ => (id, None),
+                })
+                .collect();
+            blocks.extend(order[known..].iter().map(|&(_, b)| (delta.ids[b], Some(b))));
+            blocks
+        } else {
+            if order.iter().enumerate().all(|(i, &(_, b))| i == b) {
+                return delta;
+            }
+            order
+                .iter()
+                .map(|&(_, b)| (delta.ids[b], Some(b)))
+                .collect()
+        };
+        let rows: Vec<Option<usize>> = blocks
+            .iter()
+            .flat_map(|&(_, b)| (0..3).map(move |c| b.map(|b| 3 * b + c)))
+            .collect();
         MapInformation {
-            ids: (0..nf).map(|i| delta.ids[order[i].1]).collect(),
+            ids: blocks.iter().map(|&(id, _)| id).collect(),
             origin: delta.origin,
-            matrix: gather(delta.matrix.as_ref(), &rows, &rows),
-            vector: Col::from_fn(rows.len(), |i| delta.vector[rows[i]]),
+            matrix: gather_padded(delta.matrix.as_ref(), &rows, &rows),
+            vector: Col::from_fn(rows.len(), |i| rows[i].map_or(0.0, |r| delta.vector[r])),
         }
     }
 
@@ -225,7 +277,6 @@ impl SlamFilter {
     ) -> Result<FuseReport, SlamError> {
         let exact = self.validate_information(delta)?;
         let delta = self.in_filter_order(delta.clone());
-        let delta = self.padded_to_map(delta);
         self.fuse_validated(delta, exact).map_err(|r| r.0)
     }
 
@@ -243,79 +294,7 @@ impl SlamFilter {
             Err(e) => return Err(Box::new((e, Some(delta)))),
         };
         let delta = self.in_filter_order(delta);
-        let delta = self.padded_to_map(delta);
         self.fuse_validated(delta, exact)
-    }
-
-    /// A delta in the filter's order that misses a few of the map's features (1/16 of those it
-    /// holds at most: the round's batch lacks this vehicle's features no neighbour has yet),
-    /// with zero information added for them, so that it is fused as a whole-map delta: the
-    /// maintained map information is then Y_aa itself, where the map route otherwise forms
-    /// Y_aa as the Schur complement Y_aa − Y_ab Y_bb⁻¹ Y_ba in a k × k buffer of its own (27 MB
-    /// at 620 features, at the peak of the round). The same fusion in exact arithmetic (zero
-    /// information on b changes nothing; eq. 21.92); the inverse is k³ instead of k_a³
-    /// (≤ 1.2 × with this bound). Unchanged when the cache is not current or the map route would
-    /// not be taken.
-    fn padded_to_map(&self, delta: MapInformation) -> MapInformation {
-        if !self.info_cache_current() {
-            return delta;
-        }
-        let map: Vec<(FeatureId, usize)> = self.layout.features().collect();
-        // In the filter's order the known features come first, in map order.
-        let known = delta
-            .ids
-            .iter()
-            .take_while(|id| self.layout.feature_offset(**id).is_some())
-            .count();
-        let missing = map.len().saturating_sub(known);
-        let nu = 3 * (delta.ids.len() - known);
-        if known == 0 || missing == 0 || 16 * missing > known || 2 * 3 * known < self.dim() + nu {
-            return delta;
-        }
-        // Block b of the padded delta ← block src[b] of the delta (None: zero information).
-        let mut src: Vec<Option<usize>> = Vec::with_capacity(map.len() + delta.ids.len() - known);
-        let mut next = 0;
-        for (id, _) in &map {
-            if next < known && delta.ids[next] == *id {
-                src.push(Some(next));
-                next += 1;
-            } else {
-                src.push(None);
-            }
-        }
-        if next != known {
-            // Not in map order after all: leave it to the general routes.
-            return delta;
-        }
-        src.extend((known..delta.ids.len()).map(Some));
-        let ids: Vec<FeatureId> = map
-            .iter()
-            .map(|(id, _)| *id)
-            .chain(delta.ids[known..].iter().copied())
-            .collect();
-        let n = 3 * ids.len();
-        let rows: Vec<Option<usize>> = src
-            .iter()
-            .flat_map(|b| (0..3).map(move |c| b.map(|b| 3 * b + c)))
-            .collect();
-        let mut matrix = Mat::<f64>::zeros(n, n);
-        for (j, sj) in rows.iter().enumerate() {
-            let Some(sj) = *sj else { continue };
-            let from = delta.matrix.col_as_slice(sj);
-            let to = matrix.col_as_slice_mut(j);
-            for (i, si) in rows.iter().enumerate() {
-                if let Some(si) = *si {
-                    to[i] = from[si];
-                }
-            }
-        }
-        let vector = Col::from_fn(n, |i| rows[i].map_or(0.0, |r| delta.vector[r]));
-        MapInformation {
-            ids,
-            origin: delta.origin,
-            matrix,
-            vector,
-        }
     }
 
     /// The fusion of a validated delta in the filter's order ([`SlamFilter::in_filter_order`];

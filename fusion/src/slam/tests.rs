@@ -1854,7 +1854,7 @@ fn fusing_by_value_equals_fusing_by_reference() {
 
 /// A batch that misses a few of the map's features (the vehicle's own newest ones, which no
 /// neighbour holds yet) is fused as a whole-map delta with zero information on them
-/// (`padded_to_map`): the result equals the dense information-form reference (an independent
+/// (`in_filter_order`): the result equals the dense information-form reference (an independent
 /// nalgebra inverse of the joint information plus ΔY), the maintained map information equals
 /// a dense inverse of the fused P_mm, and the route taken is the map route over the whole
 /// map. With and without new features in the batch, and in a shuffled order.
