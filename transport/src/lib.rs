@@ -18,6 +18,7 @@
 //!   endpoints, liveliness, user/password authentication).
 //! - [`access`]: zenoh access control for canopy's key layout (default deny, per-user ingress
 //!   rules) and the count of what zenoh refuses.
+//! - [`test_certs`]: a test CA and per-user certificates (openssl) for the TLS suites.
 //! - [`fault`]: seeded fault injection over any link (delay, jitter, loss, duplication,
 //!   reordering, bandwidth cap, outages and partitions) with an injectable [`fault::Clock`];
 //!   messages it does not hold pass through in the backend's buffer (zero-copy).
@@ -31,6 +32,7 @@ pub mod iceoryx;
 pub mod link;
 pub mod memory;
 pub mod net;
+pub mod test_certs;
 pub mod wire;
 
 pub use codec::{CodecError, PreEncoded, WireBody};
