@@ -140,7 +140,11 @@ pub fn run(c: &RoleCommon) -> Result<()> {
                 links: reports,
                 rejected: agent.rejected(),
                 access_refused: super::access_refusals(),
-                rejections: agent.rejections().counts.clone(),
+                rejections: {
+                    let mut r = agent.rejections().clone();
+                    r.merge(&links.send_failures.counts);
+                    r.counts
+                },
             };
             let _ = send_body(&mut monitor, r.kind(), 0, t, &r);
             while next_report <= t + 1e-9 {

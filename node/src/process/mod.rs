@@ -250,6 +250,10 @@ pub(crate) struct FusionLinks {
     pub clock: Arc<ManualClock>,
     /// Compression of information-carrying messages (`[fusion] delta_compression`).
     compression: crate::wire::Compression,
+    /// Messages a link refused to send (`link.send.<error>`: too large to encode, a backend
+    /// failure), counted by reason and logged once; the DDF repairs the gap a lost delta leaves
+    /// (Nack, Cumulative), these counts say why it had to. In the node's reported rejections.
+    pub send_failures: crate::agent::Rejections,
     _zenoh: NetSessions,
 }
 
@@ -509,17 +513,34 @@ impl FusionLinks {
             links,
             clock,
             compression: s.fusion.delta_compression,
+            send_failures: crate::agent::Rejections::default(),
             _zenoh: sessions,
         })
     }
 
-    /// Sends DDF messages (undeliverable ones are counted by the link; the DDF recovers).
+    /// Sends DDF messages. Undeliverable ones are counted by the link (no peer, full queue);
+    /// ones a link refuses to send are counted here by reason ([`FusionLinks::send_failures`]);
+    /// the DDF recovers from both.
     pub fn send(&mut self, now: f64, out: Vec<Outgoing>) {
         for o in out {
-            if let Some(link) = self.links.get_mut(&o.to.0) {
-                let _ = send_ddf(link, now, &o.message, self.compression);
+            match self.links.get_mut(&o.to.0) {
+                Some(link) => {
+                    if let Err(e) = send_ddf(link, now, &o.message, self.compression) {
+                        self.send_failure(o.to.0, &e);
+                    }
+                }
+                None => {
+                    let e = format!("no link to node {}", o.to.0);
+                    self.send_failures.add("link.send.no_link".into(), 1, &e);
+                }
             }
         }
+    }
+
+    fn send_failure(&mut self, peer: NodeId, e: &canopy_transport::link::LinkError) {
+        let key = format!("link.send.{}", crate::agent::variant_key(&format!("{e:?}")));
+        self.send_failures
+            .add(key, 1, &format!("to node {peer}: {e}"));
     }
 
     /// Everything waiting on the links now: peer events and decoded DDF messages, per peer in
@@ -586,8 +607,14 @@ impl FusionLinks {
     /// Sends a time marker stamped `now` on every link (simulation-time delivery: everything
     /// this node stamps up to `now` has been sent). Undeliverable ones are counted by the link.
     pub fn send_marker(&mut self, now: f64) {
-        for link in self.links.values_mut() {
-            let _ = send_body(link, MessageKind::TIME_MARKER, 0, now, &());
+        let mut failed = Vec::new();
+        for (&peer, link) in self.links.iter_mut() {
+            if let Err(e) = link.send(&SendMeta::new(MessageKind::TIME_MARKER, 0, now), &()) {
+                failed.push((peer, e));
+            }
+        }
+        for (peer, e) in failed {
+            self.send_failure(peer, &e);
         }
     }
 }
@@ -659,5 +686,78 @@ mod rss_tests {
         if cfg!(target_os = "linux") {
             assert!(peak_rss_bytes().is_some_and(|b| b > 1 << 20));
         }
+    }
+}
+
+#[cfg(test)]
+mod send_tests {
+    use super::*;
+    use canopy_fusion::ddf::{Body, DdfMessage, Header, Hello};
+    use canopy_transport::memory::InMemoryHub;
+
+    fn hello() -> Outgoing {
+        Outgoing {
+            to: canopy_fusion::topology::NodeId(2),
+            message: DdfMessage {
+                header: Header {
+                    from_epoch: 1,
+                    to_epoch: None,
+                    challenge: 1,
+                    echo_epoch: 0,
+                    echo: 0,
+                },
+                body: Body::Hello(Hello {
+                    seq_sent: 0,
+                    applied: 0,
+                    history: false,
+                    synced: false,
+                    ci: false,
+                }),
+            },
+        }
+    }
+
+    /// A message a link refuses to send (here: larger than the link's body limit of 4 bytes)
+    /// and one for a node without a link are counted by reason (`link.send.<error>`), not
+    /// dropped silently; what the link does send is not counted.
+    #[test]
+    fn refused_sends_are_counted_by_reason() {
+        let hub = InMemoryHub::new();
+        let mut tight = LinkConfig::new(1, 2);
+        tight.max_body_len = 4;
+        let clock = Arc::new(ManualClock::new(0.0));
+        let faulty = |cfg: LinkConfig| {
+            let inner: Box<dyn Link> = Box::new(hub.connect(cfg));
+            FaultyLink::new(
+                inner,
+                canopy_transport::fault::FaultConfig::none(1),
+                clock.clone(),
+            )
+            .expect("no faults")
+        };
+        let mut links = FusionLinks {
+            links: BTreeMap::from([(2, faulty(tight))]),
+            clock: clock.clone(),
+            compression: crate::wire::Compression::None,
+            send_failures: crate::agent::Rejections::default(),
+            _zenoh: NetSessions {
+                listening: None,
+                connecting: None,
+            },
+        };
+        let mut to_nobody = hello();
+        to_nobody.to = canopy_fusion::topology::NodeId(9);
+        links.send(0.0, vec![hello(), hello(), to_nobody]);
+        links.send_marker(0.0);
+        let counts = &links.send_failures.counts;
+        let too_large: u64 = counts
+            .iter()
+            .filter(|(k, _)| k.starts_with("link.send.encode"))
+            .map(|(_, v)| v)
+            .sum();
+        assert_eq!(too_large, 2, "{counts:?}");
+        assert_eq!(counts.get("link.send.no_link"), Some(&1), "{counts:?}");
+        // The time marker has an empty body: it fits, and is not counted.
+        assert_eq!(counts.values().sum::<u64>(), 3, "{counts:?}");
     }
 }

@@ -377,6 +377,7 @@ impl Vehicle<'_> {
             rejections: {
                 let mut r = self.estimator.rejections().clone();
                 r.merge(&self.view.rejections);
+                r.merge(&self.links.send_failures.counts);
                 r.counts
             },
             merges_adopted: self.view.node.merges_adopted,
