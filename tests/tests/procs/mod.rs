@@ -218,9 +218,10 @@ impl Run {
     }
 
     /// What a failed check on `vehicle` prints besides its figures: its counters and
-    /// rejections per incarnation, its last map reports (time, features) and the channel of
-    /// every link end it has, in both directions — enough to tell a lost map report, a
-    /// refused fusion, a resynchronisation or a stalled link apart from a test's tolerance.
+    /// rejections per incarnation, its last map reports (time, features), the channel of
+    /// every link end it has, in both directions, and when each of its links was up on which
+    /// end — enough to tell a lost map report, a refused fusion, a resynchronisation, a
+    /// stalled or cut link apart from a test's tolerance.
     pub fn diagnosis(&self, vehicle: &str) -> String {
         let mut out = String::new();
         if let Some(v) = self.checks.vehicles.iter().find(|v| v.name == vehicle) {
@@ -238,6 +239,27 @@ impl Run {
             if l.node == vehicle || l.peer == vehicle {
                 out += &format!("  {}->{}: {:?}\n", l.node, l.peer, l.report);
             }
+        }
+        // When each of its links was up on which end (links.csv, changes only): a link cut
+        // late in the run explains information the vehicle never got back.
+        let mut last: BTreeMap<String, String> = BTreeMap::new();
+        let mut changes: BTreeMap<String, Vec<String>> = BTreeMap::new();
+        for row in self.csv("links.csv") {
+            let link = &row["link"];
+            if !link.split('-').any(|n| n == vehicle) {
+                continue;
+            }
+            let state = format!("a_up {} b_up {}", row["a_up"], row["b_up"]);
+            if last.get(link) != Some(&state) {
+                changes
+                    .entry(link.clone())
+                    .or_default()
+                    .push(format!("{} s: {state}", row["t"]));
+                last.insert(link.clone(), state);
+            }
+        }
+        for (link, c) in changes {
+            out += &format!("  {link} up over time: {}\n", c.join("; "));
         }
         out
     }
