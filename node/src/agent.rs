@@ -1440,10 +1440,32 @@ impl HubAgent {
     }
 }
 
+/// A minimal Hello from epoch `from_epoch` of its sender (nothing sent, nothing applied, no
+/// history): test input wherever a well-formed DDF message of any kind will do.
+#[cfg(test)]
+pub(crate) fn test_hello(from_epoch: u64) -> DdfMessage {
+    use canopy_fusion::ddf::{Header, Hello};
+    DdfMessage {
+        header: Header {
+            from_epoch,
+            to_epoch: None,
+            challenge: 1,
+            echo_epoch: 0,
+            echo: 0,
+        },
+        body: Body::Hello(Hello {
+            seq_sent: 0,
+            applied: 0,
+            history: false,
+            synced: false,
+            ci: false,
+        }),
+    }
+}
+
 #[cfg(test)]
 mod rejection_tests {
     use super::*;
-    use canopy_fusion::ddf::{Body, Header, Hello};
     use canopy_fusion::ins::InsError;
     use canopy_fusion::observation::ObservationError;
     use canopy_fusion::slam::RejectReason;
@@ -1464,24 +1486,8 @@ mod rejection_tests {
             &[],
         )
         .unwrap();
-        let hello = || DdfMessage {
-            header: Header {
-                from_epoch: 3,
-                to_epoch: None,
-                challenge: 1,
-                echo_epoch: 0,
-                echo: 0,
-            },
-            body: Body::Hello(Hello {
-                seq_sent: 0,
-                applied: 0,
-                history: false,
-                synced: false,
-                ci: false,
-            }),
-        };
         for _ in 0..2 {
-            assert!(f.on_message(0.0, NodeId(9), hello()).is_err());
+            assert!(f.on_message(0.0, NodeId(9), test_hello(3)).is_err());
         }
         let counts = &f.rejections().counts;
         assert_eq!(counts.len(), 1, "{counts:?}");

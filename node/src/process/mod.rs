@@ -526,7 +526,7 @@ impl FusionLinks {
             match self.links.get_mut(&o.to.0) {
                 Some(link) => {
                     if let Err(e) = send_ddf(link, now, &o.message, self.compression) {
-                        self.send_failure(o.to.0, &e);
+                        count_send_failure(&mut self.send_failures, o.to.0, &e);
                     }
                 }
                 None => {
@@ -535,12 +535,6 @@ impl FusionLinks {
                 }
             }
         }
-    }
-
-    fn send_failure(&mut self, peer: NodeId, e: &canopy_transport::link::LinkError) {
-        let key = format!("link.send.{}", crate::agent::variant_key(&format!("{e:?}")));
-        self.send_failures
-            .add(key, 1, &format!("to node {peer}: {e}"));
     }
 
     /// Everything waiting on the links now: peer events and decoded DDF messages, per peer in
@@ -607,16 +601,22 @@ impl FusionLinks {
     /// Sends a time marker stamped `now` on every link (simulation-time delivery: everything
     /// this node stamps up to `now` has been sent). Undeliverable ones are counted by the link.
     pub fn send_marker(&mut self, now: f64) {
-        let mut failed = Vec::new();
         for (&peer, link) in self.links.iter_mut() {
             if let Err(e) = link.send(&SendMeta::new(MessageKind::TIME_MARKER, 0, now), &()) {
-                failed.push((peer, e));
+                count_send_failure(&mut self.send_failures, peer, &e);
             }
         }
-        for (peer, e) in failed {
-            self.send_failure(peer, &e);
-        }
     }
+}
+
+/// Counts a message a link refused to send under `link.send.<error>` (logged once per reason).
+fn count_send_failure(
+    failures: &mut crate::agent::Rejections,
+    peer: NodeId,
+    e: &canopy_transport::link::LinkError,
+) {
+    let key = format!("link.send.{}", crate::agent::variant_key(&format!("{e:?}")));
+    failures.add(key, 1, &format!("to node {peer}: {e}"));
 }
 
 /// What one fusion link delivered ([`FusionLinks::poll_stamped`]).
@@ -692,28 +692,12 @@ mod rss_tests {
 #[cfg(test)]
 mod send_tests {
     use super::*;
-    use canopy_fusion::ddf::{Body, DdfMessage, Header, Hello};
     use canopy_transport::memory::InMemoryHub;
 
     fn hello() -> Outgoing {
         Outgoing {
             to: canopy_fusion::topology::NodeId(2),
-            message: DdfMessage {
-                header: Header {
-                    from_epoch: 1,
-                    to_epoch: None,
-                    challenge: 1,
-                    echo_epoch: 0,
-                    echo: 0,
-                },
-                body: Body::Hello(Hello {
-                    seq_sent: 0,
-                    applied: 0,
-                    history: false,
-                    synced: false,
-                    ci: false,
-                }),
-            },
+            message: crate::agent::test_hello(1),
         }
     }
 

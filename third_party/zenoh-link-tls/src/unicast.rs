@@ -78,7 +78,6 @@ pub struct LinkUnicastTls {
     expiration_manager: Option<LinkCertExpirationManager>,
 }
 
-
 impl LinkUnicastTls {
     fn new(
         socket: TlsStream<TcpStream>,
