@@ -129,6 +129,61 @@ fn gather_sym(m: MatRef<'_, f64>, ri: &[usize], ci: &[usize]) -> Mat<f64> {
     Mat::from_fn(ri.len(), ci.len(), |i, j| 0.5 * (a[(i, j)] + b[(j, i)]))
 }
 
+/// An exactly symmetric delta matrix over nk known and nu new states (known first) whose
+/// leading nk × nk block is fused in the matrix's own buffer: the upper triangle of that
+/// block (packed, half of it) and the new states' rows, from which the whole matrix is
+/// rebuilt bit for bit if the fusion is refused.
+struct SplitDelta {
+    nk: usize,
+    /// ΔY_kk's upper triangle, column by column (j(j+1)/2 + i for i ≤ j).
+    upper_kk: Vec<f64>,
+    /// ΔY_uk (nu × nk).
+    y_uk: Mat<f64>,
+    /// ΔY_uu (nu × nu).
+    y_uu: Mat<f64>,
+}
+
+impl SplitDelta {
+    /// Keeps what rebuilds `m` and truncates it in place to its leading nk × nk block.
+    fn take(m: &mut Mat<f64>, nk: usize) -> (Self, Mat<f64>) {
+        let n = m.nrows();
+        let (known, new): (Vec<usize>, Vec<usize>) = ((0..nk).collect(), (nk..n).collect());
+        let mut upper_kk = Vec::with_capacity(nk * (nk + 1) / 2);
+        for j in 0..nk {
+            upper_kk.extend_from_slice(&m.col_as_slice(j)[..=j]);
+        }
+        let kept = Self {
+            nk,
+            upper_kk,
+            y_uk: gather(m.as_ref(), &new, &known),
+            y_uu: gather(m.as_ref(), &new, &new),
+        };
+        let mut y_kk = std::mem::replace(m, Mat::new());
+        y_kk.truncate(nk, nk);
+        (kept, y_kk)
+    }
+
+    /// Entry (i, j) of the matrix as it was before [`SplitDelta::take`].
+    fn entry(&self, i: usize, j: usize) -> f64 {
+        let nk = self.nk;
+        match (i < nk, j < nk) {
+            (true, true) => {
+                let (i, j) = (i.min(j), i.max(j));
+                self.upper_kk[j * (j + 1) / 2 + i]
+            }
+            (false, true) => self.y_uk[(i - nk, j)],
+            (true, false) => self.y_uk[(j - nk, i)],
+            (false, false) => self.y_uu[(i - nk, j - nk)],
+        }
+    }
+
+    /// The matrix as it was before [`SplitDelta::take`].
+    fn rebuild(&self) -> Mat<f64> {
+        let n = self.nk + self.y_uu.nrows();
+        Mat::from_fn(n, n, |i, j| self.entry(i, j))
+    }
+}
+
 /// Tile edge for transposed access: 64 × 64 f64 tiles (32 KiB) keep both the column-major
 /// reads and the transposed ones in L1/L2.
 const TILE: usize = 64;
@@ -346,13 +401,20 @@ impl SlamFilter {
         // information itself, and ΔY is not needed after it is formed.
         let whole_map = map_route && nu == 0 && known_state == self.map_state_indices();
         // ΔY_kk: the delta's own matrix when it is the whole map (no copy), else its leading
-        // block; its symmetric part only when it is not exactly symmetric.
+        // block; its symmetric part only when it is not exactly symmetric. An exact delta with
+        // new features gives up its buffer to ΔY_kk too (truncated in place: the copy was a
+        // k × k at the peak of a vehicle's round), keeping what rebuilds it on a refusal.
+        let mut split = None;
         let (y_kk, moved) = if whole_map {
             let mut m = std::mem::replace(&mut delta.matrix, Mat::new());
             if !exact {
                 crate::info::symmetrize(&mut m);
             }
             (m, true)
+        } else if exact && nu > 0 {
+            let (kept, y_kk) = SplitDelta::take(&mut delta.matrix, nk);
+            split = Some(kept);
+            (y_kk, false)
         } else if exact {
             (
                 delta.matrix.as_ref().submatrix(0, 0, nk, nk).to_owned(),
@@ -368,14 +430,21 @@ impl SlamFilter {
         let give_back = |mut delta: MapInformation, y_kk: Option<Mat<f64>>| {
             if let Some(m) = y_kk {
                 delta.matrix = m;
+            } else if let Some(kept) = &split {
+                delta.matrix = kept.rebuild();
             }
             Some(delta)
         };
 
         // Step 1 quantities (no mutation yet).
         let (schur, schur_vec, new_block) = if nu > 0 {
-            let y_uu = gather_sym(delta.matrix.as_ref(), &new_pos, &new_pos);
-            let y_uk = gather_sym(delta.matrix.as_ref(), &new_pos, &known_pos);
+            let (y_uu, y_uk) = match &split {
+                Some(kept) => (kept.y_uu.clone(), kept.y_uk.clone()),
+                None => (
+                    gather_sym(delta.matrix.as_ref(), &new_pos, &new_pos),
+                    gather_sym(delta.matrix.as_ref(), &new_pos, &known_pos),
+                ),
+            };
             let dy_u = Col::from_fn(nu, |i| delta.vector[new_pos[i]]);
             let Ok(llt) = y_uu.llt(Side::Lower) else {
                 return Err(Box::new((
@@ -386,10 +455,19 @@ impl SlamFilter {
             let y_uu_inv = llt.inverse();
             let b = llt.solve(&y_uk); // ΔY_uu⁻¹ ΔY_uk
             let a = llt.solve(dy_u.as_mat()); // ΔY_uu⁻¹ Δy_u
-            // Ȳ = ΔY_kk − ΔY_ukᵀ B in ΔY_kk's own buffer (the same elementwise differences as
-            // `&y_kk - …`, without a third k × k alive beside ΔY_kk and the product).
+            // Ȳ = ΔY_kk − ΔY_ukᵀ B accumulated into ΔY_kk's own buffer: neither a third k × k
+            // beside ΔY_kk and the product nor the product itself (a k × k temporary at the
+            // heap peak of a vehicle with three neighbours); equal to `&y_kk - …` up to the
+            // order of round-off.
             let mut schur = y_kk;
-            schur -= y_uk.transpose() * &b;
+            matmul(
+                schur.as_mut(),
+                Accum::Add,
+                y_uk.transpose(),
+                b.as_ref(),
+                -1.0,
+                Par::Seq,
+            );
             let schur_vec = &dy_k - y_uk.transpose() * a.col(0);
             let x_u = Col::from_fn(nu, |i| a[(i, 0)] + o[i % 3]) - &b * &xk_minus_o;
             (schur, schur_vec, Some((b, y_uu_inv, x_u)))
@@ -546,9 +624,9 @@ impl SlamFilter {
                     b..b + 3
                 })
                 .collect();
-            match contiguous(&at) {
+            match (contiguous(&at), &split) {
                 // The known features in map order, then the new ones: one run of columns.
-                Some(a0) => {
+                (Some(a0), None) => {
                     for (jj, j) in (a0..a0 + at.len()).enumerate() {
                         let src = delta.matrix.col_as_slice(jj);
                         let dst = &mut out.col_as_slice_mut(j)[a0..a0 + at.len()];
@@ -557,10 +635,13 @@ impl SlamFilter {
                         }
                     }
                 }
-                None => {
+                (_, kept) => {
                     for (jj, &j) in at.iter().enumerate() {
                         for (ii, &i) in at.iter().enumerate() {
-                            out[(i, j)] += delta.matrix[(ii, jj)];
+                            out[(i, j)] += match kept {
+                                Some(kept) => kept.entry(ii, jj),
+                                None => delta.matrix[(ii, jj)],
+                            };
                         }
                     }
                 }

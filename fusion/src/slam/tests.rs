@@ -1850,6 +1850,37 @@ fn fusing_by_value_equals_fusing_by_reference() {
     assert_eq!(to_dense(&back.matrix), to_dense(&expect.matrix));
     assert_eq!(col_to_dense(&back.vector), col_to_dense(&expect.vector));
     assert_eq!((col_to_dense(&f.x), to_dense(&f.p)), before);
+    // The same with a new feature in the delta (its known block is fused in the delta's own
+    // buffer, `SplitDelta`): refused after that buffer was used, the delta comes back whole,
+    // bit for bit, known features first in the filter's order, then the new one.
+    let mut with_new = d.restrict(&y.ids);
+    let k = with_new.matrix.nrows();
+    let mut m = Mat::<f64>::zeros(k + 3, k + 3);
+    m.as_mut()
+        .submatrix_mut(0, 0, k, k)
+        .copy_from(&with_new.matrix);
+    for i in 0..3 {
+        m[(k + i, k + i)] = 4.0 + i as f64;
+        for j in 0..k {
+            let v = 0.01 * ((i + 2 * j) % 7) as f64;
+            m[(k + i, j)] = v;
+            m[(j, k + i)] = v;
+        }
+    }
+    with_new.ids.push(900);
+    with_new.matrix = m;
+    with_new.vector = Col::from_fn(k + 3, |i| if i < k { with_new.vector[i] } else { 1.5 });
+    let shuffled = with_new.restrict(&[900, 104, 100, 105, 101, 103, 102]);
+    let (e, back) = *f.fuse_map_information_owned(shuffled).unwrap_err();
+    assert!(matches!(e, SlamError::NotPositiveDefinite(_)), "{e:?}");
+    let back = back.expect("refused before any change: the delta comes back");
+    assert_eq!(
+        back.ids, with_new.ids,
+        "known in the filter's order, then the new one"
+    );
+    assert_eq!(to_dense(&back.matrix), to_dense(&with_new.matrix));
+    assert_eq!(col_to_dense(&back.vector), col_to_dense(&with_new.vector));
+    assert_eq!((col_to_dense(&f.x), to_dense(&f.p)), before);
 }
 
 /// A batch that misses a few of the map's features (the vehicle's own newest ones, which no
