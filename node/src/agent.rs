@@ -757,18 +757,33 @@ impl VehicleFusion {
         filter: &mut SlamFilter,
         now: f64,
     ) -> Result<Vec<Outgoing>, AgentError> {
+        let mut out = Vec::new();
+        self.round_each(filter, now, &mut |o| out.push(o))?;
+        Ok(out)
+    }
+
+    /// [`VehicleFusion::round`], handing each message to `emit` as soon as it is formed
+    /// ([`DdfNode::on_round_each`]: a caller that encodes each one there holds one dense delta
+    /// at a time, not one per neighbour). On an error (counted and logged here) the messages
+    /// already emitted are booked in their channels and are to be sent.
+    pub fn round_each(
+        &mut self,
+        filter: &mut SlamFilter,
+        now: f64,
+        emit: &mut dyn FnMut(Outgoing),
+    ) -> Result<(), AgentError> {
         if self.ddf.is_none() {
             // Isolated: no neighbours, but the vehicle's own duplicates are still merged.
             self.correspond(filter);
-            return Ok(Vec::new());
+            return Ok(());
         }
         self.counters.rounds += 1;
         if self.outside_team() {
             self.round_outside_team(filter, now);
-            return Ok(Vec::new());
+            return Ok(());
         }
         if let Some(waiting) = self.round_awaiting_rebase(filter, now) {
-            return waiting;
+            return waiting.map(|out| out.into_iter().for_each(&mut *emit));
         }
         self.flush(filter);
         self.correspond(filter);
@@ -785,22 +800,19 @@ impl VehicleFusion {
         let ddf = self.ddf.as_mut().expect("checked above");
         let out = match self.pending.sum.as_ref() {
             Some(held) if self.pending.refused_rounds > 0 => {
-                ddf.on_round(now, &mut WithHeldBatch { filter, held })
+                ddf.on_round_each(now, &mut WithHeldBatch { filter, held }, emit)
             }
-            _ => ddf.on_round(now, filter),
+            _ => ddf.on_round_each(now, filter, emit),
         };
-        match out {
-            Ok(out) => {
-                let mut messages = out.messages;
-                self.anchors(filter, &mut messages);
-                Ok(messages)
-            }
-            Err(e) => {
-                self.counters.rounds_failed += 1;
-                self.reject("round", &e, 1, &e);
-                Err(e.into())
-            }
+        if let Err(e) = out {
+            self.counters.rounds_failed += 1;
+            self.reject("round", &e, 1, &e);
+            return Err(e.into());
         }
+        let mut anchors = Vec::new();
+        self.anchors(filter, &mut anchors);
+        anchors.into_iter().for_each(emit);
+        Ok(())
     }
 
     /// A DDF message from `from`: what it carries joins the batch; returns replies. An error

@@ -332,12 +332,28 @@ impl DdfNode {
     /// of a few features (CI links). For every link that is up: a Hello when due, the Sync
     /// while initiating, the channel-filter delta d = Y_i − C_ik when it is not empty
     /// (C_ik += d), a Nack when a gap persists, or the acknowledgements and a submap on a CI
-    /// link.
+    /// link. The messages collected; [`DdfNode::on_round_each`] hands them over one by one.
     pub fn on_round(
         &mut self,
         now: f64,
         source: &mut dyn MapSource,
     ) -> Result<RoundOutput, DdfError> {
+        let mut messages = Vec::new();
+        self.on_round_each(now, source, &mut |o| messages.push(o))?;
+        Ok(RoundOutput { messages })
+    }
+
+    /// [`DdfNode::on_round`], handing each message to `emit` as soon as it is formed (per link
+    /// in the order it is to be sent), so that the caller can encode a delta and drop its
+    /// dense form before the next channel forms its own: a vehicle with three neighbours held
+    /// three dense k × k deltas at once otherwise. On an error, the messages emitted before it
+    /// are booked in their channels and are to be sent; the rest of the round is not formed.
+    pub fn on_round_each(
+        &mut self,
+        now: f64,
+        source: &mut dyn MapSource,
+        emit: &mut dyn FnMut(Outgoing),
+    ) -> Result<(), DdfError> {
         Self::check_time(now)?;
         let ctx = NodeCtx {
             id: self.id,
@@ -353,20 +369,17 @@ impl DdfNode {
         }
         let mut info = LazyInformation::new(source, self.origin, &self.keys);
         // Exact parts first: a delta that does not fit its budget switches its link to CI.
-        let mut per_channel: BTreeMap<NodeId, Vec<DdfMessage>> = BTreeMap::new();
         for (&peer, channel) in self.channels.iter_mut() {
-            per_channel.insert(peer, channel.round_exact(now, &mut info, &ctx)?);
+            for message in channel.round_exact(now, &mut info, &ctx)? {
+                emit(Outgoing { to: peer, message });
+            }
         }
-        let mut messages = Vec::new();
         for (&peer, channel) in self.channels.iter_mut() {
-            let mut out = per_channel.remove(&peer).unwrap_or_default();
-            out.extend(channel.round_finish(now, info.source(), &self.keys, &ctx));
-            messages.extend(
-                out.into_iter()
-                    .map(|message| Outgoing { to: peer, message }),
-            );
+            for message in channel.round_finish(now, info.source(), &self.keys, &ctx) {
+                emit(Outgoing { to: peer, message });
+            }
         }
-        Ok(RoundOutput { messages })
+        Ok(())
     }
 
     /// Asks every neighbour, at the next round, for the descriptors of `keys` (keys this

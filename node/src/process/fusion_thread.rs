@@ -10,8 +10,11 @@
 //! forms the map information and the deltas, and hands it back ([`Done::Round`]), and the
 //! estimator applies the IMU samples of the meantime to it again
 //! ([`VehicleEstimator::give_back`](crate::agent::VehicleEstimator::give_back)).
-//! Messages for the links come back as [`Done`] too, with the DDF's counters and channel
-//! views for the reports.
+//! Messages for the links come back as [`Done`] too, with the DDF's counters and channel views
+//! for the reports. They are encoded here ([`WireOutgoing`]); a round's are handed over one by
+//! one as each is formed ([`Done::Send`]), so that the estimator thread sends one while the
+//! next channel forms its delta: a vehicle with three neighbours held three dense k × k deltas
+//! at once until the round's end otherwise (the wire form of one is about half of it).
 
 use std::sync::mpsc::{Receiver, Sender, channel};
 use std::thread::JoinHandle;
@@ -22,6 +25,7 @@ use canopy_fusion::slam::SlamFilter;
 use canopy_fusion::topology::NodeId;
 
 use crate::agent::{FusionCounters, VehicleFusion};
+use crate::wire::{Compression, WireOutgoing};
 
 /// Work for the fusion thread.
 #[derive(Debug)]
@@ -115,29 +119,43 @@ pub enum Done {
     Replies {
         /// Time of the job [s].
         now: f64,
-        /// Messages to send.
-        out: Vec<Outgoing>,
+        /// Messages to send, encoded.
+        out: Vec<WireOutgoing>,
         /// Counters and channels now.
         view: FusionView,
+    },
+    /// A message of the round in progress, encoded as soon as it was formed and handed over
+    /// at once, so that the estimator thread sends it (and drops its bytes) while the next
+    /// channel forms its delta.
+    Send {
+        /// Round time [s].
+        now: f64,
+        /// The message.
+        out: WireOutgoing,
     },
     /// A round done: the fused filter and the round's messages.
     Round {
         /// Round time [s].
         now: f64,
-        /// The filter, fused.
+        /// The filter, fused (its messages went ahead as [`Done::Send`]).
         filter: Box<SlamFilter>,
-        /// Messages to send.
-        out: Vec<Outgoing>,
         /// Counters and channels now.
         view: FusionView,
     },
 }
 
-/// The messages to send after a call into the fusion half. An error it returns it has already
-/// counted by reason and logged once with its cause (`VehicleFusion::reject`, visible in
-/// `checks.json`), and the refused input changed nothing, so there is nothing to send.
-fn replies(r: Result<Vec<Outgoing>, crate::agent::AgentError>) -> Vec<Outgoing> {
+/// The messages to send after a call into the fusion half, encoded. An error it returns it
+/// has already counted by reason and logged once with its cause (`VehicleFusion::reject`,
+/// visible in `checks.json`), and the refused input changed nothing, so there is nothing to
+/// send.
+fn replies(
+    r: Result<Vec<Outgoing>, crate::agent::AgentError>,
+    compression: Compression,
+) -> Vec<WireOutgoing> {
     r.unwrap_or_else(|_counted| Vec::new())
+        .into_iter()
+        .map(|o| WireOutgoing::encode(&o, compression))
+        .collect()
 }
 
 /// The estimator thread's handle on the fusion thread.
@@ -149,8 +167,9 @@ pub struct FusionThread {
 }
 
 impl FusionThread {
-    /// Starts the thread with the vehicle's fusion half.
-    pub fn spawn(mut fusion: VehicleFusion) -> std::io::Result<Self> {
+    /// Starts the thread with the vehicle's fusion half; messages are encoded with
+    /// `compression` (`[fusion] delta_compression`).
+    pub fn spawn(mut fusion: VehicleFusion, compression: Compression) -> std::io::Result<Self> {
         let (jobs, job_rx) = channel::<Job>();
         let (done_tx, done) = channel::<Done>();
         let handle = std::thread::Builder::new()
@@ -160,7 +179,7 @@ impl FusionThread {
                     let msg = match job {
                         Job::Message { now, from, msg } => Done::Replies {
                             now,
-                            out: replies(fusion.on_message(now, from, *msg)),
+                            out: replies(fusion.on_message(now, from, *msg), compression),
                             view: FusionView::of(&fusion),
                         },
                         Job::Received { now, from, msg } => Done::Replies {
@@ -168,7 +187,7 @@ impl FusionThread {
                             out: match crate::wire::decode_ddf(&msg) {
                                 Some(Ok(m)) => {
                                     drop(msg);
-                                    replies(fusion.on_message(now, from, m))
+                                    replies(fusion.on_message(now, from, m), compression)
                                 }
                                 // Not a DDF message, or one that failed to decode (counted by
                                 // its link, `rejected.body`).
@@ -178,7 +197,7 @@ impl FusionThread {
                         },
                         Job::LinkUp { now, peer } => Done::Replies {
                             now,
-                            out: replies(fusion.on_link_up(now, peer)),
+                            out: replies(fusion.on_link_up(now, peer), compression),
                             view: FusionView::of(&fusion),
                         },
                         Job::LinkDown { peer } => {
@@ -197,18 +216,26 @@ impl FusionThread {
                         } => {
                             // A refused budget is counted by reason by the fusion half.
                             let _counted = fusion.set_link_budgets(&budgets);
-                            let out = replies(fusion.round(&mut filter, now));
+                            // Each message encoded as it is formed (module docs). Messages
+                            // formed before a refusal are booked and go out; the refusal is
+                            // counted by reason by the fusion half.
+                            let _counted = fusion.round_each(&mut filter, now, &mut |o| {
+                                let out = WireOutgoing::encode(&o, compression);
+                                drop(o);
+                                // An error: the estimator thread is gone, and with it the
+                                // links (the loop ends at the round's own `Done`).
+                                let _gone = done_tx.send(Done::Send { now, out });
+                            });
                             Done::Round {
                                 now,
                                 filter,
-                                out,
                                 view: FusionView::of(&fusion),
                             }
                         }
                     };
                     let round = match &msg {
                         Done::Round { filter, .. } => Some(filter.num_features()),
-                        Done::Replies { .. } => None,
+                        Done::Replies { .. } | Done::Send { .. } => None,
                     };
                     if done_tx.send(msg).is_err() {
                         break;

@@ -70,7 +70,7 @@ use serde::Deserialize;
 
 use crate::network::{TransportKind, effective_links};
 use crate::scenario::Scenario;
-use crate::wire::{decode_ddf, send_ddf};
+use crate::wire::{WireOutgoing, decode_ddf};
 use crate::world::vehicle_seed;
 
 /// Environment variable carrying the team's zenoh password (`[secrets].zenoh_password`) to
@@ -518,22 +518,38 @@ impl FusionLinks {
         })
     }
 
-    /// Sends DDF messages. Undeliverable ones are counted by the link (no peer, full queue);
-    /// ones a link refuses to send are counted here by reason ([`FusionLinks::send_failures`]);
-    /// the DDF recovers from both.
+    /// Sends DDF messages, each encoded just before it is sent. Undeliverable ones are counted
+    /// by the link (no peer, full queue); ones a link refuses to send are counted here by
+    /// reason ([`FusionLinks::send_failures`]); the DDF recovers from both.
     pub fn send(&mut self, now: f64, out: Vec<Outgoing>) {
         for o in out {
-            match self.links.get_mut(&o.to.0) {
-                Some(link) => {
-                    if let Err(e) = send_ddf(link, now, &o.message, self.compression) {
-                        count_send_failure(&mut self.send_failures, o.to.0, &e);
-                    }
-                }
-                None => {
-                    let e = format!("no link to node {}", o.to.0);
-                    self.send_failures.add("link.send.no_link".into(), 1, &e);
-                }
-            }
+            let w = WireOutgoing::encode(&o, self.compression);
+            drop(o);
+            self.send_one(now, w);
+        }
+    }
+
+    /// [`FusionLinks::send`] for messages encoded where they were formed (the vehicle's fusion
+    /// thread); an encoding failure is counted like any refused send.
+    pub fn send_wire(&mut self, now: f64, out: Vec<WireOutgoing>) {
+        for w in out {
+            self.send_one(now, w);
+        }
+    }
+
+    fn send_one(&mut self, now: f64, w: WireOutgoing) {
+        let peer = w.to.0;
+        let Some(link) = self.links.get_mut(&peer) else {
+            let e = format!("no link to node {peer}");
+            self.send_failures.add("link.send.no_link".into(), 1, &e);
+            return;
+        };
+        let sent = w
+            .encoded
+            .map_err(canopy_transport::link::LinkError::Encode)
+            .and_then(|m| m.send(link, now));
+        if let Err(e) = sent {
+            count_send_failure(&mut self.send_failures, peer, &e);
         }
     }
 

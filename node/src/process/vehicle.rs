@@ -316,15 +316,14 @@ impl Vehicle<'_> {
             Done::Replies { now, out, view } => {
                 self.view = view;
                 self.links
-                    .send(if now.is_finite() { now } else { self.t }, out);
+                    .send_wire(if now.is_finite() { now } else { self.t }, out);
                 self.stall.add(start, Work::Messages);
             }
-            Done::Round {
-                now,
-                filter,
-                out,
-                view,
-            } => {
+            Done::Send { now, out } => {
+                self.links.send_wire(now, vec![out]);
+                self.stall.add(start, Work::Messages);
+            }
+            Done::Round { now, filter, view } => {
                 self.view = view;
                 if self.estimator.give_back(*filter).is_err() {
                     self.give_back_failed += 1;
@@ -332,13 +331,13 @@ impl Vehicle<'_> {
                 // The round may have moved the filter into the team frame (own frames).
                 self.estimator.set_frame_owner(self.view.frame_owner);
                 self.stall.add(start, Work::Lend);
-                let start = StallMeter::mark();
-                self.links.send(now, out);
                 if self.delivery.is_some() {
-                    // Everything this vehicle stamps up to `now` has gone.
+                    // Everything this vehicle stamps up to `now` has gone (the round's
+                    // messages came ahead of it, `Done::Send`).
+                    let start = StallMeter::mark();
                     self.links.send_marker(now);
+                    self.stall.add(start, Work::Messages);
                 }
-                self.stall.add(start, Work::Messages);
             }
         }
     }
@@ -721,7 +720,8 @@ pub fn run(c: &RoleCommon, id: WireId, incarnation: u32) -> Result<()> {
     let gated = peers.iter().filter(|p| p.1).map(|p| p.0).collect();
     let delivery = (s.fusion.delivery == crate::network::Delivery::SimulationTime)
         .then(|| SimTimeDelivery::new(1.0 / s.fusion.rate_hz, init.time, peers));
-    let fusion = FusionThread::spawn(fusion).context("starting the fusion thread")?;
+    let fusion = FusionThread::spawn(fusion, s.fusion.delta_compression)
+        .context("starting the fusion thread")?;
     let record_dt = s.run.record_interval_s;
     let round_dt = 1.0 / s.fusion.rate_hz;
     let mut v = Vehicle {
