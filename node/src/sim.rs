@@ -128,6 +128,9 @@ struct Node {
     restarts: u32,
     /// Compression of information-carrying messages (`[fusion] delta_compression`).
     compression: crate::wire::Compression,
+    /// Sends refused, by reason (`link.send.<error>`, as in the vehicle process), reported with
+    /// the vehicle's rejections.
+    send_failures: crate::agent::Rejections,
 }
 
 impl Node {
@@ -158,11 +161,17 @@ impl Node {
             (None, _) => Vec::new(),
         }
     }
+    /// Sends DDF messages. Undeliverable ones are counted by the link; ones a link refuses
+    /// (or that have no link) are counted here by reason; the DDF recovers from both.
     fn send(&mut self, now: f64, out: Vec<Outgoing>) {
         for o in out {
-            if let Some(link) = self.links.get_mut(&o.to) {
-                // Undeliverable messages are counted by the link; the DDF recovers losses.
-                let _ = send_ddf(link, now, &o.message, self.compression);
+            let Some(link) = self.links.get_mut(&o.to) else {
+                let e = format!("no link to node {}", o.to.0);
+                self.send_failures.add("link.send.no_link".into(), 1, &e);
+                continue;
+            };
+            if let Err(e) = send_ddf(link, now, &o.message, self.compression) {
+                crate::process::count_send_failure(&mut self.send_failures, o.to.0, &e);
             }
         }
     }
@@ -584,6 +593,7 @@ pub fn simulate(s: &Scenario, mut opts: SimOptions<'_>) -> Result<SimOutcome, Si
                 links: BTreeMap::new(),
                 restarts: 0,
                 compression: s.fusion.delta_compression,
+                send_failures: crate::agent::Rejections::default(),
             },
         );
     }
@@ -608,6 +618,7 @@ pub fn simulate(s: &Scenario, mut opts: SimOptions<'_>) -> Result<SimOutcome, Si
                 links: BTreeMap::new(),
                 restarts: 0,
                 compression: s.fusion.delta_compression,
+                send_failures: crate::agent::Rejections::default(),
             },
         );
     }
@@ -921,7 +932,9 @@ pub fn simulate(s: &Scenario, mut opts: SimOptions<'_>) -> Result<SimOutcome, Si
             sim.records[i].map = map;
             let c = a.counters();
             sim.records[i].rejected_messages = c.fusion.messages_rejected;
-            sim.records[i].rejections = a.rejections().counts.clone();
+            let mut rejections = a.rejections();
+            rejections.merge(&node.send_failures.counts);
+            sim.records[i].rejections = rejections.counts;
             sim.records[i].frame_alignment = a.team_frame().map(|tf| {
                 // The true own → team frame: own → launch, then launch → the root's own.
                 let truth = sim

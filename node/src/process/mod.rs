@@ -626,7 +626,7 @@ impl FusionLinks {
 }
 
 /// Counts a message a link refused to send under `link.send.<error>` (logged once per reason).
-fn count_send_failure(
+pub(crate) fn count_send_failure(
     failures: &mut crate::agent::Rejections,
     peer: NodeId,
     e: &canopy_transport::link::LinkError,
