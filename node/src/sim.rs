@@ -34,7 +34,7 @@ use crate::replay::{ReplayError, SensorSource};
 use crate::scenario::Identity;
 use crate::scenario::{Scenario, ScenarioError};
 use crate::truth::{TruthAudit, fill_record};
-use crate::wire::{decode_ddf, send_ddf};
+use crate::wire::decode_ddf;
 use crate::world::{self, InitialEstimate, World};
 use canopy_fusion::frames::Frame4;
 
@@ -134,6 +134,8 @@ struct Node {
 }
 
 impl Node {
+    // An error from an agent was counted by reason and logged once by the agent itself
+    // (`VehicleFusion::reject`, `HubAgent::reject`) and changed nothing: nothing to send.
     fn on_message(
         &mut self,
         now: f64,
@@ -161,18 +163,14 @@ impl Node {
             (None, _) => Vec::new(),
         }
     }
-    /// Sends DDF messages. Undeliverable ones are counted by the link; ones a link refuses
-    /// (or that have no link) are counted here by reason; the DDF recovers from both.
+    /// Sends DDF messages, each encoded just before it is sent, counted as the vehicle process
+    /// counts them ([`crate::process::send_counted`]); the DDF recovers from every loss.
     fn send(&mut self, now: f64, out: Vec<Outgoing>) {
         for o in out {
-            let Some(link) = self.links.get_mut(&o.to) else {
-                let e = format!("no link to node {}", o.to.0);
-                self.send_failures.add("link.send.no_link".into(), 1, &e);
-                continue;
-            };
-            if let Err(e) = send_ddf(link, now, &o.message, self.compression) {
-                crate::process::count_send_failure(&mut self.send_failures, o.to.0, &e);
-            }
+            let w = crate::wire::WireOutgoing::encode(&o, self.compression);
+            drop(o);
+            let link = self.links.get_mut(&w.to).map(|l| l as &mut dyn Link);
+            crate::process::send_counted(link, now, w, &mut self.send_failures);
         }
     }
 }

@@ -438,12 +438,16 @@ impl SlamFilter {
 
         // Step 1 quantities (no mutation yet).
         let (schur, schur_vec, new_block) = if nu > 0 {
+            let gathered;
             let (y_uu, y_uk) = match &split {
-                Some(kept) => (kept.y_uu.clone(), kept.y_uk.clone()),
-                None => (
-                    gather_sym(delta.matrix.as_ref(), &new_pos, &new_pos),
-                    gather_sym(delta.matrix.as_ref(), &new_pos, &known_pos),
-                ),
+                Some(kept) => (&kept.y_uu, &kept.y_uk),
+                None => {
+                    gathered = (
+                        gather_sym(delta.matrix.as_ref(), &new_pos, &new_pos),
+                        gather_sym(delta.matrix.as_ref(), &new_pos, &known_pos),
+                    );
+                    (&gathered.0, &gathered.1)
+                }
             };
             let dy_u = Col::from_fn(nu, |i| delta.vector[new_pos[i]]);
             let Ok(llt) = y_uu.llt(Side::Lower) else {

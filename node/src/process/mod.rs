@@ -538,19 +538,8 @@ impl FusionLinks {
     }
 
     fn send_one(&mut self, now: f64, w: WireOutgoing) {
-        let peer = w.to.0;
-        let Some(link) = self.links.get_mut(&peer) else {
-            let e = format!("no link to node {peer}");
-            self.send_failures.add("link.send.no_link".into(), 1, &e);
-            return;
-        };
-        let sent = w
-            .encoded
-            .map_err(canopy_transport::link::LinkError::Encode)
-            .and_then(|m| m.send(link, now));
-        if let Err(e) = sent {
-            count_send_failure(&mut self.send_failures, peer, &e);
-        }
+        let link = self.links.get_mut(&w.to.0).map(|l| l as &mut dyn Link);
+        send_counted(link, now, w, &mut self.send_failures);
     }
 
     /// Everything waiting on the links now: peer events and decoded DDF messages, per peer in
@@ -625,8 +614,33 @@ impl FusionLinks {
     }
 }
 
+/// Sends `w` over `link`, its neighbour's link (`None`: no link to it). A message the link
+/// refuses (or that could not be encoded) is counted in `failures` by reason, `link.send.
+/// <error>`, and one without a link as `link.send.no_link`, each logged once per reason;
+/// undeliverable ones (no peer, full queue) are counted by the link itself.
+pub(crate) fn send_counted(
+    link: Option<&mut dyn Link>,
+    now: f64,
+    w: WireOutgoing,
+    failures: &mut crate::agent::Rejections,
+) {
+    let peer = w.to.0;
+    let Some(link) = link else {
+        let e = format!("no link to node {peer}");
+        failures.add("link.send.no_link".into(), 1, &e);
+        return;
+    };
+    let sent = w
+        .encoded
+        .map_err(canopy_transport::link::LinkError::Encode)
+        .and_then(|m| m.send(link, now));
+    if let Err(e) = sent {
+        count_send_failure(failures, peer, &e);
+    }
+}
+
 /// Counts a message a link refused to send under `link.send.<error>` (logged once per reason).
-pub(crate) fn count_send_failure(
+fn count_send_failure(
     failures: &mut crate::agent::Rejections,
     peer: NodeId,
     e: &canopy_transport::link::LinkError,
