@@ -209,7 +209,7 @@ impl SlamFilter {
     /// Checks a received delta before anything changes: sizes, unique ids, finite values, the
     /// origin, symmetry to round-off. Returns whether the matrix is *exactly* symmetric (then
     /// its symmetric part is itself and no pass needs to form it).
-    fn validate_information(&self, delta: &MapInformation) -> Result<bool, SlamError> {
+    pub(super) fn validate_information(&self, delta: &MapInformation) -> Result<bool, SlamError> {
         let k = 3 * delta.ids.len();
         if delta.matrix.nrows() != k || delta.matrix.ncols() != k || delta.vector.nrows() != k {
             return Err(SlamError::InvalidInformation(format!(

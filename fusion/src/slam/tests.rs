@@ -1942,3 +1942,92 @@ fn a_batch_missing_a_few_features_is_fused_as_a_whole_map_delta() {
         assert!(ey < 1e-8, "trial {trial}: maintained Y off by {ey:e}");
     }
 }
+
+/// Exactly symmetric deltas with new features (fused in the delta's own buffer, `SplitDelta`)
+/// match the dense information form at a vehicle's sizes: whole-map batches of 40–160
+/// features with 1–4 new ones (map route, the known block past faer's blocking sizes), and
+/// subsets of 60–99-feature maps, positive definite and mildly indefinite, in map order and
+/// shuffled (pseudo-measurement route). The deltas are made exactly symmetric ((Y + Yᵀ)/2), so
+/// that the fusion takes that path (checked: `validate_information` reports them exact).
+#[test]
+fn exact_deltas_with_new_features_match_the_dense_information_form() {
+    let mut rng = ChaCha8Rng::seed_from_u64(34);
+    for (trial, (nf, new_features, missing)) in [
+        (40usize, 2u64, false),
+        (100, 3, false),
+        (100, 1, true),
+        (160, 4, true),
+        (160, 4, false),
+    ]
+    .into_iter()
+    .enumerate()
+    {
+        let mut f = random_local_filter(nf, &mut rng);
+        f.map_information().unwrap();
+        let mut ids: Vec<FeatureId> = (100..100 + nf as u64)
+            .filter(|id| !missing || (*id != 107 && *id != 131))
+            .collect();
+        ids.extend((0..new_features).map(|j| 900 + j));
+        let k = 3 * ids.len();
+        let y = random_spd(k, 1.0, &mut rng);
+        let y = (&y + y.transpose()) * 0.5;
+        let target = DVector::from_fn(k, |_, _| rng.random_range(-30.0..30.0));
+        let d = delta(ids, y, &target, f.origin());
+        assert!(f.validate_information(&d).unwrap(), "exact");
+        fuse_and_check_against_the_dense_form(&mut f, d, trial);
+    }
+    // Subsets (pseudo route), PD and indefinite, with new features.
+    for trial in 0..40 {
+        let nf = 60 + trial;
+        let mut f = random_local_filter(nf, &mut rng);
+        if trial % 2 == 0 {
+            f.map_information().unwrap();
+        }
+        let mut ids: Vec<FeatureId> = (100..100 + nf as u64)
+            .filter(|_| rng.random_bool(0.2))
+            .collect();
+        ids.extend((0..1 + trial as u64 % 3).map(|j| 900 + j));
+        if trial % 3 == 0 {
+            for i in (1..ids.len()).rev() {
+                ids.swap(i, rng.random_range(0..=i));
+            }
+        }
+        let k = 3 * ids.len();
+        let mut y = random_spd(k, 1.0, &mut rng);
+        if trial % 4 == 1 {
+            let u = DVector::from_fn(k, |_, _| rng.random::<f64>() - 0.5).normalize();
+            y -= &u * u.transpose() * 0.02;
+        }
+        for (b, id) in ids.iter().enumerate() {
+            if *id >= 900 {
+                for i in 0..3 {
+                    y[(3 * b + i, 3 * b + i)] += 1.0;
+                }
+            }
+        }
+        let y = (&y + y.transpose()) * 0.5;
+        let target = DVector::from_fn(k, |_, _| rng.random_range(-30.0..30.0));
+        let d = delta(ids, y, &target, f.origin());
+        assert!(f.validate_information(&d).unwrap(), "exact");
+        fuse_and_check_against_the_dense_form(&mut f, d, 100 + trial);
+    }
+}
+
+/// Fuses `d` into `f` and checks (x, P) and the maintained map information against
+/// [`dense_fusion_reference`]: ≤ 500 states with κ ≲ 1e3, so 1e-8 relative covers the dense
+/// inverses' round-off (as in `randomized_fusions_match_the_dense_information_form`).
+fn fuse_and_check_against_the_dense_form(f: &mut SlamFilter, d: MapInformation, trial: usize) {
+    let (x_ref, p_ref) = dense_fusion_reference(f, &d);
+    f.fuse_map_information(&d).unwrap();
+    let p = to_dense(&f.p);
+    let x = col_to_dense(&f.x);
+    let ep = (&p - &p_ref).abs().max() / p_ref.abs().max();
+    let ex = (&x - &x_ref).abs().max() / x_ref.abs().max();
+    assert!(ep < 1e-8 && ex < 1e-8, "trial {trial}: P {ep:e}, x {ex:e}");
+    if let Some(c) = f.info_cache.y.as_ref().filter(|_| f.info_cache_current()) {
+        let c = to_dense(c);
+        let (_, y_dense, _) = marginal_information(f);
+        let ey = (&c - &y_dense).abs().max() / y_dense.abs().max();
+        assert!(ey < 1e-8, "trial {trial}: maintained Y off by {ey:e}");
+    }
+}
