@@ -424,10 +424,10 @@ pub(crate) fn channel_delta(
         .collect();
     let n = rows.len();
     // Gathered into a fresh k × k, not compacted in place: with the in-place compaction
-    // (equal entry for entry, test-checked) the radio-32k team diverged in about one
-    // multi-process run of twenty (a vehicle's pose moved 5–39 m per round by its neighbour's
-    // sparsified deltas; 14 of 338 runs against 0 of 90 with this gather, cause not found;
-    // docs/benchmarks.md, "Fifth pass").
+    // (equal bit for bit, also checked in running processes) the radio-32k team diverged in
+    // about one multi-process run of twenty-five (a vehicle's pose and map moved 5–39 m per
+    // round by its neighbour's sparsified deltas; 16 of 418 runs against 0 of 180 with this
+    // gather; mechanism not found; docs/benchmarks.md, "Sixth pass").
     let matrix = Mat::from_fn(n, n, |i, j| matrix[(rows[i], rows[j])]);
     let vector = Col::from_fn(n, |i| vector[rows[i]]);
     Ok(MapInformation {
