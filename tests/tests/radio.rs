@@ -11,7 +11,9 @@
 //! switched to CI, every end sent deltas and the links sparsified; the bytes each end sent stay
 //! within the capacity (mean over the run, and every 10 s window of links.csv); the drop-tail
 //! queue dropped few messages; and the team's map RMSE is within the guard below of the
-//! reference's.
+//! reference's. A known defect (issue 13, open; docs/benchmarks.md, "Sixth pass") makes a
+//! vehicle's pose and map drift together by metres per round in about one run of ninety; this
+//! test then fails on the pose consistency, as it should.
 //!
 //! `topologies/radio-range.toml` (the same team, links up only within 1200 m): each link is
 //! reported down exactly while its vehicles are out of range, within its capacity, and no

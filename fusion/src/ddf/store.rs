@@ -425,9 +425,9 @@ pub(crate) fn channel_delta(
     let n = rows.len();
     // Gathered into a fresh k × k, not compacted in place: with the in-place compaction
     // (equal bit for bit, also checked in running processes) the radio-32k team diverged in
-    // about one multi-process run of twenty-five (a vehicle's pose and map moved 5–39 m per
-    // round by its neighbour's sparsified deltas; 16 of 418 runs against 0 of 180 with this
-    // gather; mechanism not found; docs/benchmarks.md, "Sixth pass").
+    // 16 of 418 multi-process runs, with this gather in 4 of 360 (a vehicle's pose and map
+    // moved 5–39 m per round by its neighbour's sparsified deltas). The gather lowers the
+    // rate; the defect itself is open (issue 13; docs/benchmarks.md, "Sixth pass").
     let matrix = Mat::from_fn(n, n, |i, j| matrix[(rows[i], rows[j])]);
     let vector = Col::from_fn(n, |i| vector[rows[i]]);
     Ok(MapInformation {
