@@ -1974,7 +1974,7 @@ fn exact_deltas_with_new_features_match_the_dense_information_form() {
         let target = DVector::from_fn(k, |_, _| rng.random_range(-30.0..30.0));
         let d = delta(ids, y, &target, f.origin());
         assert!(f.validate_information(&d).unwrap(), "exact");
-        fuse_and_check_against_the_dense_form(&mut f, d, trial);
+        fuse_and_check_against_the_dense_form(&mut f, d, trial, FuseMethod::MapInformation);
     }
     // Subsets (pseudo route), PD and indefinite, with new features.
     for trial in 0..40 {
@@ -2009,16 +2009,27 @@ fn exact_deltas_with_new_features_match_the_dense_information_form() {
         let target = DVector::from_fn(k, |_, _| rng.random_range(-30.0..30.0));
         let d = delta(ids, y, &target, f.origin());
         assert!(f.validate_information(&d).unwrap(), "exact");
-        fuse_and_check_against_the_dense_form(&mut f, d, 100 + trial);
+        fuse_and_check_against_the_dense_form(
+            &mut f,
+            d,
+            100 + trial,
+            FuseMethod::PseudoMeasurement,
+        );
     }
 }
 
-/// Fuses `d` into `f` and checks (x, P) and the maintained map information against
+/// Fuses `d` into `f` by `route` and checks (x, P) and the maintained map information against
 /// [`dense_fusion_reference`]: ≤ 500 states with κ ≲ 1e3, so 1e-8 relative covers the dense
 /// inverses' round-off (as in `randomized_fusions_match_the_dense_information_form`).
-fn fuse_and_check_against_the_dense_form(f: &mut SlamFilter, d: MapInformation, trial: usize) {
+fn fuse_and_check_against_the_dense_form(
+    f: &mut SlamFilter,
+    d: MapInformation,
+    trial: usize,
+    route: FuseMethod,
+) {
     let (x_ref, p_ref) = dense_fusion_reference(f, &d);
-    f.fuse_map_information(&d).unwrap();
+    let rep = f.fuse_map_information(&d).unwrap();
+    assert_eq!(rep.method, route, "trial {trial}: route");
     let p = to_dense(&f.p);
     let x = col_to_dense(&f.x);
     let ep = (&p - &p_ref).abs().max() / p_ref.abs().max();
