@@ -57,6 +57,26 @@
 //! (a few times); then the round sends nothing on that link, counted, and the whole delta stays
 //! pending ([`MAX_REGULARISATION_REL`] records what larger δ did). The consistency of the
 //! scheme as a whole is checked by NEES in the Monte Carlo of `fusion/tests/ddf_sparse.rs`.
+//!
+//! The marginal's vector. About the sender's estimate x̄ the vector sent is d'_S = D' x̄_S + e
+//! with e = d̃_S − D_SR (D_RR + δI)⁻¹ d̃_R, d̃ = d − D x̄. For linear-Gaussian data and a sender
+//! whose estimate includes the delta, cov e = D' − D' P_SS D' ⪯ D': e is consistent with the
+//! information it rides on. An EKF's channel books are not: every vector booked was formed
+//! about the estimate of its round, so as the estimates move the residual's vector
+//! d̃ = −(c − C x̄) (the estimator's own y_i = Y_i x̄ cancels) drifts by C (x̄ − x̄_then), and
+//! D_RR — only the information still pending — cannot explain that drift; the solve through
+//! its weak directions (the held-back features' common translation holds ~1e-8 of its scale)
+//! turns it into an e that D' does not support. The receiver fuses what it is sent: in the
+//! multi-process radio-32k runs such deltas moved a vehicle's pose and whole map 5–60 m per
+//! round (mostly along the vertical) while its covariance stayed at metres (pose ANEES up to
+//! 1415). So e is gated direction by direction: along each eigen-direction u_k of D' its
+//! component c_k = u_kᵀ e must satisfy c_k² / λ_k ≤ χ²₁(1 − (1 − [`VECTOR_GATE_PROBABILITY`]) / r)
+//! (r the rank of D'; Bonferroni, so consistent data passes whole with the gate's probability);
+//! a component beyond it is removed from e. Sending e = 0 instead (d'_S = D' x̄_S) also stopped
+//! the divergence but cost accuracy (docs/arch/ddf.md). The gated d' is booked as sent like any
+//! d', so what was not sent stays in the residual; the information matrix — what
+//! conservativeness is about — is untouched. For linear-Gaussian data the gate changes one delta
+//! in 10⁶ (none of the Monte Carlo's 180 000).
 
 use crate::info::MapInformation;
 use crate::sensor::FeatureId;
@@ -104,6 +124,18 @@ pub const MAX_REGULARISATION_REL: f64 = 1e-7;
 /// multi-process radio-32k run without this check: uav1's map RMSE 816 m (team 198× the
 /// reference) while never more confident than the reference. 1e-3 admits round-off.
 pub const MAX_NEGATIVE_REL: f64 = 1e-3;
+
+/// Probability of the χ² gate on the marginal's vector (module docs, "The marginal's
+/// vector"): the components of e = d'_S − D' x̄_S along D''s eigen-directions whose χ² exceeds
+/// the per-direction quantile (Bonferroni over the r directions) are not sent.
+///
+/// Why 1 − 1e-6: for linear-Gaussian data e is consistent with D' (cov e = D' − D' P_SS D' ⪯
+/// D') and fails the gate once in 10⁶ deltas (a 90 s radio run forms ~400); removing a
+/// component then is harmless (it is booked as not sent and goes out with later deltas). In
+/// the SLAM radio runs the channel's books hold vectors formed about earlier estimates; after
+/// some event their drift gave e with χ² of 10³–10⁷ on one link, round after round, and the
+/// receiver's map and pose were moved 5–60 m per round (`radio_32k`, issue 13).
+pub const VECTOR_GATE_PROBABILITY: f64 = 1.0 - 1e-6;
 
 /// Factor between successive regularisation attempts (floor, 1e-8, …, 1e-2).
 const REGULARISATION_STEP: f64 = 10.0;
@@ -158,6 +190,11 @@ pub struct Marginal {
     pub escalated: bool,
     /// Features of the delta left out (R, those with any non-zero entry).
     pub held_back: usize,
+    /// χ² of the marginal's vector about the reference, e = d'_S − D' x̄_S, against the
+    /// marginal's information D' (0 when nothing was held back).
+    pub vector_chi2: f64,
+    /// Some component of e failed its gate ([`VECTOR_GATE_PROBABILITY`]) and was removed.
+    pub vector_dropped: bool,
 }
 
 /// How many features' dense delta fits `budget` bytes
@@ -236,7 +273,7 @@ pub fn schur_marginal(
     delta: &MapInformation,
     keep: &[FeatureId],
 ) -> Result<Marginal, SparsifyError> {
-    schur_marginal_about(delta, keep, &HashMap::new())
+    marginal(delta, keep, &HashMap::new(), false)
 }
 
 /// [`schur_marginal`] evaluated about a reference map `about` (feature positions relative to
@@ -246,10 +283,23 @@ pub fn schur_marginal(
 /// shrinks from δ D_SR D̃_RR⁻¹ x_R (positions ~1e3 m from the origin) to
 /// δ D_SR D̃_RR⁻¹ (x_R − x̄_R) (the sender's error, metres). Measured on radio-8k: without it
 /// the team's maps diverged (module docs).
+///
+/// About a reference the marginal's vector is also *gated* against its information (module
+/// docs, "The marginal's vector"; [`VECTOR_GATE_PROBABILITY`], [`Marginal::vector_dropped`]);
+/// [`schur_marginal`] (no reference: d̃ = d carries D x itself) does not gate.
 pub fn schur_marginal_about(
     delta: &MapInformation,
     keep: &[FeatureId],
     about: &HashMap<FeatureId, Vector3<f64>>,
+) -> Result<Marginal, SparsifyError> {
+    marginal(delta, keep, about, true)
+}
+
+fn marginal(
+    delta: &MapInformation,
+    keep: &[FeatureId],
+    about: &HashMap<FeatureId, Vector3<f64>>,
+    gate: bool,
 ) -> Result<Marginal, SparsifyError> {
     let xbar = Col::from_fn(delta.vector.nrows(), |r| {
         about
@@ -293,9 +343,10 @@ pub fn schur_marginal_about(
     let mut d_s = Col::from_fn(ns, |i| shifted[sr[i]]);
     let mut regularisation = 0.0;
     let mut escalated = false;
+    let (mut vector_chi2, mut vector_dropped) = (0.0, false);
     if nr > 0 {
         let d_rr = Mat::from_fn(nr, nr, |i, j| m[(rr[i], rr[j])]);
-        // Right-hand sides [D_RS | d_R].
+        // Right-hand sides [D_RS | d̃_R].
         let mut rhs = Mat::from_fn(nr, ns + 1, |i, j| {
             if j < ns {
                 m[(rr[i], sr[j])]
@@ -338,7 +389,7 @@ pub fn schur_marginal_about(
             }
         };
         llt.solve_in_place(rhs.as_mut());
-        // D_SR (D_RR⁻¹ [D_RS | d_R]).
+        // [M | p] = D_SR (D_RR + δI)⁻¹ [D_RS | d̃_R].
         let d_sr = Mat::from_fn(ns, nr, |i, j| m[(sr[i], rr[j])]);
         let prod = &d_sr * &rhs;
         for j in 0..ns {
@@ -348,6 +399,11 @@ pub fn schur_marginal_about(
             d_s[j] -= prod[(j, ns)];
         }
         crate::info::symmetrize(&mut d_ss);
+        if gate && ns > 0 {
+            let removed;
+            (vector_chi2, removed) = gate_vector(&d_ss, &mut d_s)?;
+            vector_dropped = removed > 0;
+        }
     }
     // Back from d̃: d'_S += D' x̄_S.
     let xbar_s = Col::from_fn(ns, |i| xbar[sr[i]]);
@@ -393,7 +449,48 @@ pub fn schur_marginal_about(
         },
         escalated,
         held_back: r_blocks.len(),
+        vector_chi2,
+        vector_dropped,
     })
+}
+
+/// Gates e against the information D' (symmetric, positive semi-definite up to round-off and
+/// the small negative part [`MAX_NEGATIVE_REL`] admits) direction by direction, in place: along
+/// each eigen-direction u_k the χ² c_k² / (λ_k₊ + τ) (c_k = u_kᵀ e, negative eigenvalues as 0,
+/// τ = 1e-12 λ_max(D'): a component along a direction D' does not support is exactly what the
+/// gate is for) must stay within χ²₁(1 − (1 − [`VECTOR_GATE_PROBABILITY`]) / r), r the
+/// numerical rank of D' (at least 1); a component beyond it (or not finite) is removed.
+/// Returns the total χ² before gating and the number of components removed.
+fn gate_vector(info: &Mat<f64>, e: &mut Col<f64>) -> Result<(f64, usize), SparsifyError> {
+    let n = info.nrows();
+    let evd = info
+        .as_ref()
+        .self_adjoint_eigen(Side::Lower)
+        .map_err(|_| SparsifyError::NonFinite)?;
+    let lambda = evd.S().column_vector();
+    let max = (0..n).map(|i| lambda[i]).fold(0.0_f64, f64::max);
+    let tau = 1e-12 * max;
+    let u = evd.U();
+    let rank = (0..n).filter(|&k| lambda[k] > tau).count().max(1);
+    // Bonferroni over the directions: the whole vector passes with probability ≥ the gate's.
+    let gate =
+        crate::consistency::chi2_quantile(1.0, 1.0 - (1.0 - VECTOR_GATE_PROBABILITY) / rank as f64)
+            .map_err(|_| SparsifyError::NonFinite)?;
+    let mut chi2 = 0.0;
+    let mut removed = 0;
+    for k in 0..n {
+        let c: f64 = (0..n).map(|i| u[(i, k)] * e[i]).sum();
+        let q = c * c / (lambda[k].max(0.0) + tau).max(f64::MIN_POSITIVE);
+        chi2 += q;
+        // A NaN χ² is removed too (an infinite one fails the comparison).
+        if q.is_nan() || q > gate {
+            for i in 0..n {
+                e[i] -= c * u[(i, k)];
+            }
+            removed += 1;
+        }
+    }
+    Ok((chi2, removed))
 }
 
 #[cfg(test)]
@@ -572,6 +669,127 @@ mod tests {
     }
 
     /// Keeping every feature returns the delta itself; all-zero features are not held back.
+    /// The marginal's vector of linear-Gaussian data passes its gate: a sender with prior
+    /// (Y₀, Y₀ x₀) fuses d = D x + w (cov w = D) and marginalises about its posterior
+    /// x̄ = (Y₀ + D)⁻¹ (Y₀ x₀ + d); e = d'_S − D' x̄_S is then consistent with D'
+    /// (cov e = D' − D' P_SS D') and the gated marginal equals the ungated one. D is of low
+    /// rank (held-back block singular up to the floor, D' singular too). 200 draws at a gate
+    /// of probability 1 − 1e-6: none is expected to fail (the seed makes it deterministic).
+    #[test]
+    fn consistent_marginal_vector_passes_its_gate() {
+        let mut rng = ChaCha8Rng::seed_from_u64(21);
+        let normal = |rng: &mut ChaCha8Rng| -> f64 {
+            // Box–Muller.
+            let (u, v): (f64, f64) = (rng.random_range(1e-12..1.0), rng.random_range(0.0..1.0));
+            (-2.0 * u.ln()).sqrt() * (std::f64::consts::TAU * v).cos()
+        };
+        let nf = 6;
+        let n = 3 * nf;
+        for trial in 0..200 {
+            // D = G Gᵀ of rank 9 < 18: w = G ε has covariance D.
+            let g = Mat::from_fn(n, 9, |_, _| rng.random_range(-1.0..1.0));
+            let d = &g * g.transpose();
+            let x = Col::from_fn(n, |_| rng.random_range(-500.0..500.0));
+            let eps = Col::from_fn(9, |_| normal(&mut rng));
+            let vector = &d * &x + &g * &eps;
+            // Prior N(x₀, Y₀⁻¹), Y₀ = 4 I: x₀ = x + N(0, I/4).
+            let y0 = Mat::<f64>::identity(n, n) * 4.0;
+            let x0 = Col::from_fn(n, |i| x[i] + 0.5 * normal(&mut rng));
+            let post = (&y0 + &d).llt(Side::Lower).expect("PD");
+            let xbar = post.solve(&(&y0 * &x0 + &vector));
+            let ids: Vec<u64> = (1..=nf as u64).collect();
+            let about: HashMap<FeatureId, Vector3<f64>> = ids
+                .iter()
+                .enumerate()
+                .map(|(k, &id)| (id, Vector3::from_fn(|a, _| xbar[3 * k + a])))
+                .collect();
+            let delta = MapInformation {
+                ids,
+                origin: Vector3::zeros(),
+                matrix: d,
+                vector,
+            };
+            let keep = [2, 5];
+            let got = schur_marginal_about(&delta, &keep, &about).expect("marginal");
+            let plain = marginal(&delta, &keep, &about, false).expect("marginal");
+            assert!(!got.vector_dropped, "trial {trial}: χ² {}", got.vector_chi2);
+            assert_eq!(got.info.vector, plain.info.vector, "trial {trial}");
+        }
+    }
+
+    /// A held-back vector that contradicts D_RR along a near-null direction of it is amplified
+    /// by the Schur complement into a marginal vector D' does not support; the gate catches it
+    /// and removes the component, leaving a vector about x̄ within the bound of consistent
+    /// data, |D_SR (D_RR + δI)⁻¹ d̃_R| ≤ λ_max(D_SS)^½ · 5 √n_R for whitened components
+    /// within 5σ (for PSD D, D_SR (D_RR + δI)⁻¹ D_RS ⪯ D_SS). D = G Gᵀ with one column (s e, t v) tying an S state
+    /// strongly (s = 1) to the common x-translation v of the held-back features weakly
+    /// (t = 1e-4: D_RR v = t² v = 1e-8 v, the other R columns orthogonal to v), so
+    /// D_SR v / (λ_v + δ) ≈ 7e3 (δ = 1e-9 of max diag D_RR ≈ 5e-9); d̃_R = 2 v, a whitened
+    /// component of ~1.6e4. Ungated, the marginal's vector is ~1.2e4 and exceeds the bound
+    /// (~42) by ~290×, so the test can fail.
+    #[test]
+    fn marginal_vector_contradicting_its_information_is_not_sent() {
+        let mut rng = ChaCha8Rng::seed_from_u64(22);
+        let (ns, nr) = (6, 12);
+        let n = ns + nr;
+        let (s_tie, t_tie) = (1.0, 1e-4);
+        // v: the common x-translation of the four held-back features (rows 0..12), unit norm.
+        let v = Col::from_fn(nr, |i| if i % 3 == 0 { 0.5 } else { 0.0 });
+        let mut g = Mat::<f64>::zeros(n, 1 + 15 + 8);
+        g[(nr, 0)] = s_tie;
+        for i in 0..nr {
+            g[(i, 0)] = t_tie * v[i];
+        }
+        // R columns with v projected out; S columns.
+        for c in 1..16 {
+            let r = Col::from_fn(nr, |_| rng.random_range(-1.0..1.0));
+            let along = v.transpose() * &r;
+            for i in 0..nr {
+                g[(i, c)] = r[i] - along * v[i];
+            }
+        }
+        for c in 16..24 {
+            for i in nr..n {
+                g[(i, c)] = rng.random_range(-1.0..1.0);
+            }
+        }
+        let d = &g * g.transpose();
+        let vector = Col::from_fn(n, |i| if i < nr { 2.0 * v[i] } else { 0.0 });
+        let ids: Vec<u64> = (1..=6).collect();
+        let about: HashMap<FeatureId, Vector3<f64>> =
+            ids.iter().map(|&id| (id, Vector3::zeros())).collect();
+        let delta = MapInformation {
+            ids,
+            origin: Vector3::zeros(),
+            matrix: d.clone(),
+            vector,
+        };
+        let keep = [5, 6];
+        let got = schur_marginal_about(&delta, &keep, &about).expect("marginal");
+        let plain = marginal(&delta, &keep, &about, false).expect("marginal");
+        assert!(got.vector_dropped, "χ² {}", got.vector_chi2);
+        assert!(!plain.vector_dropped);
+        // d̃_S = 0 and x̄ = 0 here, so d'_S is minus the term.
+        let d_ss = Mat::from_fn(ns, ns, |i, j| d[(nr + i, nr + j)]);
+        let lmax = d_ss
+            .as_ref()
+            .self_adjoint_eigenvalues(Side::Lower)
+            .expect("eig")
+            .last()
+            .copied()
+            .expect("non-empty");
+        let bound = lmax.sqrt() * 5.0 * (nr as f64).sqrt();
+        let (gated, ungated) = (got.info.vector.norm_l2(), plain.info.vector.norm_l2());
+        assert!(
+            gated <= bound,
+            "gated vector {gated} above the bound {bound}"
+        );
+        assert!(
+            ungated > 100.0 * bound,
+            "ungated vector {ungated} (bound {bound}): the test would not see the amplification"
+        );
+    }
+
     #[test]
     fn keeping_everything_is_exact() {
         let mut rng = ChaCha8Rng::seed_from_u64(3);

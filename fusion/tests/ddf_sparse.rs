@@ -143,6 +143,8 @@ struct Outcome {
     /// Sparsified deltas that needed regularisation, and refused rounds.
     regularised: u64,
     refused: u64,
+    /// Sparsified deltas whose vector failed its gate (`sparse::VECTOR_GATE_PROBABILITY`).
+    vector_dropped: u64,
 }
 
 fn library_network(topology: fn() -> Topology, budget: Option<usize>, seed: u64) -> Outcome {
@@ -152,7 +154,8 @@ fn library_network(topology: fn() -> Topology, budget: Option<usize>, seed: u64)
     let mut lifted_sum = vec![0.0; nodes];
     let mut max_difference: f64 = 0.0;
     let mut max_shift: f64 = 0.0;
-    let (mut sent, mut sparsified, mut regularised, mut refused) = (0, 0, 0, 0);
+    let (mut sent, mut sparsified, mut regularised, mut refused, mut vector_dropped) =
+        (0, 0, 0, 0, 0);
     let diameter = topology().diameter().expect("connected");
     for _ in 0..RUNS {
         let feats = truth(&mut rng);
@@ -190,6 +193,7 @@ fn library_network(topology: fn() -> Topology, budget: Option<usize>, seed: u64)
             sparsified += c.stats.sparse_deltas;
             regularised += c.stats.sparse_regularised;
             refused += c.stats.sparse_refused;
+            vector_dropped += c.stats.sparse_vector_dropped;
         }
         // Lift the budget: the residuals go out, exact again.
         for &(a, b) in &links {
@@ -243,6 +247,7 @@ fn library_network(topology: fn() -> Topology, budget: Option<usize>, seed: u64)
         deltas: (sent, sparsified),
         regularised,
         refused,
+        vector_dropped,
     }
 }
 
@@ -350,7 +355,7 @@ fn check(name: &str, topology: fn() -> Topology) {
          sparsified (budget {budget} B):     {}\n  \
          after lifting the budget:         {}\n  \
          block extraction (broken):        {}\n  \
-         deltas sent {} of which sparsified {}, regularised {}, refused {}; \
+         deltas sent {} of which sparsified {}, regularised {}, refused {}, vector gated {}; \
          max relative difference to the centralized sum after lifting {:.1e} \
          (booked shifts Σ δ / max|Y| up to {:.1e})",
         fmt(&exact.sparse),
@@ -361,6 +366,7 @@ fn check(name: &str, topology: fn() -> Topology) {
         sparse.deltas.1,
         sparse.regularised,
         sparse.refused,
+        sparse.vector_dropped,
         sparse.max_difference,
         sparse.max_shift,
     );
@@ -387,6 +393,15 @@ fn check(name: &str, topology: fn() -> Topology) {
     // `library_network`); and no round was refused: the booking leaves every residual positive
     // semi-definite.
     assert_eq!(sparse.refused, 0, "{name}: refused rounds");
+    // Linear-Gaussian data is consistent with its information: a marginal's vector fails its
+    // gate with probability ≤ 1e-6 per delta; 1e-3 leaves room and still fails if the vector
+    // were not taken about the sender's estimate (then it carries D' x itself).
+    assert!(
+        sparse.vector_dropped * 1000 <= sparse.deltas.1,
+        "{name}: {} of {} sparsified deltas had their vector gated",
+        sparse.vector_dropped,
+        sparse.deltas.1
+    );
     assert!(
         broken.iter().any(|&x| x > hi),
         "{name}: block extraction NEES {} inside band",

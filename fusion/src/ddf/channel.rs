@@ -84,6 +84,12 @@ pub struct ChannelStats {
     /// delta: the claim may exceed it by δ on held-back features, module docs).
     #[serde(default)]
     pub sparse_regularised: u64,
+    /// Of the sparsified deltas, those whose vector failed its χ² gate against the marginal's
+    /// information and was sent as the sender's estimate instead
+    /// ([`crate::sparse::VECTOR_GATE_PROBABILITY`]: books formed about earlier estimates; for
+    /// linear-Gaussian data once in 10⁶).
+    #[serde(default)]
+    pub sparse_vector_dropped: u64,
     /// Rounds a sparsified link sent no delta because the residual block was too indefinite
     /// (or the marginal not finite); the delta stays pending.
     #[serde(default)]
@@ -1200,6 +1206,9 @@ impl Channel {
             self.stats.sparse_deltas += 1;
             if m.escalated {
                 self.stats.sparse_regularised += 1;
+            }
+            if m.vector_dropped {
+                self.stats.sparse_vector_dropped += 1;
             }
             return Some((info, m.shift));
         }
