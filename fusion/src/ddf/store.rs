@@ -423,11 +423,10 @@ pub(crate) fn channel_delta(
         .flat_map(|&u| FEATURE_DIM * u..FEATURE_DIM * (u + 1))
         .collect();
     let n = rows.len();
-    // Gathered into a fresh k × k, not compacted in place: with the in-place compaction
-    // (equal bit for bit, also checked in running processes) the radio-32k team diverged in
-    // 16 of 418 multi-process runs, with this gather in 4 of 360 (a vehicle's pose and map
-    // moved 5–39 m per round by its neighbour's sparsified deltas). The gather lowers the
-    // rate; the defect itself is open (issue 13; docs/benchmarks.md, "Sixth pass").
+    // Gathered into a fresh k × k. An in-place compaction (equal bit for bit) was withdrawn
+    // when the radio-32k team diverged more often with it (16 of 418 multi-process runs,
+    // against 4 of 360); the divergence itself was the sparsified marginal's vector, now gated
+    // (`sparse::VECTOR_GATE_PROBABILITY`; docs/benchmarks.md, "Seventh pass").
     let matrix = Mat::from_fn(n, n, |i, j| matrix[(rows[i], rows[j])]);
     let vector = Col::from_fn(n, |i| vector[rows[i]]);
     Ok(MapInformation {
