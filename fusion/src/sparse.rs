@@ -191,7 +191,7 @@ pub struct Marginal {
     /// Features of the delta left out (R, those with any non-zero entry).
     pub held_back: usize,
     /// χ² of the marginal's vector about the reference, e = d'_S − D' x̄_S, against the
-    /// marginal's information D' (0 when nothing was held back).
+    /// marginal's information D' (0 when nothing was held back or the marginal is not gated).
     pub vector_chi2: f64,
     /// Some component of e failed its gate ([`VECTOR_GATE_PROBABILITY`]) and was removed.
     pub vector_dropped: bool,
@@ -344,6 +344,8 @@ fn marginal(
     let mut regularisation = 0.0;
     let mut escalated = false;
     let (mut vector_chi2, mut vector_dropped) = (0.0, false);
+    // λ_min(D'), when the gate already decomposed D' (the negativity check below reuses it).
+    let mut marginal_min = None;
     if nr > 0 {
         let d_rr = Mat::from_fn(nr, nr, |i, j| m[(rr[i], rr[j])]);
         // Right-hand sides [D_RS | d̃_R].
@@ -400,9 +402,9 @@ fn marginal(
         }
         crate::info::symmetrize(&mut d_ss);
         if gate && ns > 0 {
-            let removed;
-            (vector_chi2, removed) = gate_vector(&d_ss, &mut d_s)?;
-            vector_dropped = removed > 0;
+            let g = gate_vector(&d_ss, &mut d_s)?;
+            (vector_chi2, vector_dropped) = (g.chi2, g.removed > 0);
+            marginal_min = Some(g.lambda_min);
         }
     }
     // Back from d̃: d'_S += D' x̄_S.
@@ -421,7 +423,10 @@ fn marginal(
         };
         let block = Mat::from_fn(ns, ns, |i, j| m[(sr[i], sr[j])]);
         let max = eig(&block)?.last().copied().unwrap_or(0.0).max(0.0);
-        let min = eig(&d_ss)?.first().copied().unwrap_or(0.0);
+        let min = match marginal_min {
+            Some(min) => min,
+            None => eig(&d_ss)?.first().copied().unwrap_or(0.0),
+        };
         if min < -MAX_NEGATIVE_REL * max {
             return Err(SparsifyError::TooNegative { min, max });
         }
@@ -460,8 +465,8 @@ fn marginal(
 /// τ = 1e-12 λ_max(D'): a component along a direction D' does not support is exactly what the
 /// gate is for) must stay within χ²₁(1 − (1 − [`VECTOR_GATE_PROBABILITY`]) / r), r the
 /// numerical rank of D' (at least 1); a component beyond it (or not finite) is removed.
-/// Returns the total χ² before gating and the number of components removed.
-fn gate_vector(info: &Mat<f64>, e: &mut Col<f64>) -> Result<(f64, usize), SparsifyError> {
+/// Returns the total χ² before gating, the number of components removed and λ_min(D').
+fn gate_vector(info: &Mat<f64>, e: &mut Col<f64>) -> Result<VectorGate, SparsifyError> {
     let n = info.nrows();
     let evd = info
         .as_ref()
@@ -490,7 +495,22 @@ fn gate_vector(info: &Mat<f64>, e: &mut Col<f64>) -> Result<(f64, usize), Sparsi
             removed += 1;
         }
     }
-    Ok((chi2, removed))
+    let lambda_min = (0..n).map(|k| lambda[k]).fold(f64::INFINITY, f64::min);
+    Ok(VectorGate {
+        chi2,
+        removed,
+        lambda_min: if n == 0 { 0.0 } else { lambda_min },
+    })
+}
+
+/// What [`gate_vector`] found.
+struct VectorGate {
+    /// eᵀ (D'₊ + τI)⁻¹ e before gating.
+    chi2: f64,
+    /// Components of e removed.
+    removed: usize,
+    /// The smallest eigenvalue of D'.
+    lambda_min: f64,
 }
 
 #[cfg(test)]
@@ -668,7 +688,6 @@ mod tests {
         );
     }
 
-    /// Keeping every feature returns the delta itself; all-zero features are not held back.
     /// The marginal's vector of linear-Gaussian data passes its gate: a sender with prior
     /// (Y₀, Y₀ x₀) fuses d = D x + w (cov w = D) and marginalises about its posterior
     /// x̄ = (Y₀ + D)⁻¹ (Y₀ x₀ + d); e = d'_S − D' x̄_S is then consistent with D'
@@ -721,9 +740,10 @@ mod tests {
     /// by the Schur complement into a marginal vector D' does not support; the gate catches it
     /// and removes the component, leaving a vector about x̄ within the bound of consistent
     /// data, |D_SR (D_RR + δI)⁻¹ d̃_R| ≤ λ_max(D_SS)^½ · 5 √n_R for whitened components
-    /// within 5σ (for PSD D, D_SR (D_RR + δI)⁻¹ D_RS ⪯ D_SS). D = G Gᵀ with one column (s e, t v) tying an S state
-    /// strongly (s = 1) to the common x-translation v of the held-back features weakly
-    /// (t = 1e-4: D_RR v = t² v = 1e-8 v, the other R columns orthogonal to v), so
+    /// within 5σ (for PSD D, D_SR (D_RR + δI)⁻¹ D_RS ⪯ D_SS). D = G Gᵀ with one column
+    /// (s e, t v) tying an S state strongly (s = 1) to the common x-translation v of the
+    /// held-back features weakly (t = 1e-4: D_RR v = t² v = 1e-8 v, the other R columns
+    /// orthogonal to v), so
     /// D_SR v / (λ_v + δ) ≈ 7e3 (δ = 1e-9 of max diag D_RR ≈ 5e-9); d̃_R = 2 v, a whitened
     /// component of ~1.6e4. Ungated, the marginal's vector is ~1.2e4 and exceeds the bound
     /// (~42) by ~290×, so the test can fail.
@@ -790,6 +810,7 @@ mod tests {
         );
     }
 
+    /// Keeping every feature returns the delta itself; all-zero features are not held back.
     #[test]
     fn keeping_everything_is_exact() {
         let mut rng = ChaCha8Rng::seed_from_u64(3);

@@ -84,10 +84,9 @@ pub struct ChannelStats {
     /// delta: the claim may exceed it by δ on held-back features, module docs).
     #[serde(default)]
     pub sparse_regularised: u64,
-    /// Of the sparsified deltas, those whose vector failed its χ² gate against the marginal's
-    /// information and was sent as the sender's estimate instead
-    /// ([`crate::sparse::VECTOR_GATE_PROBABILITY`]: books formed about earlier estimates; for
-    /// linear-Gaussian data once in 10⁶).
+    /// Of the sparsified deltas, those whose vector had components removed by its χ² gate
+    /// against the marginal's information ([`crate::sparse::VECTOR_GATE_PROBABILITY`]: books
+    /// formed about earlier estimates; for linear-Gaussian data once in 10⁶).
     #[serde(default)]
     pub sparse_vector_dropped: u64,
     /// Rounds a sparsified link sent no delta because the residual block was too indefinite
