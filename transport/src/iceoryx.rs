@@ -47,7 +47,7 @@ use std::sync::atomic::{AtomicUsize, Ordering};
 use std::time::{Duration, Instant};
 
 use iceoryx2::identifiers::UniqueNodeId;
-use iceoryx2::port::listener::Listener;
+use iceoryx2::port::listener::{Listener, ListenerWaitError};
 use iceoryx2::port::notifier::Notifier;
 use iceoryx2::port::publisher::Publisher;
 use iceoryx2::port::subscriber::Subscriber;
@@ -571,7 +571,14 @@ impl Link for IceoryxLink {
             // Wake on the peer's notification, or at least every liveness interval so peer
             // transitions are still noticed while waiting.
             let wait = (deadline - now).min(self.ix.liveness_interval);
-            self.listener.timed_wait(|_| {}, wait).map_err(err)?;
+            match self.listener.timed_wait(|_| {}, wait) {
+                // A signal interrupted the wait (EINTR: the socket's receive timeout makes
+                // Linux never restart it — SIGSTOP/SIGCONT, a debugger or profiler attaching,
+                // the Ctrl-C handler whose flag the caller checks between waits): a spurious
+                // wake-up, not a link failure. It ended a vehicle process before.
+                Ok(_) | Err(ListenerWaitError::InterruptSignal) => {}
+                Err(e) => return Err(err(e)),
+            }
         }
     }
 

@@ -488,6 +488,66 @@ fn unknown_kind_passed_up<B: Backend>(test: &str) {
     assert_eq!((v.0, v.1.as_slice()), (4, &[4.0][..]));
 }
 
+/// Signals the Ctrl-C handler of [`signal_during_wait`] received.
+static SIGNALS_HANDLED: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
+
+/// A wait interrupted by signals is not a link failure: `recv_timeout` returns at its
+/// deadline with nothing, then receives what is sent. The test installs the handler a vehicle
+/// process installs (`ctrlc`, for SIGINT, SIGTERM and SIGHUP) and sends SIGHUP to the waiting
+/// thread every 2 ms: a handled signal makes a blocking call on a socket with a receive
+/// timeout fail with EINTR (never restarted on Linux; SIGSTOP/SIGCONT and a debugger
+/// attaching do the same), and the iceoryx2 link's wait passed that up as an error, which
+/// ended the vehicle process. The handler counts what it received, so the test cannot pass
+/// without signals delivered.
+fn signal_during_wait<B: Backend>(test: &str) {
+    use nix::sys::pthread::{pthread_kill, pthread_self};
+    use nix::sys::signal::Signal;
+    use std::sync::atomic::{AtomicBool, Ordering};
+    static HANDLER: std::sync::Once = std::sync::Once::new();
+    HANDLER.call_once(|| {
+        ctrlc::set_handler(|| {
+            SIGNALS_HANDLED.fetch_add(1, Ordering::Relaxed);
+        })
+        .expect("installing the Ctrl-C handler");
+    });
+    let mut b = B::new(test);
+    let (mut la, mut lb) = connected_pair(&mut b);
+    let waiter = pthread_self();
+    let stop = Arc::new(AtomicBool::new(false));
+    let before = SIGNALS_HANDLED.load(Ordering::Relaxed);
+    let signaller = {
+        let stop = stop.clone();
+        std::thread::spawn(move || {
+            let mut sent = 0u64;
+            while !stop.load(Ordering::Relaxed) {
+                // The waiting thread is alive until this thread is joined.
+                pthread_kill(waiter, Signal::SIGHUP).expect("signalling the waiting thread");
+                sent += 1;
+                std::thread::sleep(Duration::from_millis(2));
+            }
+            sent
+        })
+    };
+    // Nothing is sent meanwhile: the wait ends at its deadline, empty, not with an error.
+    let got = lb.recv_timeout(Duration::from_millis(400));
+    stop.store(true, Ordering::Relaxed);
+    let sent = signaller.join().unwrap();
+    // The handler runs on ctrlc's own thread: give the last signals time to be counted.
+    let deadline = Instant::now() + RECV_TIMEOUT;
+    while SIGNALS_HANDLED.load(Ordering::Relaxed) == before && Instant::now() < deadline {
+        std::thread::sleep(Duration::from_millis(5));
+    }
+    let handled = SIGNALS_HANDLED.load(Ordering::Relaxed) - before;
+    assert!(
+        matches!(got, Ok(None)),
+        "a wait interrupted by signals returned {:?}",
+        got.map(|m| m.map(|m| m.header().seq))
+    );
+    assert!(sent > 0 && handled > 0, "no signal delivered ({sent} sent)");
+    la.send(&meta(7), &WireVector::from_slice(&[7.0])).unwrap();
+    assert_eq!(recv_vec(&mut lb), (7, vec![7.0]));
+}
+
 macro_rules! conformance {
     ($module:ident, $backend:ty) => {
         mod $module {
@@ -518,6 +578,10 @@ macro_rules! conformance {
             #[test]
             fn many_messages_held_at_once() {
                 super::many_messages_held_at_once::<$backend>(concat!(stringify!($module), "held"));
+            }
+            #[test]
+            fn signal_during_wait() {
+                super::signal_during_wait::<$backend>(concat!(stringify!($module), "signal"));
             }
             #[test]
             fn unknown_kind_passed_up() {
