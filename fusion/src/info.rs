@@ -1431,54 +1431,187 @@ impl serde::Serialize for WireBlocks<'_> {
     }
 }
 
+/// Most features a received map information may name. Decoding allocates the dense 3N × 3N
+/// matrix before its blocks are read, so a hostile id list must not size it: 8 192 features is
+/// 4.8 GB dense, far beyond any team map this dense design runs (tree-8 ends at ~620, the
+/// 1 000-feature benchmark is the largest measured).
+pub const MAX_WIRE_FEATURES: usize = 8192;
+
 impl<'de> serde::Deserialize<'de> for MapInformation {
     /// Decodes the block-sparse form, rejecting (as a deserialisation error, never a panic)
-    /// duplicate ids, a y of the wrong length, block indices out of range or below the
-    /// diagonal, repeated blocks, and non-finite values.
+    /// duplicate ids, more than [`MAX_WIRE_FEATURES`], a y of the wrong length, block indices
+    /// out of range or below the diagonal, repeated blocks, and non-finite values. Blocks are
+    /// written into the matrix as they are read (a compact format such as bincode streams them):
+    /// no list of every block is built beside the matrix (15 MB at 615 features).
     fn deserialize<D: serde::Deserializer<'de>>(deserializer: D) -> Result<Self, D::Error> {
         use serde::de::Error;
-        let wire = WireInformation::deserialize(deserializer)?;
-        check_ids(&wire.ids).map_err(D::Error::custom)?;
-        let nf = wire.ids.len();
-        let n = FEATURE_DIM * nf;
-        if wire.vector.len() != n {
-            return Err(D::Error::custom(InfoError::Dimension {
-                what: "information vector",
-                expected: n,
-                found: wire.vector.len(),
-            }));
-        }
-        let mut matrix = Mat::zeros(n, n);
-        let mut seen = HashSet::with_capacity(wire.blocks.len() + wire.blocks32.len());
-        let widened = wire.blocks32.iter().map(|b| WireBlock {
-            row: b.row,
-            col: b.col,
-            entries: b.entries.map(f64::from),
-        });
-        let all: Vec<WireBlock> = widened.collect();
-        for b in wire.blocks.iter().chain(&all) {
-            let (br, bc) = (b.row as usize, b.col as usize);
-            if br > bc || bc >= nf || !seen.insert((br, bc)) {
-                return Err(D::Error::custom(format!(
-                    "invalid or repeated information block ({br}, {bc}) for {nf} features"
-                )));
-            }
-            for c in 0..FEATURE_DIM {
-                for r in 0..FEATURE_DIM {
-                    let v = b.entries[FEATURE_DIM * c + r];
-                    matrix[(FEATURE_DIM * br + r, FEATURE_DIM * bc + c)] = v;
-                    matrix[(FEATURE_DIM * bc + c, FEATURE_DIM * br + r)] = v;
-                }
-            }
-        }
-        let info = MapInformation {
-            ids: wire.ids,
-            origin: Vector3::from(wire.origin),
-            matrix,
-            vector: Col::from_fn(n, |r| wire.vector[r]),
-        };
+        const FIELDS: &[&str] = &["ids", "origin", "vector", "blocks", "blocks32"];
+        let info = deserializer.deserialize_struct("WireInformation", FIELDS, WireVisitor)?;
         info.validate().map_err(D::Error::custom)?;
         Ok(info)
+    }
+}
+
+/// The dense matrix a wire form is decoded into, with the blocks seen so far.
+struct BlockFill {
+    nf: usize,
+    matrix: Mat<f64>,
+    /// One bit per block (row, col), row-major over nf × nf.
+    seen: Vec<u64>,
+}
+
+impl BlockFill {
+    /// The fill of a map information on `ids` with `vector`, checked first (ids, their number,
+    /// the vector's length), so that nothing of a size the sender chose is allocated before.
+    fn new(ids: &[FeatureId], vector_len: usize) -> Result<Self, String> {
+        let nf = ids.len();
+        if nf > MAX_WIRE_FEATURES {
+            return Err(format!(
+                "map information on {nf} features (at most {MAX_WIRE_FEATURES})"
+            ));
+        }
+        check_ids(ids).map_err(|e| e.to_string())?;
+        let n = FEATURE_DIM * nf;
+        if vector_len != n {
+            return Err(InfoError::Dimension {
+                what: "information vector",
+                expected: n,
+                found: vector_len,
+            }
+            .to_string());
+        }
+        Ok(Self {
+            nf,
+            matrix: Mat::zeros(n, n),
+            seen: vec![0; (nf * nf).div_ceil(64)],
+        })
+    }
+
+    /// Writes block (br, bc) (upper block triangle, entries column-major) and its mirror.
+    fn put(
+        &mut self,
+        br: u32,
+        bc: u32,
+        entries: &[f64; FEATURE_DIM * FEATURE_DIM],
+    ) -> Result<(), String> {
+        let (br, bc) = (br as usize, bc as usize);
+        let nf = self.nf;
+        let fresh = br <= bc && bc < nf && {
+            let bit = br * nf + bc;
+            let (word, mask) = (bit / 64, 1u64 << (bit % 64));
+            let fresh = self.seen[word] & mask == 0;
+            self.seen[word] |= mask;
+            fresh
+        };
+        if !fresh {
+            return Err(format!(
+                "invalid or repeated information block ({br}, {bc}) for {nf} features"
+            ));
+        }
+        for c in 0..FEATURE_DIM {
+            for r in 0..FEATURE_DIM {
+                let v = entries[FEATURE_DIM * c + r];
+                self.matrix[(FEATURE_DIM * br + r, FEATURE_DIM * bc + c)] = v;
+                self.matrix[(FEATURE_DIM * bc + c, FEATURE_DIM * br + r)] = v;
+            }
+        }
+        Ok(())
+    }
+
+    fn finish(self, ids: Vec<FeatureId>, origin: [f64; 3], vector: &[f64]) -> MapInformation {
+        let n = FEATURE_DIM * ids.len();
+        MapInformation {
+            ids,
+            origin: Vector3::from(origin),
+            matrix: self.matrix,
+            vector: Col::from_fn(n, |r| vector[r]),
+        }
+    }
+}
+
+/// Decodes [`WireInformation`] into [`MapInformation`], streaming the block lists of a
+/// sequence-shaped format (bincode) and collecting them only from a map-shaped one (JSON).
+struct WireVisitor;
+
+impl<'de> serde::de::Visitor<'de> for WireVisitor {
+    type Value = MapInformation;
+
+    fn expecting(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("map information in block-sparse form")
+    }
+
+    fn visit_seq<A: serde::de::SeqAccess<'de>>(self, mut seq: A) -> Result<Self::Value, A::Error> {
+        use serde::de::Error;
+        let missing = |i: usize| A::Error::invalid_length(i, &"5 fields of map information");
+        let ids: Vec<FeatureId> = seq.next_element()?.ok_or_else(|| missing(0))?;
+        let origin: [f64; 3] = seq.next_element()?.ok_or_else(|| missing(1))?;
+        let vector: Vec<f64> = seq.next_element()?.ok_or_else(|| missing(2))?;
+        let mut fill = BlockFill::new(&ids, vector.len()).map_err(A::Error::custom)?;
+        for (field, narrow) in [(3, false), (4, true)] {
+            seq.next_element_seed(BlocksSeed {
+                fill: &mut fill,
+                narrow,
+            })?
+            .ok_or_else(|| missing(field))?;
+        }
+        Ok(fill.finish(ids, origin, &vector))
+    }
+
+    fn visit_map<A: serde::de::MapAccess<'de>>(self, map: A) -> Result<Self::Value, A::Error> {
+        use serde::de::Error;
+        let wire = <WireInformation as serde::Deserialize>::deserialize(
+            serde::de::value::MapAccessDeserializer::new(map),
+        )?;
+        let mut fill = BlockFill::new(&wire.ids, wire.vector.len()).map_err(A::Error::custom)?;
+        for b in &wire.blocks {
+            fill.put(b.row, b.col, &b.entries)
+                .map_err(A::Error::custom)?;
+        }
+        for b in &wire.blocks32 {
+            fill.put(b.row, b.col, &b.entries.map(f64::from))
+                .map_err(A::Error::custom)?;
+        }
+        Ok(fill.finish(wire.ids, wire.origin, &wire.vector))
+    }
+}
+
+/// One block list (`blocks`, or `blocks32` when `narrow`) written into `fill` as it is read.
+struct BlocksSeed<'a> {
+    fill: &'a mut BlockFill,
+    narrow: bool,
+}
+
+impl<'de> serde::de::DeserializeSeed<'de> for BlocksSeed<'_> {
+    type Value = ();
+
+    fn deserialize<D: serde::Deserializer<'de>>(self, deserializer: D) -> Result<(), D::Error> {
+        deserializer.deserialize_seq(self)
+    }
+}
+
+impl<'de> serde::de::Visitor<'de> for BlocksSeed<'_> {
+    type Value = ();
+
+    fn expecting(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("a list of 3 × 3 information blocks")
+    }
+
+    fn visit_seq<A: serde::de::SeqAccess<'de>>(self, mut seq: A) -> Result<(), A::Error> {
+        use serde::de::Error;
+        if self.narrow {
+            while let Some(b) = seq.next_element::<WireBlock32>()? {
+                self.fill
+                    .put(b.row, b.col, &b.entries.map(f64::from))
+                    .map_err(A::Error::custom)?;
+            }
+        } else {
+            while let Some(b) = seq.next_element::<WireBlock>()? {
+                self.fill
+                    .put(b.row, b.col, &b.entries)
+                    .map_err(A::Error::custom)?;
+            }
+        }
+        Ok(())
     }
 }
 
@@ -2119,6 +2252,65 @@ mod tests {
             ))
             .is_err()
         );
+        // An id list that would size a dense matrix beyond any team map: refused before the
+        // matrix is allocated (8 193 features: 4.8 GB; the error names the bound).
+        let many: Vec<u64> = (0..MAX_WIRE_FEATURES as u64 + 1).collect();
+        let err = decode(&mk(many.clone(), vec![0.0; 3 * many.len()], vec![]))
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("at most 8192"), "{err}");
+        // A block repeated across the f64 and the f32 list.
+        let mut w = mk(vec![1, 2], vec![0.0; 6], vec![(0, 1, 0.5)]);
+        let narrow = bincode::serde::encode_to_vec(
+            vec![WireBlock32 {
+                row: 0,
+                col: 1,
+                entries: [0.5; 9],
+            }],
+            bincode::config::standard(),
+        )
+        .unwrap();
+        w.pop(); // the empty f32 list's length
+        w.extend_from_slice(&narrow);
+        let err = decode(&w).unwrap_err().to_string();
+        assert!(err.contains("repeated information block (0, 1)"), "{err}");
+    }
+
+    /// A map-shaped format (JSON: fields by name, decoded by collecting the block lists) gives
+    /// the same information as bincode's streamed decoding, bit for bit.
+    #[test]
+    fn map_shaped_formats_decode_as_bincode_does() {
+        let mut rng = ChaCha8Rng::seed_from_u64(8);
+        let mut info = MapInformation::from_marginal(
+            &random_marginal(&mut rng, &[2, 7, 1, 8], 1e3),
+            Vector3::new(3.0, 1.0, -4.0),
+        )
+        .unwrap();
+        // Numbers with short exact decimals (serde_json's default float parsing is only within
+        // an ulp otherwise), one f32-exact block so that both lists are used.
+        let short = |v: f64| (v * 1024.0).round() / 1024.0;
+        let n = info.matrix.nrows();
+        info.matrix = Mat::from_fn(n, n, |i, j| short(info.matrix[(i, j)]));
+        info.vector = Col::from_fn(n, |i| short(info.vector[i]));
+        for r in 0..3 {
+            for c in 0..3 {
+                info.matrix[(r, 3 + c)] = 0.5 * (r + c) as f64;
+                info.matrix[(3 + c, r)] = 0.5 * (r + c) as f64;
+            }
+        }
+        let from_bincode = decode(&encode(&info)).unwrap();
+        let json = serde_json::to_string(&info).unwrap();
+        let from_json: MapInformation = serde_json::from_str(&json).unwrap();
+        assert_eq!(from_json.ids, from_bincode.ids);
+        assert_eq!(from_json.origin, from_bincode.origin);
+        assert!(from_json.sub(&from_bincode).unwrap().is_zero(0.0));
+        assert!(from_json.sub(&info).unwrap().is_zero(0.0));
+        let repeated = json.replacen(
+            "\"blocks32\":[",
+            "\"blocks32\":[{\"row\":0,\"col\":1,\"entries\":[0,0,0,0,0,0,0,0,0]},",
+            1,
+        );
+        assert!(repeated != json && serde_json::from_str::<MapInformation>(&repeated).is_err());
     }
 
     /// The conservative f32 form is exactly single precision, never more informative than the
