@@ -628,9 +628,12 @@ impl SlamFilter {
             }
         };
         let cached = self.checked_info(p_mm).is_some_and(|y| y.nrows() == k);
-        let y = match self.info_cache.y.take() {
-            Some(y) if cached => y,
-            _ => {
+        // A stale cache is dropped before P_mm is inverted, not held beside the fresh inverse
+        // (a k × k at the heap peak of tree-8's uav3: its capacity, with spare room, was 62 MB).
+        let kept = self.info_cache.y.take().filter(|_| cached);
+        let y = match kept {
+            Some(y) => y,
+            None => {
                 let y = crate::info::spd_inverse(p_mm)
                     .map_err(|_| SlamError::NotPositiveDefinite("map covariance"))?;
                 // Fresh: handed out now, kept when it comes back.
