@@ -13,7 +13,7 @@
 use canopy_fusion::ci::{CiCriterion, Submap};
 use canopy_fusion::ddf::{
     Body, DdfConfig, DdfError, DdfMessage, DdfNode, FuseRejected, FuseTarget, InformationStore,
-    MapSource, Mode, Outgoing,
+    MapSource, Mode, Outgoing, PackedInformation,
 };
 use canopy_fusion::info::{InfoError, MapInformation, MapMarginal};
 use canopy_fusion::keys::{KeyMap, Merge};
@@ -171,7 +171,10 @@ pub fn variant_key(debug: &str) -> String {
 ///
 /// Received deltas are batched: they are summed (information adds, aligned by id) and fused into
 /// the EKF in one go before the next round reads the map information, so a round costs one
-/// fusion whatever the number of neighbours. The DDF validated each delta (finite, symmetric,
+/// fusion whatever the number of neighbours. The sum is kept packed ([`PackedInformation`]:
+/// half the dense matrix, and a delta's new features append block columns instead of
+/// re-allocating the whole sum beside the delta being added) and unpacked once, in the
+/// filter's order, when the round fuses it. The DDF validated each delta (finite, symmetric,
 /// right origin) before handing it over and its channels booked it as received. A batch the
 /// EKF then refuses (a non positive definite result) is kept and tried again at the next round
 /// with what arrived meanwhile (information on a new feature may come in parts), at most
@@ -193,8 +196,8 @@ pub const MAX_FUSE_ATTEMPTS: u32 = 3;
 /// What a vehicle received since its last round.
 #[derive(Debug, Default)]
 struct Pending {
-    /// Sum of the received deltas.
-    sum: Option<MapInformation>,
+    /// Sum of the received deltas (packed: [`EkfTarget`]).
+    sum: Option<PackedInformation>,
     count: u64,
     /// Rounds in a row the estimator refused `sum` (kept for a retry while below
     /// [`MAX_FUSE_ATTEMPTS`]).
@@ -209,11 +212,17 @@ struct Pending {
 
 impl FuseTarget for EkfTarget<'_> {
     fn fuse(&mut self, delta: &MapInformation) -> Result<(), FuseRejected> {
+        let rejected = |e: InfoError| FuseRejected {
+            reason: e.to_string(),
+        };
         match self.pending.sum.as_mut() {
-            None => self.pending.sum = Some(delta.clone()),
-            Some(sum) => sum.add_assign(delta).map_err(|e| FuseRejected {
-                reason: e.to_string(),
-            })?,
+            None => {
+                // Kept only once the delta is in it (an error changes nothing).
+                let mut sum = PackedInformation::zero(delta.origin);
+                sum.accumulate(delta, 1.0).map_err(rejected)?;
+                self.pending.sum = Some(sum);
+            }
+            Some(sum) => sum.accumulate(delta, 1.0).map_err(rejected)?,
         }
         self.pending.count += 1;
         Ok(())
@@ -239,7 +248,7 @@ impl FuseTarget for EkfTarget<'_> {
 /// received. The filter keeps its maintained Y (a copy is handed out: rare).
 struct WithHeldBatch<'a> {
     filter: &'a mut SlamFilter,
-    held: &'a MapInformation,
+    held: &'a PackedInformation,
 }
 
 impl MapSource for WithHeldBatch<'_> {
@@ -247,7 +256,8 @@ impl MapSource for WithHeldBatch<'_> {
         let y = self.filter.information()?;
         let mut with_held = y.clone();
         self.filter.restore_information(y);
-        with_held.add_assign(self.held)?;
+        // Unpacked for the sum (a refused batch waiting for its retry: rare).
+        with_held.add_assign(&self.held.to_dense())?;
         Ok(with_held)
     }
 
@@ -638,14 +648,25 @@ impl VehicleFusion {
         if !described.is_empty() {
             FuseTarget::describe(filter, &described);
         }
-        if let Some(mut sum) = self.pending.sum.take() {
+        if let Some(mut packed) = self.pending.sum.take() {
             // A batch kept from an earlier round may name features merged since.
             if self.pending.refused_rounds > 0
                 && let Some(ddf) = self.ddf.as_ref()
-                && ddf.keys().touches(&sum.ids)
             {
-                sum = sum.rekeyed(ddf.keys());
+                packed.rekey(ddf.keys());
             }
+            // Room for its new features first (a re-allocation of P or Y then copies beside
+            // the packed batch, not the dense one), then unpacked once, straight into the
+            // filter's order (one dense k × k, not the dense sum and its permuted copy).
+            filter.reserve_for_information(packed.ids());
+            let sum = filter.dense_in_filter_order(&packed);
+            drop(packed);
+            // The packed batch's block columns are heap chunks below the mmap threshold: freed,
+            // they stay resident until trimmed, which would otherwise wait for the round's end,
+            // past the fusion's k × k temporaries.
+            canopy_fusion::runtime::trim_heap(canopy_fusion::runtime::heap_slack(
+                filter.num_features(),
+            ));
             // Features whose information the batch cancels exactly (a resynchronisation after a
             // neighbour restarted) are removed, not refused
             // (`SlamFilter::fuse_map_information_forgetting`).
@@ -659,8 +680,13 @@ impl VehicleFusion {
                 Err(refused) => {
                     let (e, back) = *refused;
                     self.pending.refused_rounds += 1;
-                    match back {
-                        Some(batch) if self.pending.refused_rounds < MAX_FUSE_ATTEMPTS => {
+                    // Packed again for the retry; `from_dense` fails only on a shape the filter's
+                    // own unpacked batch cannot have (then dropped like a last attempt).
+                    let kept = back
+                        .filter(|_| self.pending.refused_rounds < MAX_FUSE_ATTEMPTS)
+                        .map(|batch| PackedInformation::from_dense(&batch));
+                    match kept {
+                        Some(Ok(batch)) => {
                             let cause = format!(
                                 "{e}; kept for attempt {} of {MAX_FUSE_ATTEMPTS} with what \
                                  arrives meanwhile",
@@ -673,10 +699,16 @@ impl VehicleFusion {
                             let n = std::mem::take(&mut self.pending.count);
                             self.counters.fuse_refused += n;
                             self.pending.refused_rounds = 0;
-                            let cause = format!(
-                                "{e}; {n} deltas dropped after {MAX_FUSE_ATTEMPTS} attempts \
-                                 (their information is lost to this vehicle)"
-                            );
+                            let cause = match kept {
+                                Some(Err(pack)) => format!(
+                                    "{e}; {n} deltas dropped: the batch could not be kept for \
+                                     a retry ({pack})"
+                                ),
+                                _ => format!(
+                                    "{e}; {n} deltas dropped after {MAX_FUSE_ATTEMPTS} \
+                                     attempts (their information is lost to this vehicle)"
+                                ),
+                            };
                             self.reject("fuse", &e, n, &cause);
                         }
                     }

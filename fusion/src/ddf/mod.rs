@@ -93,6 +93,7 @@ pub use message::{
     Outgoing, from_upper_triangle, upper_triangle,
 };
 pub use node::{ChannelView, DdfConfig, DdfError, DdfNode, DeltaPrecision, NodeStats, RoundOutput};
+pub use store::PackedInformation;
 
 use crate::ci::{CiCriterion, Submap};
 use crate::info::{InfoError, MapInformation, MapMarginal};

@@ -28,9 +28,12 @@ use std::collections::HashMap;
 /// Entries of one 3 × 3 block.
 const BLOCK: usize = FEATURE_DIM * FEATURE_DIM;
 
-/// Symmetric map information in packed upper-block-triangle form (module docs).
+/// Symmetric map information in packed upper-block-triangle form (module docs). Also a
+/// vehicle's batch of received deltas between two fusion rounds: half the memory of the dense
+/// sum, and growing over a delta's new features appends block columns instead of copying the
+/// whole matrix (`canopy-node`'s agent).
 #[derive(Clone, Debug)]
-pub(crate) struct PackedInformation {
+pub struct PackedInformation {
     ids: Vec<FeatureId>,
     index: HashMap<FeatureId, usize>,
     origin: Vector3<f64>,
@@ -42,7 +45,7 @@ pub(crate) struct PackedInformation {
 
 impl PackedInformation {
     /// No information, no features.
-    pub(crate) fn zero(origin: Vector3<f64>) -> Self {
+    pub fn zero(origin: Vector3<f64>) -> Self {
         Self {
             ids: Vec::new(),
             index: HashMap::new(),
@@ -90,7 +93,7 @@ impl PackedInformation {
     /// self += sign · info over the union of ids (order-stable: self's ids, then info's new
     /// ones in info's order), reading the upper block triangle of `info` in self's order (the
     /// diagonal blocks whole). Errors on an origin or shape mismatch before changing anything.
-    pub(crate) fn accumulate(&mut self, info: &MapInformation, sign: f64) -> Result<(), InfoError> {
+    pub fn accumulate(&mut self, info: &MapInformation, sign: f64) -> Result<(), InfoError> {
         check_origin(self.origin, info.origin)?;
         let n = FEATURE_DIM * info.ids.len();
         for (what, found) in [
@@ -176,14 +179,59 @@ impl PackedInformation {
     }
 
     /// The packed form of (symmetric) `info`: its upper block triangle and y.
-    pub(crate) fn from_dense(info: &MapInformation) -> Result<Self, InfoError> {
+    pub fn from_dense(info: &MapInformation) -> Result<Self, InfoError> {
         let mut out = Self::zero(info.origin);
         out.accumulate(info, 1.0)?;
         Ok(out)
     }
 
+    /// Feature ids, one per 3-block, in storage order.
+    pub fn ids(&self) -> &[FeatureId] {
+        &self.ids
+    }
+
+    /// The origin the information is expressed about.
+    pub fn origin(&self) -> Vector3<f64> {
+        self.origin
+    }
+
+    /// The dense form with its 3-blocks in the order of `blocks`: entry i is (id, Some(b)) for
+    /// this information's block b, or (id, None) for a feature given zero information. The
+    /// same numbers as [`to_dense`](Self::to_dense) followed by a gather of those blocks, with
+    /// one dense matrix instead of two.
+    pub fn to_dense_gathered(&self, blocks: &[(FeatureId, Option<usize>)]) -> MapInformation {
+        let n = FEATURE_DIM * blocks.len();
+        let mut matrix = Mat::<f64>::zeros(n, n);
+        for (tj, &(_, q)) in blocks.iter().enumerate() {
+            let Some(q) = q else { continue };
+            for b in 0..FEATURE_DIM {
+                let col = matrix.col_as_slice_mut(FEATURE_DIM * tj + b);
+                for (ti, &(_, p)) in blocks.iter().enumerate() {
+                    let Some(p) = p else { continue };
+                    for a in 0..FEATURE_DIM {
+                        col[FEATURE_DIM * ti + a] = self.entry(p, q, a, b);
+                    }
+                }
+            }
+        }
+        let mut vector = Col::<f64>::zeros(n);
+        for (t, &(_, b)) in blocks.iter().enumerate() {
+            if let Some(b) = b {
+                for a in 0..FEATURE_DIM {
+                    vector[FEATURE_DIM * t + a] = self.vector[FEATURE_DIM * b + a];
+                }
+            }
+        }
+        MapInformation {
+            ids: blocks.iter().map(|&(id, _)| id).collect(),
+            origin: self.origin,
+            matrix,
+            vector,
+        }
+    }
+
     /// The dense form (both triangles), for the recovery messages that carry a whole sum.
-    pub(crate) fn to_dense(&self) -> MapInformation {
+    pub fn to_dense(&self) -> MapInformation {
         let nf = self.ids.len();
         let n = FEATURE_DIM * nf;
         let mut matrix = Mat::zeros(n, n);
@@ -215,7 +263,7 @@ impl PackedInformation {
     /// packed form, with the same additions in the same order as re-keying the dense form and
     /// packing it (tested bit for bit), without its two dense k × k copies (54 MB each at
     /// 615 features).
-    pub(crate) fn rekey(&mut self, keys: &KeyMap) {
+    pub fn rekey(&mut self, keys: &KeyMap) {
         if !keys.touches(&self.ids) {
             return;
         }

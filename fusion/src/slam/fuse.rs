@@ -28,6 +28,7 @@
 
 use super::update::{UpdateForm, all_finite};
 use super::{SlamError, SlamFilter, SlotKind};
+use crate::ddf::PackedInformation;
 use crate::info::MapInformation;
 use crate::sensor::FeatureId;
 use faer::linalg::matmul::matmul;
@@ -265,10 +266,66 @@ impl SlamFilter {
     /// at the peak of the round). The same fusion in exact arithmetic (zero information on b
     /// changes nothing; eq. 21.92); the inverse is k³ instead of k_a³ (≤ 1.2 × with this
     /// bound). Not padded when the cache is not current or the map route would not be taken.
-    fn in_filter_order(&self, delta: MapInformation) -> MapInformation {
-        let nf = delta.ids.len();
-        let mut order: Vec<(usize, usize)> = delta
-            .ids
+    pub(super) fn in_filter_order(&self, delta: MapInformation) -> MapInformation {
+        let Some(blocks) = self.filter_order_blocks(&delta.ids) else {
+            return delta;
+        };
+        let rows: Vec<Option<usize>> = blocks
+            .iter()
+            .flat_map(|&(_, b)| (0..3).map(move |c| b.map(|b| 3 * b + c)))
+            .collect();
+        MapInformation {
+            ids: blocks.iter().map(|&(id, _)| id).collect(),
+            origin: delta.origin,
+            matrix: gather_padded(delta.matrix.as_ref(), &rows, &rows),
+            vector: Col::from_fn(rows.len(), |i| rows[i].map_or(0.0, |r| delta.vector[r])),
+        }
+    }
+
+    /// A packed batch of received information ([`PackedInformation`]: a vehicle's sum of
+    /// received deltas) in dense form, in the order [`fuse_map_information_owned`] would put
+    /// it in (`in_filter_order`, padding included), formed straight from the packed form: one
+    /// dense matrix instead of the dense batch and its gathered copy. The same numbers as
+    /// `in_filter_order(batch.to_dense())`.
+    ///
+    /// [`fuse_map_information_owned`]: SlamFilter::fuse_map_information_owned
+    pub fn dense_in_filter_order(&self, batch: &PackedInformation) -> MapInformation {
+        match self.filter_order_blocks(batch.ids()) {
+            Some(blocks) => batch.to_dense_gathered(&blocks),
+            None => batch.to_dense(),
+        }
+    }
+
+    /// Makes room in P and in the maintained Y for the features of `ids` this filter does not
+    /// hold yet, without changing either (capacity only). The fusion does it itself; a caller
+    /// that is about to unpack a batch into its dense form calls it first, so that a
+    /// re-allocation's old and new copies are alive beside the packed batch, not the dense one.
+    pub fn reserve_for_information(&mut self, ids: &[FeatureId]) {
+        let nu = 3 * ids
+            .iter()
+            .filter(|&&id| self.layout.feature_offset(id).is_none())
+            .count();
+        if nu > 0 {
+            self.reserve_new_features(nu);
+        }
+    }
+
+    /// Room for `nu` more map states in P and, when it is current, in the maintained Y.
+    fn reserve_new_features(&mut self, nu: usize) {
+        self.reserve_states(nu);
+        if self.info_cache_current()
+            && let Some(y) = self.info_cache.y.as_mut()
+        {
+            let n = y.nrows() + nu;
+            super::info_cache::reserve_square(y, n);
+        }
+    }
+
+    /// The blocks of `in_filter_order`'s result for a delta on `ids`: (id, the delta's block,
+    /// or None for zero information); `None` when the delta is already in that order.
+    fn filter_order_blocks(&self, ids: &[FeatureId]) -> Option<Vec<(FeatureId, Option<usize>)>> {
+        let nf = ids.len();
+        let mut order: Vec<(usize, usize)> = ids
             .iter()
             .enumerate()
             .map(|(b, &id)| match self.layout.feature_offset(id) {
@@ -287,8 +344,7 @@ impl SlamFilter {
             && missing > 0
             && 16 * missing <= known
             && 2 * 3 * known >= self.dim() + 3 * (nf - known);
-        // The result's blocks: (id, the delta's block, or None for zero information).
-        let blocks: Vec<(FeatureId, Option<usize>)> = if pad {
+        if pad {
             let mut next = 0;
             let mut blocks: Vec<(FeatureId, Option<usize>)> = self
                 .layout
@@ -301,26 +357,13 @@ impl SlamFilter {
                     _ => (id, None),
                 })
                 .collect();
-            blocks.extend(order[known..].iter().map(|&(_, b)| (delta.ids[b], Some(b))));
-            blocks
+            blocks.extend(order[known..].iter().map(|&(_, b)| (ids[b], Some(b))));
+            Some(blocks)
         } else {
             if order.iter().enumerate().all(|(i, &(_, b))| i == b) {
-                return delta;
+                return None;
             }
-            order
-                .iter()
-                .map(|&(_, b)| (delta.ids[b], Some(b)))
-                .collect()
-        };
-        let rows: Vec<Option<usize>> = blocks
-            .iter()
-            .flat_map(|&(_, b)| (0..3).map(move |c| b.map(|b| 3 * b + c)))
-            .collect();
-        MapInformation {
-            ids: blocks.iter().map(|&(id, _)| id).collect(),
-            origin: delta.origin,
-            matrix: gather_padded(delta.matrix.as_ref(), &rows, &rows),
-            vector: Col::from_fn(rows.len(), |i| rows[i].map_or(0.0, |r| delta.vector[r])),
+            Some(order.iter().map(|&(_, b)| (ids[b], Some(b))).collect())
         }
     }
 
@@ -384,14 +427,10 @@ impl SlamFilter {
         if nu > 0 {
             // Room for the new features in P and in the maintained Y first: a re-allocation
             // copies the matrix, and done here the old and the new copy are not alive beside
-            // the k × k temporaries below (capacity only: no number changes).
-            self.reserve_states(nu);
-            if self.info_cache_current()
-                && let Some(y) = self.info_cache.y.as_mut()
-            {
-                let n = y.nrows() + nu;
-                super::info_cache::reserve_square(y, n);
-            }
+            // the k × k temporaries below (capacity only: no number changes). A caller holding
+            // the delta in a smaller form reserves before unpacking it
+            // ([`SlamFilter::reserve_for_information`]).
+            self.reserve_new_features(nu);
         }
         let xk_minus_o = Col::from_fn(nk, |i| self.x[known_state[i]] - o[i % 3]);
         let dy_k = Col::from_fn(nk, |i| delta.vector[i]);

@@ -1943,6 +1943,79 @@ fn a_batch_missing_a_few_features_is_fused_as_a_whole_map_delta() {
     }
 }
 
+/// A vehicle's packed batch unpacked straight into the filter's order
+/// (`dense_in_filter_order`) is the dense batch put in that order (`in_filter_order`), bit for
+/// bit: padded (two map features missing, the cache current), with and without new features,
+/// shuffled; not padded (cache not current; too many missing); and already in order (no gather).
+/// The reference is the existing dense path: unpacking then gathering, which only copies.
+#[test]
+fn a_packed_batch_unpacks_into_the_filter_order_as_the_dense_batch_does() {
+    let mut rng = ChaCha8Rng::seed_from_u64(35);
+    // (map features, new features, missing ids, shuffle, cache current)
+    let cases: [(usize, u64, &[u64], bool, bool); 6] = [
+        (40, 0, &[107, 131], true, true),
+        (40, 3, &[107, 131], true, true),
+        (40, 2, &[107, 131], true, false),
+        (40, 1, &[101, 102, 103, 104, 105, 106], true, true),
+        (40, 0, &[], false, true),
+        (40, 2, &[], false, true),
+    ];
+    for (trial, &(nf, new_features, missing, shuffle, current)) in cases.iter().enumerate() {
+        let mut f = random_local_filter(nf, &mut rng);
+        if current {
+            f.map_information().unwrap();
+        }
+        assert_eq!(f.info_cache_current(), current, "trial {trial}");
+        let mut ids: Vec<FeatureId> = (100..100 + nf as u64)
+            .filter(|id| !missing.contains(id))
+            .collect();
+        if shuffle {
+            for i in (1..ids.len()).rev() {
+                ids.swap(i, rng.random_range(0..=i));
+            }
+        }
+        ids.extend((0..new_features).map(|j| 900 + j));
+        let k = 3 * ids.len();
+        let y = random_spd(k, 1.0, &mut rng);
+        let y = (&y + y.transpose()) * 0.5;
+        let target = DVector::from_fn(k, |_, _| rng.random_range(-30.0..30.0));
+        let d = delta(ids, y, &target, f.origin());
+        let packed = crate::ddf::PackedInformation::from_dense(&d).unwrap();
+        let got = f.dense_in_filter_order(&packed);
+        let want = f.in_filter_order(d.clone());
+        assert_eq!(got.ids, want.ids, "trial {trial}: order");
+        assert_eq!(got.origin, want.origin, "trial {trial}");
+        assert_eq!(
+            (got.matrix.nrows(), got.matrix.ncols()),
+            (want.matrix.nrows(), want.matrix.ncols()),
+            "trial {trial}"
+        );
+        for j in 0..want.matrix.ncols() {
+            for i in 0..want.matrix.nrows() {
+                assert_eq!(
+                    got.matrix[(i, j)].to_bits(),
+                    want.matrix[(i, j)].to_bits(),
+                    "trial {trial}: ({i}, {j})"
+                );
+            }
+        }
+        for i in 0..want.vector.nrows() {
+            assert_eq!(
+                got.vector[i].to_bits(),
+                want.vector[i].to_bits(),
+                "trial {trial}"
+            );
+        }
+        // The cases reach the routes they name: padded to the whole map or not.
+        let padded = current && missing.len() == 2;
+        assert_eq!(
+            want.ids.len(),
+            if padded { nf } else { nf - missing.len() } + new_features as usize,
+            "trial {trial}"
+        );
+    }
+}
+
 /// Exactly symmetric deltas with new features (fused in the delta's own buffer, `SplitDelta`)
 /// match the dense information form at a vehicle's sizes: whole-map batches of 40–160
 /// features with 1–4 new ones (map route, the known block past faer's blocking sizes), and
