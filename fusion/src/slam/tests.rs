@@ -1943,6 +1943,19 @@ fn a_batch_missing_a_few_features_is_fused_as_a_whole_map_delta() {
     }
 }
 
+/// A positive definite, exactly symmetric ((Y + Yᵀ)/2) delta on `ids` with a random target.
+fn exact_random_delta(
+    ids: Vec<FeatureId>,
+    origin: Vector3<f64>,
+    rng: &mut ChaCha8Rng,
+) -> MapInformation {
+    let k = 3 * ids.len();
+    let y = random_spd(k, 1.0, rng);
+    let y = (&y + y.transpose()) * 0.5;
+    let target = DVector::from_fn(k, |_, _| rng.random_range(-30.0..30.0));
+    delta(ids, y, &target, origin)
+}
+
 /// A vehicle's packed batch unpacked straight into the filter's order
 /// (`dense_in_filter_order`) is the dense batch put in that order (`in_filter_order`), bit for
 /// bit: padded (two map features missing, the cache current), with and without new features,
@@ -1975,11 +1988,7 @@ fn a_packed_batch_unpacks_into_the_filter_order_as_the_dense_batch_does() {
             }
         }
         ids.extend((0..new_features).map(|j| 900 + j));
-        let k = 3 * ids.len();
-        let y = random_spd(k, 1.0, &mut rng);
-        let y = (&y + y.transpose()) * 0.5;
-        let target = DVector::from_fn(k, |_, _| rng.random_range(-30.0..30.0));
-        let d = delta(ids, y, &target, f.origin());
+        let d = exact_random_delta(ids, f.origin(), &mut rng);
         let packed = crate::ddf::PackedInformation::from_dense(&d).unwrap();
         let got = f.dense_in_filter_order(&packed);
         let want = f.in_filter_order(d.clone());
@@ -2041,11 +2050,7 @@ fn exact_deltas_with_new_features_match_the_dense_information_form() {
             .filter(|id| !missing || (*id != 107 && *id != 131))
             .collect();
         ids.extend((0..new_features).map(|j| 900 + j));
-        let k = 3 * ids.len();
-        let y = random_spd(k, 1.0, &mut rng);
-        let y = (&y + y.transpose()) * 0.5;
-        let target = DVector::from_fn(k, |_, _| rng.random_range(-30.0..30.0));
-        let d = delta(ids, y, &target, f.origin());
+        let d = exact_random_delta(ids, f.origin(), &mut rng);
         assert!(f.validate_information(&d).unwrap(), "exact");
         fuse_and_check_against_the_dense_form(&mut f, d, trial, FuseMethod::MapInformation);
     }
