@@ -106,7 +106,8 @@ def tables(text):
     res, head, cur = [], "", None
     for line in text.splitlines():
         if line.startswith("#"):
-            head = line.lstrip("# ").strip()
+            # A heading right after a table's last row ends that table.
+            head, cur = line.lstrip("# ").strip(), None
         elif line.startswith("|"):
             cells = [c.strip() for c in line.strip().strip("|").split("|")]
             if cur is None:
@@ -145,7 +146,9 @@ for head, hdr, body in slam:
             upkeep = 2.0 * max(0.0, float(r[8]) - float(r[9]))
             for label, t in (("10-feature delta", float(r[2])), ("whole-map delta", float(r[4]))):
                 total = t + upkeep
-                row(f"fusion round incl. keeping Y current, {label}", f"N={r[0]} (3N = {3 * int(r[0])})",
+                # The N column reads "100 (3N = 300)".
+                n = int(r[0].split()[0])
+                row(f"fusion round incl. keeping Y current, {label}", f"N={n} (3N = {3 * n})",
                     f"{total:.2f} ms", f"/ raw faer Cholesky inverse = {total / inv:.2f}",
                     f"round {t:.2f} ms + Y upkeep {upkeep:.2f} ms (2 frames); inverse {inv:.2f} ms; "
                     f"secondary: round with Y re-inverted {r[6]} ms")
