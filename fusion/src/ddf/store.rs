@@ -190,15 +190,10 @@ impl PackedInformation {
         &self.ids
     }
 
-    /// The origin the information is expressed about.
-    pub fn origin(&self) -> Vector3<f64> {
-        self.origin
-    }
-
     /// The dense form with its 3-blocks in the order of `blocks`: entry i is (id, Some(b)) for
     /// this information's block b, or (id, None) for a feature given zero information. The
-    /// same numbers as [`to_dense`](Self::to_dense) followed by a gather of those blocks, with
-    /// one dense matrix instead of two.
+    /// same numbers as the dense form followed by a gather of those blocks, with one dense
+    /// matrix instead of two.
     pub fn to_dense_gathered(&self, blocks: &[(FeatureId, Option<usize>)]) -> MapInformation {
         let n = FEATURE_DIM * blocks.len();
         let mut matrix = Mat::<f64>::zeros(n, n);
@@ -232,29 +227,13 @@ impl PackedInformation {
 
     /// The dense form (both triangles), for the recovery messages that carry a whole sum.
     pub fn to_dense(&self) -> MapInformation {
-        let nf = self.ids.len();
-        let n = FEATURE_DIM * nf;
-        let mut matrix = Mat::zeros(n, n);
-        for q in 0..nf {
-            for p in 0..=q {
-                for b in 0..FEATURE_DIM {
-                    for a in 0..FEATURE_DIM {
-                        let v = self.cols[q][BLOCK * p + FEATURE_DIM * b + a];
-                        matrix[(FEATURE_DIM * p + a, FEATURE_DIM * q + b)] = v;
-                        if p != q {
-                            // Diagonal blocks are stored whole.
-                            matrix[(FEATURE_DIM * q + b, FEATURE_DIM * p + a)] = v;
-                        }
-                    }
-                }
-            }
-        }
-        MapInformation {
-            ids: self.ids.clone(),
-            origin: self.origin,
-            matrix,
-            vector: Col::from_fn(n, |r| self.vector[r]),
-        }
+        let blocks: Vec<(FeatureId, Option<usize>)> = self
+            .ids
+            .iter()
+            .enumerate()
+            .map(|(b, &id)| (id, Some(b)))
+            .collect();
+        self.to_dense_gathered(&blocks)
     }
 
     /// The same information in the key space of `keys` ([`MapInformation::rekeyed`]), in
