@@ -459,23 +459,9 @@ pub(crate) fn spd_inverse_of_sum_into(
 /// n³ flops as faer's `llt().inverse()`, in gemm-sized blocks; it agrees with it to round-off
 /// (test `in_place_spd_inverse_matches_faer`), not bit for bit.
 fn spd_inverse_in(mut l: Mat<f64>) -> Result<Mat<f64>, LltError> {
-    use faer::dyn_stack::{MemBuffer, MemStack};
-    use faer::linalg::cholesky::llt::factor;
     let n = l.nrows();
     let par = faer::get_global_parallelism();
-    let mut mem = MemBuffer::new(factor::cholesky_in_place_scratch::<f64>(
-        n,
-        par,
-        Default::default(),
-    ));
-    factor::cholesky_in_place(
-        l.as_mut(),
-        Default::default(),
-        par,
-        MemStack::new(&mut mem),
-        Default::default(),
-    )?;
-    drop(mem);
+    cholesky_lower_in_place(l.as_mut())?;
     for j in 0..n {
         for v in &mut l.col_as_slice_mut(j)[..j] {
             *v = 0.0;
@@ -489,6 +475,28 @@ fn spd_inverse_in(mut l: Mat<f64>) -> Result<Mat<f64>, LltError> {
         }
     }
     Ok(l)
+}
+
+/// L with L Lᵀ = A in A's own buffer (faer's blocked Cholesky, no copy): reads the lower
+/// triangle of `a` and overwrites it with L; the strict upper triangle is left as it was
+/// (neither read nor cleared).
+pub(crate) fn cholesky_lower_in_place(a: faer::MatMut<'_, f64>) -> Result<(), LltError> {
+    use faer::dyn_stack::{MemBuffer, MemStack};
+    use faer::linalg::cholesky::llt::factor;
+    let par = faer::get_global_parallelism();
+    let mut mem = MemBuffer::new(factor::cholesky_in_place_scratch::<f64>(
+        a.nrows(),
+        par,
+        Default::default(),
+    ));
+    factor::cholesky_in_place(
+        a,
+        Default::default(),
+        par,
+        MemStack::new(&mut mem),
+        Default::default(),
+    )?;
+    Ok(())
 }
 
 /// Block size of the in-place triangular inverse and Gram product: the diagonal blocks are

@@ -81,7 +81,6 @@
 use crate::info::MapInformation;
 use crate::sensor::FeatureId;
 use crate::state::FEATURE_DIM;
-use faer::linalg::solvers::Solve;
 use faer::{Col, Mat, Side};
 use nalgebra::{Matrix3, Vector3};
 use std::collections::HashMap;
@@ -347,31 +346,24 @@ fn marginal(
     // λ_min(D'), when the gate already decomposed D' (the negativity check below reuses it).
     let mut marginal_min = None;
     if nr > 0 {
-        let d_rr = Mat::from_fn(nr, nr, |i, j| m[(rr[i], rr[j])]);
-        // Right-hand sides [D_RS | d̃_R].
-        let mut rhs = Mat::from_fn(nr, ns + 1, |i, j| {
-            if j < ns {
-                m[(rr[i], sr[j])]
-            } else {
-                shifted[rr[i]]
-            }
-        });
-        let max_diag = (0..nr).map(|i| d_rr[(i, i)].abs()).fold(0.0_f64, f64::max);
+        let max_diag = rr.iter().map(|&r| m[(r, r)].abs()).fold(0.0_f64, f64::max);
         regularisation = REGULARISATION_FLOOR_REL * max_diag;
         let mut margin = false;
-        let llt = loop {
-            let a = Mat::from_fn(nr, nr, |i, j| {
-                d_rr[(i, j)] + if i == j { regularisation } else { 0.0 }
+        // L Lᵀ = D_RR + δI, gathered and factored in one nr × nr buffer (the largest of the
+        // marginal: 26 MB at 600 held-back features); a retry gathers it again.
+        let l = loop {
+            let mut a = Mat::from_fn(nr, nr, |i, j| {
+                m[(rr[i], rr[j])] + if i == j { regularisation } else { 0.0 }
             });
-            match a.as_ref().llt(Side::Lower) {
+            match crate::info::cholesky_lower_in_place(a.as_mut()) {
                 // Escalated: one more step, so that λ_min(D_RR + δI) ≥ 0.9 δ (D_RR + δI/10 was
                 // positive definite) and the solve amplifies d_R's round-off by at most
                 // 1/(0.9 δ), not by 1/(δ − |λ_min(D_RR)|), which may be tiny.
-                Ok(_) if escalated && !margin => {
+                Ok(()) if escalated && !margin => {
                     margin = true;
                     regularisation *= REGULARISATION_STEP;
                 }
-                Ok(llt) => break llt,
+                Ok(()) => break a,
                 Err(faer::linalg::solvers::LltError::NonPositivePivot { index }) => {
                     let feature = r_blocks
                         .get(index.min(nr.saturating_sub(1)) / FEATURE_DIM)
@@ -390,10 +382,23 @@ fn marginal(
                 }
             }
         };
-        llt.solve_in_place(rhs.as_mut());
-        // [M | p] = D_SR (D_RR + δI)⁻¹ [D_RS | d̃_R].
-        let d_sr = Mat::from_fn(ns, nr, |i, j| m[(sr[i], rr[j])]);
-        let prod = &d_sr * &rhs;
+        // W = L⁻¹ [D_RS | d̃_R]: one triangular solve, then
+        // [M | p] = W_Sᵀ W = D_SR (D_RR + δI)⁻¹ [D_RS | d̃_R] (L⁻ᵀ L⁻¹ = (D_RR + δI)⁻¹), half
+        // the solve of a full (D_RR + δI)⁻¹ and no gathered copy of D_SR.
+        let mut w = Mat::from_fn(nr, ns + 1, |i, j| {
+            if j < ns {
+                m[(rr[i], sr[j])]
+            } else {
+                shifted[rr[i]]
+            }
+        });
+        faer::linalg::triangular_solve::solve_lower_triangular_in_place(
+            l.as_ref(),
+            w.as_mut(),
+            faer::get_global_parallelism(),
+        );
+        drop(l);
+        let prod = w.as_ref().subcols(0, ns).transpose() * &w;
         for j in 0..ns {
             for i in 0..ns {
                 d_ss[(i, j)] -= prod[(i, j)];
@@ -516,7 +521,7 @@ struct VectorGate {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use faer::linalg::solvers::DenseSolveCore;
+    use faer::linalg::solvers::{DenseSolveCore, Solve};
     use rand::{Rng, SeedableRng};
     use rand_chacha::ChaCha8Rng;
 

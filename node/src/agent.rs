@@ -269,6 +269,10 @@ impl MapSource for WithHeldBatch<'_> {
         self.filter.marginal(ids)
     }
 
+    fn feature_means(&self, ids: &[FeatureId]) -> Vec<(FeatureId, nalgebra::Vector3<f64>)> {
+        self.filter.feature_means(ids)
+    }
+
     fn descriptors(
         &self,
         ids: &[FeatureId],

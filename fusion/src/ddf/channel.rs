@@ -10,7 +10,6 @@ use crate::info::{InfoError, MapInformation};
 use crate::keys::{KeyMap, Merge};
 use crate::sensor::{Appearance, FeatureId};
 use crate::sparse;
-use crate::state::FEATURE_DIM;
 use crate::topology::NodeId;
 use nalgebra::Matrix3;
 use nalgebra::Vector3;
@@ -1154,15 +1153,10 @@ impl Channel {
         let f32_blocks = ctx.config.delta_precision == super::DeltaPrecision::F32;
         // The sender's estimate of the delta's features (origin-relative): the Schur
         // complement is evaluated about it ([`sparse::schur_marginal_about`]).
-        let marginal = source.marginal(&d.ids);
-        let about: HashMap<FeatureId, Vector3<f64>> = marginal
-            .ids
-            .iter()
-            .enumerate()
-            .map(|(b, &id)| {
-                let x = Vector3::from_fn(|a, _| marginal.mean[FEATURE_DIM * b + a]);
-                (id, x - ctx.origin)
-            })
+        let about: HashMap<FeatureId, Vector3<f64>> = source
+            .feature_means(&d.ids)
+            .into_iter()
+            .map(|(id, x)| (id, x - ctx.origin))
             .collect();
         let mut keep = sparse::select(d, &covariances, budget, f32_blocks);
         // D_RR not positive definite: the feature of the failing pivot joins S in place of the

@@ -99,8 +99,9 @@ use crate::ci::{CiCriterion, Submap};
 use crate::info::{InfoError, MapInformation, MapMarginal};
 use crate::keys::Merge;
 use crate::sensor::{Appearance, FeatureId};
+use crate::state::FEATURE_DIM;
 use crate::topology::NodeId;
-use nalgebra::Matrix3;
+use nalgebra::{Matrix3, Vector3};
 use serde::{Deserialize, Serialize};
 
 /// How a team fuses maps.
@@ -191,6 +192,18 @@ pub trait MapSource {
     fn feature_covariances(&self) -> Vec<(FeatureId, Matrix3<f64>)>;
     /// The marginal (x_S, P_S) of `ids` (in that order; unknown ids are skipped).
     fn marginal(&self, ids: &[FeatureId]) -> MapMarginal;
+    /// The estimated positions x_S of `ids` (in that order; unknown ids are skipped), as in
+    /// [`marginal`](Self::marginal) without its covariance (a sparsified delta is evaluated
+    /// about them: gathering P_S for them would cost a k × k copy per link and round). The
+    /// default takes them from [`marginal`](Self::marginal).
+    fn feature_means(&self, ids: &[FeatureId]) -> Vec<(FeatureId, Vector3<f64>)> {
+        let m = self.marginal(ids);
+        m.ids
+            .iter()
+            .enumerate()
+            .map(|(b, &id)| (id, Vector3::from_fn(|a, _| m.mean[FEATURE_DIM * b + a])))
+            .collect()
+    }
     /// Appearance descriptors of `ids`, where known (sent with keys new to a link).
     fn descriptors(&self, ids: &[FeatureId]) -> Vec<(FeatureId, Appearance)> {
         let _ = ids;

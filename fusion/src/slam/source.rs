@@ -37,6 +37,18 @@ impl MapSource for SlamFilter {
             .collect()
     }
 
+    fn feature_means(&self, ids: &[FeatureId]) -> Vec<(FeatureId, nalgebra::Vector3<f64>)> {
+        ids.iter()
+            .filter_map(|&id| {
+                let o = self.layout.feature_offset(id)?;
+                Some((
+                    id,
+                    nalgebra::Vector3::new(self.x[o], self.x[o + 1], self.x[o + 2]),
+                ))
+            })
+            .collect()
+    }
+
     fn marginal(&self, ids: &[FeatureId]) -> MapMarginal {
         let picked: Vec<(FeatureId, usize)> = ids
             .iter()

@@ -2120,3 +2120,28 @@ fn fuse_and_check_against_the_dense_form(
         assert!(ey < 1e-8, "trial {trial}: maintained Y off by {ey:e}");
     }
 }
+
+/// The means a sparsified delta is evaluated about (`MapSource::feature_means`) are the
+/// features' entries of x, as the marginal reads them, in the order asked, unknown ids skipped.
+#[test]
+fn feature_means_are_the_marginal_means() {
+    use crate::ddf::MapSource;
+    let mut rng = ChaCha8Rng::seed_from_u64(41);
+    let f = random_local_filter(7, &mut rng);
+    let ids = [104, 100, 999, 106, 101];
+    let means = f.feature_means(&ids);
+    assert_eq!(
+        means.iter().map(|m| m.0).collect::<Vec<_>>(),
+        [104, 100, 106, 101]
+    );
+    for (id, x) in means {
+        let off = f.layout.feature_offset(id).expect("a feature of the filter");
+        assert_eq!(x, Vector3::new(f.x[off], f.x[off + 1], f.x[off + 2]));
+    }
+    // The marginal (means and covariance) reads the same entries.
+    let marginal = f.marginal(&ids);
+    for (b, (id, x)) in f.feature_means(&ids).into_iter().enumerate() {
+        assert_eq!(marginal.ids[b], id);
+        assert_eq!(x, Vector3::from_fn(|a, _| marginal.mean[3 * b + a]));
+    }
+}
