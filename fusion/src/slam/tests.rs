@@ -2135,7 +2135,10 @@ fn feature_means_are_the_marginal_means() {
         [104, 100, 106, 101]
     );
     for (id, x) in means {
-        let off = f.layout.feature_offset(id).expect("a feature of the filter");
+        let off = f
+            .layout
+            .feature_offset(id)
+            .expect("a feature of the filter");
         assert_eq!(x, Vector3::new(f.x[off], f.x[off + 1], f.x[off + 2]));
     }
     // The marginal (means and covariance) reads the same entries.
