@@ -39,13 +39,7 @@ impl MapSource for SlamFilter {
 
     fn feature_means(&self, ids: &[FeatureId]) -> Vec<(FeatureId, nalgebra::Vector3<f64>)> {
         ids.iter()
-            .filter_map(|&id| {
-                let o = self.layout.feature_offset(id)?;
-                Some((
-                    id,
-                    nalgebra::Vector3::new(self.x[o], self.x[o + 1], self.x[o + 2]),
-                ))
-            })
+            .filter_map(|&id| Some((id, self.vec3_at(self.layout.feature_offset(id)?))))
             .collect()
     }
 
