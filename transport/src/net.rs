@@ -186,6 +186,32 @@ pub fn free_loopback_port() -> std::io::Result<u16> {
         .port())
 }
 
+/// `n` distinct TCP ports on 127.0.0.1 that are free now, none of them in `avoid` (ports
+/// other endpoints of the caller will listen on). All `n` are held bound until every one is
+/// chosen: ports chosen one [`free_loopback_port`] at a time can repeat, since each is released
+/// before the next is asked for and the kernel may hand it out again. Another process may
+/// still take one before the caller binds it.
+pub fn free_loopback_ports(n: usize, avoid: &[u16]) -> std::io::Result<Vec<u16>> {
+    let mut held = Vec::with_capacity(n);
+    let mut ports = Vec::with_capacity(n);
+    while ports.len() < n {
+        let listener = std::net::TcpListener::bind("127.0.0.1:0")?;
+        let port = listener.local_addr()?.port();
+        held.push(listener);
+        if !avoid.contains(&port) {
+            ports.push(port);
+        } else if held.len() > n + avoid.len() {
+            // Each ephemeral port handed out is bound meanwhile, so at most `avoid.len()`
+            // draws can be refused: more means the kernel repeats ports it holds.
+            return Err(std::io::Error::other(format!(
+                "the kernel handed out {} ports for {n} free ones",
+                held.len()
+            )));
+        }
+    }
+    Ok(ports)
+}
+
 fn err(e: impl std::fmt::Display) -> LinkError {
     LinkError::backend(BACKEND, e)
 }
@@ -768,5 +794,20 @@ impl Link for ZenohLink {
 
     fn stats(&self) -> LinkStats {
         self.stats.snapshot()
+    }
+}
+
+#[cfg(test)]
+mod port_tests {
+    /// 200 ports asked for at once are distinct and avoid the ones named: drawn one at a time
+    /// and released, they repeated (two links of one run got one port; the launcher refused the
+    /// run with "port clash").
+    #[test]
+    fn free_ports_are_distinct_and_avoid_the_named() {
+        let first = super::free_loopback_ports(1, &[]).unwrap()[0];
+        let ports = super::free_loopback_ports(200, &[first]).unwrap();
+        let distinct: std::collections::BTreeSet<u16> = ports.iter().copied().collect();
+        assert_eq!(distinct.len(), 200);
+        assert!(!distinct.contains(&first));
     }
 }

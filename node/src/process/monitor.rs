@@ -457,12 +457,25 @@ pub fn resolve(mut s: Scenario, opts: &LaunchOptions) -> Result<(Scenario, Optio
         s.run.baseline = b;
     }
     let proto = crate::deploy::endpoint_protocol(&s);
-    for l in &mut s.links {
-        if l.transport == TransportKind::Net && l.listen.is_none() {
-            let port = canopy_transport::net::free_loopback_port()
-                .context("finding a free loopback port for a net link")?;
-            l.listen = Some(format!("{proto}/127.0.0.1:{port}"));
-        }
+    // Ports the file names (`listen = "tcp/127.0.0.1:7447"`) are not handed out again.
+    let named: Vec<u16> = s
+        .links
+        .iter()
+        .filter_map(|l| l.listen.as_deref()?.rsplit_once(':')?.1.parse().ok())
+        .collect();
+    let unnamed = s
+        .links
+        .iter()
+        .filter(|l| l.transport == TransportKind::Net && l.listen.is_none())
+        .count();
+    let ports = canopy_transport::net::free_loopback_ports(unnamed, &named)
+        .context("finding free loopback ports for the net links")?;
+    let needing = s
+        .links
+        .iter_mut()
+        .filter(|l| l.transport == TransportKind::Net && l.listen.is_none());
+    for (l, port) in needing.zip(ports) {
+        l.listen = Some(format!("{proto}/127.0.0.1:{port}"));
     }
     // TLS files: absolute, so the processes find them from the run directory.
     if let Some(t) = s.zenoh.tls.as_mut() {
