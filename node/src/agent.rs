@@ -553,6 +553,11 @@ impl VehicleFusion {
         self.correspondence = cfg;
     }
 
+    /// The correspondence search's options (`None`: no search).
+    pub fn correspondence(&self) -> Option<CorrespondenceConfig> {
+        self.correspondence
+    }
+
     /// The correspondences this vehicle adopted (its DDF node's, or in isolated mode its own).
     pub fn merges(&self) -> Vec<Merge> {
         match &self.ddf {
@@ -573,6 +578,7 @@ impl VehicleFusion {
         for (reason, pairs) in [
             ("incompatible", &report.incompatible_pairs),
             ("ambiguous", &report.ambiguous_pairs),
+            ("undetermined", &report.undetermined_pairs),
             ("joint", &report.joint_rejected_pairs),
         ] {
             for &(a, b) in pairs {
@@ -1275,6 +1281,11 @@ impl VehicleAgent {
     /// appearance association) or not ([`VehicleFusion::set_correspondence`]).
     pub fn set_correspondence(&mut self, cfg: Option<CorrespondenceConfig>) {
         self.fusion.set_correspondence(cfg);
+    }
+
+    /// The correspondence search's options ([`VehicleFusion::correspondence`]).
+    pub fn correspondence(&self) -> Option<CorrespondenceConfig> {
+        self.fusion.correspondence()
     }
 
     /// The correspondences this vehicle adopted ([`VehicleFusion::merges`]).

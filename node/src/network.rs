@@ -172,6 +172,12 @@ pub struct FusionConfig {
     /// false is the ablation in which a feature two vehicles initialised before exchanging
     /// stays two features.
     pub map_correspondences: bool,
+    /// Appearance association only: the largest σ [m] along its worst axis of the difference
+    /// of two keys' estimates for the correspondence search to decide whether they are one
+    /// feature (`canopy_fusion::slam::CorrespondenceConfig::max_difference_sigma_m`; default
+    /// 10). A pair known worse than this waits for more information: the χ² gate cannot tell a
+    /// lookalike hundreds of metres away from the same feature when σ is that large.
+    pub correspondence_max_sigma_m: f64,
     /// When a vehicle process applies a neighbour's DDF message (`canopy run`; `canopy sim`
     /// is deterministic either way): `arrival` (default: as soon as it arrives) or
     /// `simulation_time` (at the receiver's first round one round period after the message's
@@ -213,6 +219,8 @@ impl Default for FusionConfig {
             gap_timeout_s: 2.0,
             delivery: Delivery::Arrival,
             map_correspondences: true,
+            correspondence_max_sigma_m: canopy_fusion::slam::CorrespondenceConfig::default()
+                .max_difference_sigma_m,
         }
     }
 }
@@ -716,6 +724,7 @@ pub fn validate(s: &Scenario) -> Result<(), ScenarioError> {
     for (name, v) in [
         ("hello_interval_s", f.hello_interval_s),
         ("gap_timeout_s", f.gap_timeout_s),
+        ("correspondence_max_sigma_m", f.correspondence_max_sigma_m),
     ] {
         if !(v.is_finite() && v > 0.0) {
             return Err(ScenarioError::invalid(

@@ -15,7 +15,7 @@ use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 
 use canopy_fusion::ddf::Outgoing;
-use canopy_fusion::slam::{SlamConfig, SlamFilter, VehicleSetup};
+use canopy_fusion::slam::{CorrespondenceConfig, SlamConfig, SlamFilter, VehicleSetup};
 use canopy_fusion::topology::NodeId;
 use canopy_transport::fault::{Clock, FaultyLink, ManualClock};
 use canopy_transport::link::{Link, LinkEvent, PeerState};
@@ -265,8 +265,13 @@ pub fn vehicle_agent(
             cfg.replay.as_ref().and_then(|r| r.zero_velocity),
         )
         .map_err(agent_error)?;
-    if !s.fusion.map_correspondences {
-        agent.set_correspondence(None);
+    match agent.correspondence() {
+        Some(_) if !s.fusion.map_correspondences => agent.set_correspondence(None),
+        Some(c) => agent.set_correspondence(Some(CorrespondenceConfig {
+            max_difference_sigma_m: s.fusion.correspondence_max_sigma_m,
+            ..c
+        })),
+        None => {}
     }
     if s.world.frames == crate::scenario::Frames::Own {
         let root = crate::frames::team_root(s).map_or(cfg.id, |r| r.0);

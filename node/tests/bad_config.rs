@@ -105,6 +105,14 @@ fn cases() -> Vec<Case> {
             expect: Invalid("fusion.gate_probability", "must be in (0, 1)"),
         },
         Case {
+            kind: "bad number (a non-positive correspondence bound)",
+            edit: (
+                "rate_hz = 1.0 ",
+                "correspondence_max_sigma_m = 0.0\nrate_hz = 1.0 ",
+            ),
+            expect: Invalid("fusion.correspondence_max_sigma_m", "must be > 0"),
+        },
+        Case {
             kind: "simulation-time delivery outside decentralized mode",
             edit: (
                 "mode = \"decentralized\"",

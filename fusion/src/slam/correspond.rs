@@ -43,6 +43,16 @@ use std::collections::BTreeMap;
 pub struct CorrespondenceConfig {
     /// Largest descriptor distance [bits of 256] of a candidate pair.
     pub max_distance: u32,
+    /// Largest standard deviation [m] of the difference x_a − x_b along its worst axis
+    /// (√λ_max(D)) for a pair to be decided (module docs, step 2). A pair known worse than
+    /// this is *undetermined*: not adopted, and its group left apart until more information
+    /// arrives. The χ² gate alone judges an estimate against its own uncertainty; a lookalike
+    /// hundreds of metres away passes it when σ is hundreds of metres (as for a feature that
+    /// reached this map only through a neighbour's sparsified marginal), and the descriptor
+    /// cannot tell repeated texture apart. The gate's radius along the worst axis is
+    /// √χ²₃(p) σ ≈ 3.4 σ at p = 0.99: at the default 10 m, 34 m, a third of the mean feature
+    /// spacing of the shipped scenarios (~110 m: 700 features on 3 km × 3 km).
+    pub max_difference_sigma_m: f64,
     /// Probability of the χ² gate a pair (and the joint test) must pass to be adopted.
     pub accept_probability: f64,
     /// Probability of the wider gate that defines ambiguity: two candidates of one key within
@@ -54,6 +64,7 @@ impl Default for CorrespondenceConfig {
     fn default() -> Self {
         Self {
             max_distance: 66,
+            max_difference_sigma_m: 10.0,
             accept_probability: 0.99,
             ambiguity_probability: 0.9999,
         }
@@ -72,6 +83,9 @@ pub struct CorrespondenceReport {
     pub incompatible_pairs: Vec<(FeatureId, FeatureId)>,
     /// Candidate pairs within the wide gate in ambiguous groups (left apart).
     pub ambiguous_pairs: Vec<(FeatureId, FeatureId)>,
+    /// Candidate pairs within the wide gate in groups that would be adopted but for a pair
+    /// whose difference is not yet known well enough (`max_difference_sigma_m`; left apart).
+    pub undetermined_pairs: Vec<(FeatureId, FeatureId)>,
     /// Pairs of groups dropped by the joint test.
     pub joint_rejected_pairs: Vec<(FeatureId, FeatureId)>,
 }
@@ -81,12 +95,13 @@ fn ordered(a: FeatureId, b: FeatureId) -> (FeatureId, FeatureId) {
 }
 
 /// A candidate pair: two keys whose descriptors are close, with their squared Mahalanobis
-/// distance under the joint covariance.
+/// distance under the joint covariance and whether that covariance is tight enough to decide.
 #[derive(Clone, Copy, Debug)]
 struct Pair {
     a: usize,
     b: usize,
     d2: f64,
+    determined: bool,
 }
 
 fn find(parent: &mut [usize], mut i: usize) -> usize {
@@ -99,15 +114,17 @@ fn find(parent: &mut [usize], mut i: usize) -> usize {
 
 impl SlamFilter {
     /// δᵀ D⁻¹ δ for the constraint x_a = x_b of two features at state offsets `a`, `b`
-    /// (∞ when D is not positive definite: such a pair is never taken for one feature).
-    fn pair_distance(&self, a: usize, b: usize) -> f64 {
+    /// (∞ when D is not positive definite: such a pair is never taken for one feature), and
+    /// λ_max(D), the variance of the difference along its worst axis.
+    fn pair_distance(&self, a: usize, b: usize) -> (f64, f64) {
         let d: Vector3<f64> = self.vec3_at(a) - self.vec3_at(b);
         let cov: Matrix3<f64> =
             self.mat3_at(a, a) + self.mat3_at(b, b) - self.mat3_at(a, b) - self.mat3_at(b, a);
         let cov = 0.5 * (cov + cov.transpose());
+        let spread = cov.symmetric_eigenvalues().max();
         match cov.cholesky() {
-            Some(c) => d.dot(&c.solve(&d)),
-            None => f64::INFINITY,
+            Some(c) => (d.dot(&c.solve(&d)), spread),
+            None => (f64::INFINITY, spread),
         }
     }
 
@@ -136,9 +153,15 @@ impl SlamFilter {
                     continue;
                 }
                 report.candidates += 1;
-                let d2 = self.pair_distance(described[i].1, described[j].1);
+                let (d2, spread) = self.pair_distance(described[i].1, described[j].1);
                 if d2 <= wide {
-                    pairs.push(Pair { a: i, b: j, d2 });
+                    let determined = spread.sqrt() <= cfg.max_difference_sigma_m;
+                    pairs.push(Pair {
+                        a: i,
+                        b: j,
+                        d2,
+                        determined,
+                    });
                 } else {
                     report
                         .incompatible_pairs
@@ -166,23 +189,29 @@ impl SlamFilter {
                 groups.entry(r).or_default().push(i);
             }
         }
-        // A group is one feature when it is a clique of strict-gate candidate pairs.
+        // A group is one feature when it is a clique of strict-gate candidate pairs, each
+        // known well enough to decide.
         let mut accepted: Vec<(Vec<usize>, f64)> = Vec::new();
         for (r, members) in groups {
             let group_edges = &edges[&r];
             let k = members.len();
             let clique = group_edges.len() == k * (k - 1) / 2;
             let strict_ok = group_edges.iter().all(|p| p.d2 <= strict);
-            if clique && strict_ok {
-                let worst = group_edges.iter().map(|p| p.d2).fold(0.0, f64::max);
-                accepted.push((members, worst));
-            } else {
-                report.ambiguous_pairs.extend(
-                    group_edges
-                        .iter()
-                        .map(|p| ordered(described[p.a].0, described[p.b].0)),
-                );
-            }
+            let determined = group_edges.iter().all(|p| p.determined);
+            let left_apart = match (clique && strict_ok, determined) {
+                (true, true) => {
+                    let worst = group_edges.iter().map(|p| p.d2).fold(0.0, f64::max);
+                    accepted.push((members, worst));
+                    continue;
+                }
+                (true, false) => &mut report.undetermined_pairs,
+                (false, _) => &mut report.ambiguous_pairs,
+            };
+            left_apart.extend(
+                group_edges
+                    .iter()
+                    .map(|p| ordered(described[p.a].0, described[p.b].0)),
+            );
         }
         // Joint compatibility of all groups adopted in this search.
         loop {
@@ -284,7 +313,7 @@ impl SlamFilter {
         let Ok(gate) = chi2_quantile(3.0, probability) else {
             return false;
         };
-        self.pair_distance(a, b) > gate
+        self.pair_distance(a, b).0 > gate
     }
 }
 
@@ -306,6 +335,15 @@ mod tests {
         features: &[(FeatureId, [f64; 3], Appearance)],
         coupled: &[(usize, usize, f64)],
     ) -> SlamFilter {
+        filter_with_sigma(features, coupled, 1.0)
+    }
+
+    /// [`filter_with`] with σ = `sigma` [m].
+    fn filter_with_sigma(
+        features: &[(FeatureId, [f64; 3], Appearance)],
+        coupled: &[(usize, usize, f64)],
+        sigma: f64,
+    ) -> SlamFilter {
         let mode = AssociationMode::Appearance {
             max_distance: 20,
             max_nodes: 100,
@@ -323,7 +361,7 @@ mod tests {
                 cov[(3 * j + a, 3 * i + a)] = rho;
             }
         }
-        let y = cov.try_inverse().unwrap();
+        let y = (cov * (sigma * sigma)).try_inverse().unwrap();
         let target = DVector::from_fn(k, |r, _| features[r / 3].1[r % 3]);
         let ids = features.iter().map(|x| x.0).collect();
         f.fuse_map_information(&delta(ids, y, &target, f.origin()))
@@ -426,6 +464,40 @@ mod tests {
         assert_eq!(r.incompatible_pairs, vec![(1, 2)]);
         let r = filter_with(&feats, &[]).find_correspondences(&Default::default());
         assert_eq!(r.merges, vec![merge(2, 1)]);
+    }
+
+    /// A lookalike 547 m away from a feature known to σ = 300 m per axis (as one received only
+    /// through a neighbour's sparsified marginal can be) passes the χ² gate — d² = 547²/(2·300²)
+    /// ≈ 1.66 < χ²₃(0.99) = 11.34 — which is how an eight-vehicle team on 128 kB/s radios
+    /// adopted a wrong correspondence and diverged. Its difference's σ along the worst axis,
+    /// √2·300 ≈ 424 m, is over the 10 m bound: undetermined, left apart. Without the bound
+    /// (∞) the χ² gate alone merges it; the same geometry at σ = 1 m is incompatible.
+    #[test]
+    fn a_pair_known_too_loosely_is_left_undetermined() {
+        let feats = [(1, [0.0, 0.0, 0.0], LOOK), (2, [547.0, 0.0, 0.0], LOOK)];
+        let vague = filter_with_sigma(&feats, &[], 300.0);
+        let r = vague.find_correspondences(&CorrespondenceConfig::default());
+        assert!(r.merges.is_empty());
+        assert_eq!(r.undetermined_pairs, vec![(1, 2)]);
+        assert!(r.ambiguous_pairs.is_empty() && r.incompatible_pairs.is_empty());
+        let unbounded = CorrespondenceConfig {
+            max_difference_sigma_m: f64::INFINITY,
+            ..Default::default()
+        };
+        assert_eq!(
+            vague.find_correspondences(&unbounded).merges,
+            vec![merge(2, 1)]
+        );
+        let precise = filter_with(&feats, &[]).find_correspondences(&Default::default());
+        assert!(precise.merges.is_empty());
+        assert_eq!(precise.incompatible_pairs, vec![(1, 2)]);
+        // At the bound's edge: σ = 7 m per axis gives √2·7 ≈ 9.9 m ≤ 10 m, decided (two keys
+        // 3 m apart: d² = 9/98 ≈ 0.09, one feature); σ = 7.1 m gives 10.04 m, undetermined.
+        let near = [(1, [0.0, 0.0, 0.0], LOOK), (2, [3.0, 0.0, 0.0], LOOK)];
+        let r = filter_with_sigma(&near, &[], 7.0).find_correspondences(&Default::default());
+        assert_eq!(r.merges, vec![merge(2, 1)]);
+        let r = filter_with_sigma(&near, &[], 7.1).find_correspondences(&Default::default());
+        assert_eq!(r.undetermined_pairs, vec![(1, 2)]);
     }
 
     /// A neighbour's correspondence is contradicted only when both keys are held and far
