@@ -518,6 +518,63 @@ struct VectorGate {
     lambda_min: f64,
 }
 
+/// The feature of a sparsified delta's marginal `info` that a peer would not hold with a
+/// positive definite information of σ ≤ `max_sigma_m` along its worst axis after fusing it,
+/// among the features whose only information at the peer is what this side sent (`is_new`:
+/// the peer never sent any on them): their information there is `sent(ids)` (the joint block
+/// of everything sent on them before, zero for features never sent) plus `info`'s block. The
+/// one with the smallest eigenvalue of its own 3 × 3 block below 1/`max_sigma_m`², or, when
+/// every block passes, the one whose pivot fails in a Cholesky of the joint block (what the
+/// receiver's fusion needs positive definite: its new features' ΔY_uu, summed over a batch of
+/// deltas that introduce them). `None` when all pass. (`crate::ddf::MAX_INTRODUCED_SIGMA_M`
+/// says why.)
+pub fn weakest_new_feature(
+    info: &MapInformation,
+    is_new: impl Fn(&FeatureId) -> bool,
+    sent: impl Fn(&[FeatureId]) -> Mat<f64>,
+    max_sigma_m: f64,
+) -> Option<FeatureId> {
+    let floor = 1.0 / (max_sigma_m * max_sigma_m);
+    let (blocks, ids): (Vec<usize>, Vec<FeatureId>) = info
+        .ids
+        .iter()
+        .enumerate()
+        .filter(|(_, id)| is_new(id))
+        .map(|(b, &id)| (b, id))
+        .unzip();
+    if ids.is_empty() {
+        return None;
+    }
+    let before = sent(&ids);
+    let n = FEATURE_DIM * ids.len();
+    let mut joint = Mat::from_fn(n, n, |r, c| {
+        let (p, q) = (
+            FEATURE_DIM * blocks[r / FEATURE_DIM] + r % FEATURE_DIM,
+            FEATURE_DIM * blocks[c / FEATURE_DIM] + c % FEATURE_DIM,
+        );
+        0.5 * (info.matrix[(p, q)] + info.matrix[(q, p)] + before[(r, c)] + before[(c, r)])
+    });
+    let weakest = ids
+        .iter()
+        .enumerate()
+        .map(|(t, &id)| {
+            let block = Matrix3::from_fn(|i, j| joint[(FEATURE_DIM * t + i, FEATURE_DIM * t + j)]);
+            (block.symmetric_eigenvalues().min(), id)
+        })
+        // NaN fails too.
+        .filter(|(l, _)| l.is_nan() || *l < floor)
+        .min_by(|a, b| a.0.total_cmp(&b.0));
+    if let Some((_, id)) = weakest {
+        return Some(id);
+    }
+    match crate::info::cholesky_lower_in_place(joint.as_mut()) {
+        Ok(()) => None,
+        Err(faer::linalg::cholesky::llt::factor::LltError::NonPositivePivot { index }) => {
+            Some(ids[index / FEATURE_DIM])
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -538,6 +595,54 @@ mod tests {
             matrix,
             vector: Col::from_fn(n, |_| rng.random_range(-5.0..5.0)),
         }
+    }
+
+    /// `weakest_new_feature` against hand-built marginals (σ bound 100 m: floor 1e-4 m⁻²):
+    /// three features at 1 m⁻² (σ 1 m) pass; a new feature known to 1 km along one axis
+    /// (1e-6 m⁻²) is named, but not when the peer has its own information on it (not new: a
+    /// weak update of a held feature harms nothing) nor when 1 m⁻² was sent on it before; a
+    /// new block with a negative eigenvalue (the −2.5e-3 m⁻² of the radio tree-8 runs) is named
+    /// before a merely weak one, unless what was sent before makes the sum positive; two new
+    /// features whose own blocks pass but whose joint block is indefinite (correlation 1.5
+    /// between their x axes: eigenvalues 1 ± 1.5) are caught by the joint Cholesky at the
+    /// second one's pivot.
+    #[test]
+    fn a_feature_new_to_the_peer_must_arrive_positive_definite_and_known_to_100_m() {
+        let mut rng = ChaCha8Rng::seed_from_u64(5);
+        let diag =
+            |d: &[f64]| Mat::from_fn(d.len(), d.len(), |i, j| if i == j { d[i] } else { 0.0 });
+        let all = |_: &FeatureId| true;
+        let nothing = |ids: &[FeatureId]| Mat::zeros(3 * ids.len(), 3 * ids.len());
+        let unit = |ids: &[FeatureId]| Mat::identity(3 * ids.len(), 3 * ids.len());
+        let good = info(&[1, 2, 3], diag(&[1.0; 9]), &mut rng);
+        assert_eq!(weakest_new_feature(&good, all, nothing, 100.0), None);
+        let mut d = [1.0; 9];
+        d[4] = 1e-6;
+        let vague = info(&[1, 2, 3], diag(&d), &mut rng);
+        assert_eq!(weakest_new_feature(&vague, all, nothing, 100.0), Some(2));
+        assert_eq!(
+            weakest_new_feature(&vague, |id: &FeatureId| *id != 2, nothing, 100.0),
+            None
+        );
+        assert_eq!(weakest_new_feature(&vague, all, unit, 100.0), None);
+        // σ = 1 km passes a 2 km bound.
+        assert_eq!(weakest_new_feature(&vague, all, nothing, 2000.0), None);
+        d[8] = -2.5e-3;
+        let indefinite = info(&[1, 2, 3], diag(&d), &mut rng);
+        assert_eq!(
+            weakest_new_feature(&indefinite, all, nothing, 100.0),
+            Some(3)
+        );
+        assert_eq!(weakest_new_feature(&indefinite, all, unit, 100.0), None);
+        let mut m = diag(&[1.0; 6]);
+        m[(0, 3)] = 1.5;
+        m[(3, 0)] = 1.5;
+        let joint = info(&[7, 8], m, &mut rng);
+        assert_eq!(weakest_new_feature(&joint, all, nothing, 100.0), Some(8));
+        assert_eq!(
+            weakest_new_feature(&joint, |id: &FeatureId| *id == 8, nothing, 100.0),
+            None
+        );
     }
 
     /// The Schur marginal equals an independent computation: the inverse of the S block of the

@@ -99,13 +99,15 @@ fn radio_32k() {
         assert_eq!(c.submaps_sent, 0, "{}->{}: submaps sent", e.node, e.peer);
         eprintln!(
             "radio-32k {}->{}: {} deltas sent, {} of them sparsified ({} regularised beyond the \
-             floor, {} with the vector gated), {} rounds refused, {} starved",
+             floor, {} with the vector gated), {} features new to the peer held back, {} rounds \
+             refused, {} starved",
             e.node,
             e.peer,
             c.deltas_sent,
             c.sparse_deltas,
             c.sparse_regularised,
             c.sparse_vector_dropped,
+            c.sparse_withheld_new,
             c.sparse_refused,
             c.budget_starved
         );

@@ -92,7 +92,32 @@ pub struct ChannelStats {
     /// (or the marginal not finite); the delta stays pending.
     #[serde(default)]
     pub sparse_refused: u64,
+    /// Features the peer knows only from this side (it sent none of their information) held
+    /// back from a sparsified delta because what the peer would then hold on them (all sent
+    /// before plus the marginal) was not positive definite with σ ≤
+    /// [`MAX_INTRODUCED_SIGMA_M`] (they stay in the residual for later rounds).
+    #[serde(default)]
+    pub sparse_withheld_new: u64,
 }
+
+/// The largest σ [m] along its worst axis with which a sparsified delta leaves a feature at a
+/// peer that knows it only from this side (`Channel::sparsify`, [`sparse::weakest_new_feature`]).
+/// An EKF's delta Y_i − C_ik is not exactly positive semi-definite (its information was formed
+/// about other estimates than the books'), and its Schur marginal on a feature mostly explained
+/// by held-back ones can be nearly nothing or indefinite. Measured on tree-8 with 128 kB/s
+/// radios (60 s, 40 multi-process runs): new features arrived with block eigenvalues down to
+/// −2.5e-3 m⁻², alone or summed over the deltas of a batch; the receiver must then refuse the
+/// batch (its new-feature information ΔY_uu is not positive definite) and after three attempts
+/// drops it (7 of 40 runs refused one, 6 dropped one, 2 ended with a feature ~1.3 km off at
+/// σ ≈ 2 m in four vehicles); known to kilometres, such features let a χ² gate take a lookalike
+/// hundreds of metres away for the same feature. 100 m is 20× the σ of a range-bearing
+/// feature at its first sighting in the shipped scenarios (≤ 5 m) and 10× the correspondence
+/// search's bound (`canopy_fusion::slam::CorrespondenceConfig::max_difference_sigma_m`).
+pub const MAX_INTRODUCED_SIGMA_M: f64 = 100.0;
+
+/// How many features a sparsified delta may hold back by [`MAX_INTRODUCED_SIGMA_M`] before
+/// the round sends nothing on the link (each costs a Schur marginal).
+const MAX_WITHHELD_NEW: usize = 8;
 
 /// Where the current epoch pair is.
 #[derive(Clone, Debug)]
@@ -1162,6 +1187,7 @@ impl Channel {
         // D_RR not positive definite: the feature of the failing pivot joins S in place of the
         // lowest-priority one, a few times, before the round is refused.
         let mut swaps = 0;
+        let mut withheld = 0;
         loop {
             if keep.is_empty() {
                 self.stats.budget_starved += 1;
@@ -1182,6 +1208,26 @@ impl Channel {
                     return None;
                 }
             };
+            // A feature the peer knows only from this side is sent only when what it then
+            // holds on it stays positive definite with σ ≤ MAX_INTRODUCED_SIGMA_M; otherwise
+            // it is held back (it stays in R).
+            let (sent, received) = (&self.sent, &self.received);
+            let weakest = sparse::weakest_new_feature(
+                &m.info,
+                |id| !received.has(*id),
+                |ids| sent.joint_block(ids),
+                MAX_INTRODUCED_SIGMA_M,
+            );
+            if let Some(f) = weakest {
+                if withheld >= MAX_WITHHELD_NEW {
+                    self.stats.sparse_refused += 1;
+                    return None;
+                }
+                withheld += 1;
+                self.stats.sparse_withheld_new += 1;
+                keep.retain(|&k| k != f);
+                continue;
+            }
             let mut info = m.info;
             let rel = ctx.config.block_threshold_rel;
             info = info.sparsified_with(rel * d.matrix_norm_max(), rel * d.vector_norm_max());

@@ -87,7 +87,7 @@ mod message;
 mod node;
 mod store;
 
-pub use channel::ChannelStats;
+pub use channel::{ChannelStats, MAX_INTRODUCED_SIGMA_M};
 pub use message::{
     AnchorFeature, Body, DdfMessage, Header, Hello, MAX_ANCHOR_FEATURES, MAX_LIST, MAX_SUBMAP_ACKS,
     Outgoing, from_upper_triangle, upper_triangle,

@@ -190,6 +190,20 @@ impl PackedInformation {
         &self.ids
     }
 
+    /// Whether `id` has a block here.
+    pub fn has(&self, id: FeatureId) -> bool {
+        self.index.contains_key(&id)
+    }
+
+    /// The dense joint block (3n × 3n, both triangles) of `ids`, zero for ids without one.
+    pub fn joint_block(&self, ids: &[FeatureId]) -> Mat<f64> {
+        let blocks: Vec<(FeatureId, Option<usize>)> = ids
+            .iter()
+            .map(|&id| (id, self.index.get(&id).copied()))
+            .collect();
+        self.to_dense_gathered(&blocks).matrix
+    }
+
     /// The dense form with its 3-blocks in the order of `blocks`: entry i is (id, Some(b)) for
     /// this information's block b, or (id, None) for a feature given zero information. The
     /// same numbers as the dense form followed by a gather of those blocks, with one dense
