@@ -175,7 +175,7 @@ pub struct FusionConfig {
     /// Appearance association only: the largest σ [m] along its worst axis of the difference
     /// of two keys' estimates for the correspondence search to decide whether they are one
     /// feature (`canopy_fusion::slam::CorrespondenceConfig::max_difference_sigma_m`; default
-    /// 10). A pair known worse than this waits for more information: the χ² gate cannot tell a
+    /// 20). A pair known worse than this waits for more information: the χ² gate cannot tell a
     /// lookalike hundreds of metres away from the same feature when σ is that large.
     pub correspondence_max_sigma_m: f64,
     /// When a vehicle process applies a neighbour's DDF message (`canopy run`; `canopy sim`

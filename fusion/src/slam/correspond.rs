@@ -50,8 +50,12 @@ pub struct CorrespondenceConfig {
     /// hundreds of metres away passes it when σ is hundreds of metres (as for a feature that
     /// reached this map only through a neighbour's sparsified marginal), and the descriptor
     /// cannot tell repeated texture apart. The gate's radius along the worst axis is
-    /// √χ²₃(p) σ ≈ 3.4 σ at p = 0.99: at the default 10 m, 34 m, a third of the mean feature
-    /// spacing of the shipped scenarios (~110 m: 700 features on 3 km × 3 km).
+    /// √χ²₃(p) σ ≈ 3.4 σ at p = 0.99: at the default 20 m, 67 m, within the mean feature
+    /// spacing of the shipped scenarios (~110 m: 700 features on 3 km × 3 km), so the gate
+    /// holds about one feature's share of the ground and a lookalike (2 % of the features)
+    /// falls in it with a few per cent probability, against near-certainty for the wrong merges
+    /// measured (σ ≥ 1.6 km). 10 m delayed a correct merge of radio-32k's seed 1 (σ between
+    /// 10 and 20 m) and cost 6 % of its map accuracy (docs/arch/association.md).
     pub max_difference_sigma_m: f64,
     /// Probability of the χ² gate a pair (and the joint test) must pass to be adopted.
     pub accept_probability: f64,
@@ -64,7 +68,7 @@ impl Default for CorrespondenceConfig {
     fn default() -> Self {
         Self {
             max_distance: 66,
-            max_difference_sigma_m: 10.0,
+            max_difference_sigma_m: 20.0,
             accept_probability: 0.99,
             ambiguity_probability: 0.9999,
         }
@@ -470,7 +474,7 @@ mod tests {
     /// through a neighbour's sparsified marginal can be) passes the χ² gate — d² = 547²/(2·300²)
     /// ≈ 1.66 < χ²₃(0.99) = 11.34 — which is how an eight-vehicle team on 128 kB/s radios
     /// adopted a wrong correspondence and diverged. Its difference's σ along the worst axis,
-    /// √2·300 ≈ 424 m, is over the 10 m bound: undetermined, left apart. Without the bound
+    /// √2·300 ≈ 424 m, is over the 20 m bound: undetermined, left apart. Without the bound
     /// (∞) the χ² gate alone merges it; the same geometry at σ = 1 m is incompatible.
     #[test]
     fn a_pair_known_too_loosely_is_left_undetermined() {
@@ -491,12 +495,13 @@ mod tests {
         let precise = filter_with(&feats, &[]).find_correspondences(&Default::default());
         assert!(precise.merges.is_empty());
         assert_eq!(precise.incompatible_pairs, vec![(1, 2)]);
-        // At the bound's edge: σ = 7 m per axis gives √2·7 ≈ 9.9 m ≤ 10 m, decided (two keys
-        // 3 m apart: d² = 9/98 ≈ 0.09, one feature); σ = 7.1 m gives 10.04 m, undetermined.
+        // At the bound's edge: σ = 14 m per axis gives √2·14 ≈ 19.8 m ≤ 20 m, decided (two
+        // keys 3 m apart: d² = 9/392 ≈ 0.02, one feature); σ = 14.2 m gives 20.08 m,
+        // undetermined.
         let near = [(1, [0.0, 0.0, 0.0], LOOK), (2, [3.0, 0.0, 0.0], LOOK)];
-        let r = filter_with_sigma(&near, &[], 7.0).find_correspondences(&Default::default());
+        let r = filter_with_sigma(&near, &[], 14.0).find_correspondences(&Default::default());
         assert_eq!(r.merges, vec![merge(2, 1)]);
-        let r = filter_with_sigma(&near, &[], 7.1).find_correspondences(&Default::default());
+        let r = filter_with_sigma(&near, &[], 14.2).find_correspondences(&Default::default());
         assert_eq!(r.undetermined_pairs, vec![(1, 2)]);
     }
 
