@@ -111,7 +111,7 @@ pub struct ChannelStats {
 /// drops it (7 of 40 runs refused one, 6 dropped one, 2 ended with a feature ~1.3 km off at
 /// σ ≈ 2 m in four vehicles); known to kilometres, such features let a χ² gate take a lookalike
 /// hundreds of metres away for the same feature. 100 m is 20× the σ of a range-bearing
-/// feature at its first sighting in the shipped scenarios (≤ 5 m) and 10× the correspondence
+/// feature at its first sighting in the shipped scenarios (≤ 5 m) and 5× the correspondence
 /// search's bound (`canopy_fusion::slam::CorrespondenceConfig::max_difference_sigma_m`).
 pub const MAX_INTRODUCED_SIGMA_M: f64 = 100.0;
 
