@@ -119,16 +119,15 @@ fn find(parent: &mut [usize], mut i: usize) -> usize {
 impl SlamFilter {
     /// δᵀ D⁻¹ δ for the constraint x_a = x_b of two features at state offsets `a`, `b`
     /// (∞ when D is not positive definite: such a pair is never taken for one feature), and
-    /// λ_max(D), the variance of the difference along its worst axis.
-    fn pair_distance(&self, a: usize, b: usize) -> (f64, f64) {
+    /// D, the covariance of the difference.
+    fn pair_distance(&self, a: usize, b: usize) -> (f64, Matrix3<f64>) {
         let d: Vector3<f64> = self.vec3_at(a) - self.vec3_at(b);
         let cov: Matrix3<f64> =
             self.mat3_at(a, a) + self.mat3_at(b, b) - self.mat3_at(a, b) - self.mat3_at(b, a);
         let cov = 0.5 * (cov + cov.transpose());
-        let spread = cov.symmetric_eigenvalues().max();
         match cov.cholesky() {
-            Some(c) => (d.dot(&c.solve(&d)), spread),
-            None => (f64::INFINITY, spread),
+            Some(c) => (d.dot(&c.solve(&d)), cov),
+            None => (f64::INFINITY, cov),
         }
     }
 
@@ -157,9 +156,11 @@ impl SlamFilter {
                     continue;
                 }
                 report.candidates += 1;
-                let (d2, spread) = self.pair_distance(described[i].1, described[j].1);
+                let (d2, cov) = self.pair_distance(described[i].1, described[j].1);
                 if d2 <= wide {
-                    let determined = spread.sqrt() <= cfg.max_difference_sigma_m;
+                    // σ of the difference along its worst axis: √λ_max(D).
+                    let determined =
+                        cov.symmetric_eigenvalues().max().sqrt() <= cfg.max_difference_sigma_m;
                     pairs.push(Pair {
                         a: i,
                         b: j,
