@@ -88,16 +88,44 @@ pub struct ChannelStats {
     /// formed about earlier estimates; for linear-Gaussian data once in 10⁶).
     #[serde(default)]
     pub sparse_vector_dropped: u64,
-    /// Rounds a sparsified link sent no delta because the residual block was too indefinite
-    /// (or the marginal not finite); the delta stays pending.
+    /// Rounds a sparsified link sent no delta (the delta stays pending): the sum of the four
+    /// reasons below.
     #[serde(default)]
     pub sparse_refused: u64,
+    /// Of those, rounds whose residual block D_RR was not positive definite up to the largest
+    /// regularisation ([`crate::sparse::SparsifyError::Indefinite`]).
+    #[serde(default)]
+    pub sparse_refused_indefinite: u64,
+    /// Of those, rounds whose marginal came out non-finite
+    /// ([`crate::sparse::SparsifyError::NonFinite`]).
+    #[serde(default)]
+    pub sparse_refused_non_finite: u64,
+    /// Of those, rounds whose marginal removed too much information
+    /// ([`crate::sparse::SparsifyError::TooNegative`]).
+    #[serde(default)]
+    pub sparse_refused_too_negative: u64,
+    /// Of those, rounds that would have held back more than `MAX_WITHHELD_NEW` features new
+    /// to the peer ([`MAX_INTRODUCED_SIGMA_M`]).
+    #[serde(default)]
+    pub sparse_refused_withheld: u64,
     /// Features the peer knows only from this side (it sent none of their information) held
     /// back from a sparsified delta because what the peer would then hold on them (all sent
     /// before plus the marginal) was not positive definite with σ ≤
     /// [`MAX_INTRODUCED_SIGMA_M`] (they stay in the residual for later rounds).
     #[serde(default)]
     pub sparse_withheld_new: u64,
+}
+
+impl ChannelStats {
+    /// Counts a sparsified round refused for `e`, in the total and under its reason.
+    fn count_sparse_refusal(&mut self, e: &sparse::SparsifyError) {
+        self.sparse_refused += 1;
+        match e {
+            sparse::SparsifyError::Indefinite { .. } => self.sparse_refused_indefinite += 1,
+            sparse::SparsifyError::NonFinite => self.sparse_refused_non_finite += 1,
+            sparse::SparsifyError::TooNegative { .. } => self.sparse_refused_too_negative += 1,
+        }
+    }
 }
 
 /// The largest σ [m] along its worst axis with which a sparsified delta leaves a feature at a
@@ -1203,8 +1231,8 @@ impl Channel {
                     keep.insert(0, f);
                     continue;
                 }
-                Err(_) => {
-                    self.stats.sparse_refused += 1;
+                Err(e) => {
+                    self.stats.count_sparse_refusal(&e);
                     return None;
                 }
             };
@@ -1221,6 +1249,7 @@ impl Channel {
             if let Some(f) = weakest {
                 if withheld >= MAX_WITHHELD_NEW {
                     self.stats.sparse_refused += 1;
+                    self.stats.sparse_refused_withheld += 1;
                     return None;
                 }
                 withheld += 1;
