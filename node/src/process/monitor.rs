@@ -463,18 +463,12 @@ pub fn resolve(mut s: Scenario, opts: &LaunchOptions) -> Result<(Scenario, Optio
         .iter()
         .filter_map(|l| l.listen.as_deref()?.rsplit_once(':')?.1.parse().ok())
         .collect();
-    let unnamed = s
-        .links
-        .iter()
-        .filter(|l| l.transport == TransportKind::Net && l.listen.is_none())
-        .count();
+    let needs_port =
+        |l: &crate::scenario::LinkSpec| l.transport == TransportKind::Net && l.listen.is_none();
+    let unnamed = s.links.iter().filter(|l| needs_port(l)).count();
     let ports = canopy_transport::net::free_loopback_ports(unnamed, &named)
         .context("finding free loopback ports for the net links")?;
-    let needing = s
-        .links
-        .iter_mut()
-        .filter(|l| l.transport == TransportKind::Net && l.listen.is_none());
-    for (l, port) in needing.zip(ports) {
+    for (l, port) in s.links.iter_mut().filter(|l| needs_port(l)).zip(ports) {
         l.listen = Some(format!("{proto}/127.0.0.1:{port}"));
     }
     // TLS files: absolute, so the processes find them from the run directory.
