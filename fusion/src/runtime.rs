@@ -54,8 +54,62 @@ pub fn subnormals_flushed() -> bool {
 }
 
 /// Heap blocks of this many bytes or more are `mmap`ped, and unmapped when freed
-/// ([`tune_allocator`]).
+/// ([`tune_allocator`]; the [`HeapPolicy::Lean`] threshold).
 pub const MMAP_THRESHOLD: usize = 4 << 20;
+
+/// The [`HeapPolicy::Warm`] threshold: glibc's largest (`DEFAULT_MMAP_THRESHOLD_MAX` on 64-bit),
+/// so that a k × k matrix up to 32 MiB (k ≈ 2 000, ~660 features) comes from the arenas.
+pub const WARM_MMAP_THRESHOLD: usize = 32 << 20;
+
+/// What the heap keeps between fusion rounds: a process-wide choice of memory against CPU.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum HeapPolicy {
+    /// Matrices of [`MMAP_THRESHOLD`] (4 MiB) and more are `mmap`ped and returned to the kernel
+    /// when freed, and the arenas are trimmed after each round ([`heap_slack`]): the least
+    /// resident memory, paid for with a page fault and the kernel's zeroing per 4 KiB of every
+    /// fresh k × k temporary, every round (tree-8 with exact links: peak RSS ≤ 300 MB per
+    /// vehicle, issue 15).
+    #[default]
+    Lean,
+    /// Matrices up to [`WARM_MMAP_THRESHOLD`] (32 MiB) come from the arenas and stay there for
+    /// the next round: the temporaries are reused warm. Measured on tree-8 with 128 kB/s radio
+    /// links (300 s, `canopy run`): system time 87 → 14 s, page faults ~40 M → 1.8 M, real-time
+    /// factor 0.92–0.97 → 1.21, largest vehicle RSS 236 → 317 MB (docs/benchmarks.md, twelfth
+    /// pass). Beyond ~660 features the k × k blocks exceed the threshold and are `mmap`ped
+    /// as with `Lean`.
+    Warm,
+}
+
+impl HeapPolicy {
+    /// The `mmap` threshold of the policy [bytes].
+    pub fn mmap_threshold(self) -> usize {
+        match self {
+            HeapPolicy::Lean => MMAP_THRESHOLD,
+            HeapPolicy::Warm => WARM_MMAP_THRESHOLD,
+        }
+    }
+}
+
+/// The threshold in effect ([`set_heap_policy`]; what [`heap_slack`] compares blocks with).
+static THRESHOLD: std::sync::atomic::AtomicUsize =
+    std::sync::atomic::AtomicUsize::new(MMAP_THRESHOLD);
+
+/// Switches the process to `policy` ([`HeapPolicy`]); [`tune_allocator`] sets `Lean`. Called
+/// by the vehicle process and `canopy sim` once the scenario is known (glibc's `mallopt`
+/// takes the allocator's lock: safe with other threads running).
+pub fn set_heap_policy(policy: HeapPolicy) {
+    let t = policy.mmap_threshold();
+    THRESHOLD.store(t, std::sync::atomic::Ordering::Relaxed);
+    #[cfg(all(target_os = "linux", target_env = "gnu"))]
+    {
+        #[allow(unsafe_code)]
+        // SAFETY: mallopt only sets an allocator parameter, under the allocator's lock.
+        unsafe {
+            libc::mallopt(libc::M_MMAP_THRESHOLD, t as libc::c_int);
+        }
+    }
+}
 
 /// Keeps freed heap memory mapped instead of returning it to the kernel (glibc `mallopt`),
 /// except for the largest blocks.
@@ -96,7 +150,7 @@ pub const HEAP_SLACK: usize = 8 << 20;
 pub fn heap_slack(features: usize) -> usize {
     let k = 3 * features;
     let block = 8 * k * k;
-    if block < MMAP_THRESHOLD {
+    if block < THRESHOLD.load(std::sync::atomic::Ordering::Relaxed) {
         HEAP_SLACK + 12 * block
     } else {
         HEAP_SLACK

@@ -587,3 +587,66 @@ fn a_cumulative_on_a_sparsified_link_carries_what_the_peer_received() {
         "node 1 differs from node 0 by {diff:.3e} beyond the booked shifts {shift:.3e}"
     );
 }
+
+/// `DdfConfig::budget_interval`: a capacity-limited link forms its delta at most once per
+/// interval, an unlimited link every round, and nothing waits for good.
+///
+/// Three nodes on a chain 0 – 1 – 2, rounds one second apart, interval 3 s; the link 0 → 1 is
+/// sparsified with a budget that fits the whole delta of these few features (so every delta
+/// it forms is exact), the link 1 → 2 has no budget. Nodes 0 and 1 each observe new
+/// information on features of their own every round for 9 rounds: the budgeted link forms
+/// deltas at rounds 0, 3 and 6 only (3, where one a round would be 9), the unlimited link
+/// 1 → 2 one every round (9). Then, with no new observations and 3 more rounds (the
+/// next budgeted round carries what waited), every node holds the centralized sum of all
+/// observations to round-off (relative 1e-12: exact channel filters add up the same numbers
+/// in another order) — the interval delays information, it never drops it.
+#[test]
+fn a_budgeted_link_forms_one_delta_per_interval_and_loses_nothing() {
+    let mut rng = ChaCha8Rng::seed_from_u64(31);
+    let feats: Vec<(FeatureId, Vector3<f64>)> = (0..4)
+        .map(|k| {
+            let p = origin() + Vector3::from_fn(|_, _| rng.random_range(-200.0..200.0));
+            (700 + k as FeatureId, p)
+        })
+        .collect();
+    let (a, b, c) = (NodeId(0), NodeId(1), NodeId(2));
+    let config = DdfConfig {
+        budget_interval: 3.0,
+        ..DdfConfig::default()
+    };
+    let mut sim = Sim::new(
+        Topology::chain([a, b, c]).unwrap(),
+        Mode::Decentralized,
+        config,
+        3,
+    );
+    let budget = Some(MapInformation::dense_block_wire_bytes_as(8, false));
+    let ddf = &mut sim.nodes.get_mut(&a).unwrap().ddf;
+    ddf.use_sparse(b).unwrap();
+    ddf.set_link_budget(b, budget).unwrap();
+    sim.handshake(5);
+    let sent =
+        |sim: &Sim, x: NodeId, y: NodeId| sim.nodes[&x].ddf.channel(y).unwrap().stats.deltas_sent;
+    let (ab0, bc0) = (sent(&sim, a, b), sent(&sim, b, c));
+    for _ in 0..9 {
+        for (node, ids) in [(a, &feats[..2]), (b, &feats[2..])] {
+            let mut info = MapInformation::zero(origin());
+            for (id, p) in ids {
+                info.add_assign(&direct_observation(*id, p, &mut rng))
+                    .unwrap();
+            }
+            sim.observe(node, &info);
+        }
+        sim.round();
+    }
+    let (ab, bc) = (sent(&sim, a, b) - ab0, sent(&sim, b, c) - bc0);
+    println!("9 rounds: budgeted link 0 → 1 formed {ab} deltas, unlimited 1 → 2 {bc}");
+    assert_eq!(ab, 3, "one delta per 3-s interval on the budgeted link");
+    assert_eq!(bc, 9, "the unlimited link sends every round");
+    for _ in 0..6 {
+        sim.round();
+    }
+    let diff = sim.max_relative_difference(&sim.all_ever.clone());
+    println!("after the quiet rounds: max relative difference to the sum {diff:.2e}");
+    assert!(diff <= 1e-12, "{diff}");
+}

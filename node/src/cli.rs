@@ -254,6 +254,7 @@ fn record_logs(args: &RunArgs, s: &Scenario) -> Result<()> {
 
 fn cmd_sim(args: &RunArgs) -> Result<()> {
     let s = load_scenario(args.scenario.as_deref())?;
+    canopy_fusion::runtime::set_heap_policy(s.run.heap);
     let out = out_dir(args, &s);
     record_logs(args, &s)?;
     let duration = args.duration.unwrap_or(s.run.duration_s);
@@ -521,8 +522,8 @@ fn cmd_check(path: &Path) -> Result<()> {
                     crate::radio::RadioFusion::Sparse => "sparsified deltas",
                     crate::radio::RadioFusion::Ci => "CI submaps",
                 },
-                crate::radio::round_budget(r.bytes_per_s, s.fusion.rate_hz, 0.0),
-                r.queue_bytes(),
+                r.delta_budget(&s.fusion),
+                r.queue_bytes(&s.fusion),
                 r.latency_s,
                 r.range_m
                     .map(|m| format!(", range {m} m"))

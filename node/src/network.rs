@@ -63,6 +63,11 @@ pub struct RunConfig {
     /// the recording's time base. Absent: outputs use t itself.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub time_origin_ns: Option<u64>,
+    /// What each vehicle (and hub) process's heap keeps between fusion rounds: `lean`
+    /// (default: least resident memory) or `warm` (the round's large temporaries reused
+    /// instead of faulted in afresh: less CPU, more memory;
+    /// [`canopy_fusion::runtime::HeapPolicy`]). `canopy sim` applies it to its one process.
+    pub heap: canopy_fusion::runtime::HeapPolicy,
 }
 
 impl Default for RunConfig {
@@ -75,6 +80,7 @@ impl Default for RunConfig {
             real_time_factor: None,
             max_lead_s: 2.0,
             time_origin_ns: None,
+            heap: canopy_fusion::runtime::HeapPolicy::Lean,
         }
     }
 }
@@ -184,6 +190,14 @@ pub struct FusionConfig {
     /// simulation time, waiting for it if needed: the run no longer depends on process timing;
     /// decentralized mode, fault-free links; `process::delivery`).
     pub delivery: Delivery,
+    /// Capacity-limited links (radio, `byte_budget`): the shortest time [s] between two rounds
+    /// that form a link's delta or CI submap (default 0: every round). Each such round gets
+    /// the budget of the whole interval ([`FusionConfig::budget_rate_hz`]), so the bytes per
+    /// second are the same; what waits stays in the channel filter's residual. Forming a
+    /// sparsified delta costs a Schur complement over the map (O(k³) per link), so on large
+    /// maps a longer interval is what keeps the fusion within real time
+    /// (`canopy_fusion::ddf::DdfConfig::budget_interval`).
+    pub radio_interval_s: f64,
 }
 
 /// When a vehicle process applies what its neighbours send (`[fusion] delivery`).
@@ -221,11 +235,23 @@ impl Default for FusionConfig {
             map_correspondences: true,
             correspondence_max_sigma_m: canopy_fusion::slam::CorrespondenceConfig::default()
                 .max_difference_sigma_m,
+            radio_interval_s: 0.0,
         }
     }
 }
 
 impl FusionConfig {
+    /// How often a capacity-limited link forms its delta [1/s]: every round, or once per
+    /// `radio_interval_s` when that is longer. Radio budgets are sized per delta at this rate
+    /// (`crate::radio::round_budget`).
+    pub fn budget_rate_hz(&self) -> f64 {
+        if self.radio_interval_s * self.rate_hz > 1.0 {
+            1.0 / self.radio_interval_s
+        } else {
+            self.rate_hz
+        }
+    }
+
     /// The vehicles' association options given the world's identity model: `association`,
     /// or its default for `identity` (descriptor for perfect identities, appearance otherwise);
     /// appearance association takes its candidate distance from `appearance`.
@@ -281,6 +307,7 @@ impl FusionConfig {
             // Three rounds: a submap is acknowledged with the receiver's next round.
             submap_ack_timeout: 3.0 / self.rate_hz,
             delta_precision: self.delta_precision,
+            budget_interval: self.radio_interval_s,
             ci_criterion: match self.ci_criterion {
                 CiCriterionConfig::Trace => CiCriterion::Trace,
                 CiCriterionConfig::Determinant => CiCriterion::Determinant,
@@ -732,6 +759,12 @@ pub fn validate(s: &Scenario) -> Result<(), ScenarioError> {
                 format!("must be > 0, got {v}"),
             ));
         }
+    }
+    if !(f.radio_interval_s.is_finite() && (0.0..=3600.0).contains(&f.radio_interval_s)) {
+        return Err(ScenarioError::invalid(
+            "fusion.radio_interval_s",
+            format!("must be in [0, 3600] s, got {}", f.radio_interval_s),
+        ));
     }
     let identity = s.world.appearance.identity;
     let kind = f.association_kind(identity);

@@ -26,7 +26,7 @@ use canopy_transport::fault::{FaultyLink, Radio, RangeLimit, Separation};
 use canopy_transport::link::Link;
 use serde::{Deserialize, Serialize};
 
-use crate::network::FusionMode;
+use crate::network::{FusionConfig, FusionMode};
 use crate::scenario::{Scenario, ScenarioError};
 use crate::world::Trajectory;
 
@@ -84,10 +84,24 @@ impl RadioFusion {
 }
 
 impl RadioSpec {
-    /// The queue bound [bytes] (default one second of capacity).
-    pub fn queue_bytes(&self) -> u64 {
+    /// The queue bound [bytes] under fusion settings `f`: by default the capacity of one
+    /// interval between deltas ([`FusionConfig::budget_rate_hz`]), and at least one second of
+    /// it (a delta is queued at once).
+    pub fn queue_bytes(&self, f: &FusionConfig) -> u64 {
+        let interval_s = 1.0 / f.budget_rate_hz();
         self.queue_bytes
-            .unwrap_or_else(|| self.bytes_per_s.ceil() as u64)
+            .unwrap_or_else(|| (self.bytes_per_s * interval_s.max(1.0)).ceil() as u64)
+    }
+
+    /// The budget of a delta on an idle link of this radio under fusion settings `f`
+    /// ([`queued_round_budget`] with nothing queued).
+    pub fn delta_budget(&self, f: &FusionConfig) -> usize {
+        queued_round_budget(
+            self.bytes_per_s,
+            f.budget_rate_hz(),
+            0.0,
+            self.queue_bytes(f),
+        )
     }
 
     /// Field checks (`field` is the radio table's path); `ends` are the link's two node ids,
@@ -102,7 +116,7 @@ impl RadioSpec {
                 format!("must be a finite number > 0, got {}", self.bytes_per_s),
             );
         }
-        let per_round = round_budget(self.bytes_per_s, s.fusion.rate_hz, 0.0);
+        let per_round = self.delta_budget(&s.fusion);
         let min = min_useful_budget();
         if per_round < min {
             return bad(
@@ -110,7 +124,8 @@ impl RadioSpec {
                 format!(
                     "{} bytes/s at {} rounds/s leaves {per_round} bytes per round after the \
                      headroom, less than one feature's submap ({min} bytes)",
-                    self.bytes_per_s, s.fusion.rate_hz
+                    self.bytes_per_s,
+                    s.fusion.budget_rate_hz()
                 ),
             );
         }
@@ -180,7 +195,7 @@ impl RadioSpec {
         };
         Ok(Radio {
             bytes_per_s: self.bytes_per_s,
-            queue_bytes: self.queue_bytes(),
+            queue_bytes: self.queue_bytes(&s.fusion),
             latency: self.latency_s,
             range,
         })
@@ -250,8 +265,26 @@ pub fn round_budget(bytes_per_s: f64, rate_hz: f64, queued_bytes: f64) -> usize 
     }
 }
 
+/// [`round_budget`], and no more than the room left in the link's queue of `queue_bytes` (less
+/// the same headroom): a delta sent once per several rounds would otherwise be offered whole
+/// to a queue that holds less than the interval's capacity, and be dropped.
+pub fn queued_round_budget(
+    bytes_per_s: f64,
+    rate_hz: f64,
+    queued_bytes: f64,
+    queue_bytes: u64,
+) -> usize {
+    let room = (1.0 - HEADROOM_FRACTION) * queue_bytes as f64 - HEADROOM_BYTES - queued_bytes;
+    let room = if room.is_finite() && room > 0.0 {
+        room.floor() as usize
+    } else {
+        0
+    };
+    round_budget(bytes_per_s, rate_hz, queued_bytes).min(room)
+}
+
 /// The submap budgets of the next round on a node's capacity-limited (radio) links, from each
-/// link's outbound mirror now ([`round_budget`]); links without a radio are left out.
+/// link's outbound mirror now ([`queued_round_budget`]); links without a radio are left out.
 pub fn capacity_budgets<'a, L: Link + 'a>(
     links: impl IntoIterator<Item = (NodeId, &'a FaultyLink<L>)>,
     rate_hz: f64,
@@ -260,7 +293,10 @@ pub fn capacity_budgets<'a, L: Link + 'a>(
         .into_iter()
         .filter_map(|(peer, link)| {
             let o = link.outbound()?;
-            Some((peer, round_budget(o.bytes_per_s, rate_hz, o.queued_bytes)))
+            Some((
+                peer,
+                queued_round_budget(o.bytes_per_s, rate_hz, o.queued_bytes, o.queue_bytes),
+            ))
         })
         .collect()
 }
@@ -295,6 +331,37 @@ mod tests {
                 "{q}"
             );
         }
+    }
+
+    /// The budget of a delta formed once per interval, restated by hand: 32 kB/s with a
+    /// 2-s interval offers the interval's share (0.9 · 64 000 − 512 = 57 088) when the queue
+    /// holds it (the default queue is one interval: 64 000 bytes), the queue's room when an
+    /// explicit one-second queue is smaller (0.9 · 32 000 − 512 = 28 288), less what still
+    /// waits in it; every round at 1 Hz keeps the one-round budget (28 288).
+    #[test]
+    fn a_delta_per_interval_gets_the_interval_budget_within_the_queue() {
+        let mut s = Scenario::builtin_default();
+        let radio = |queue_bytes| RadioSpec {
+            bytes_per_s: 32_000.0,
+            queue_bytes,
+            latency_s: 0.0,
+            range_m: None,
+            edge_fraction: None,
+            edge_loss: None,
+            fusion: RadioFusion::Sparse,
+        };
+        assert_eq!(radio(None).delta_budget(&s.fusion), 28_288);
+        s.fusion.radio_interval_s = 2.0;
+        assert_eq!(s.fusion.budget_rate_hz(), 0.5);
+        assert_eq!(radio(None).queue_bytes(&s.fusion), 64_000);
+        assert_eq!(radio(None).delta_budget(&s.fusion), 57_088);
+        assert_eq!(radio(Some(32_000)).delta_budget(&s.fusion), 28_288);
+        assert_eq!(queued_round_budget(32_000.0, 0.5, 10_000.0, 64_000), 47_088);
+        assert_eq!(queued_round_budget(32_000.0, 0.5, 10_000.0, 32_000), 18_288);
+        assert_eq!(queued_round_budget(32_000.0, 0.5, 40_000.0, 32_000), 0);
+        // An interval shorter than the round period changes nothing.
+        s.fusion.radio_interval_s = 0.5;
+        assert_eq!(s.fusion.budget_rate_hz(), 1.0);
     }
 
     /// Two vehicles on the same orbit (radius 650 m), half a period apart, at 120 m and 160 m

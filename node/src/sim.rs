@@ -214,11 +214,7 @@ pub fn vehicle_agent(
             // A radio link starts with a full round's budget; each round then sets it from
             // the link's capacity and queue (`crate::radio::capacity_budgets`).
             let budget = match &l.radio {
-                Some(r) => Some(crate::radio::round_budget(
-                    r.bytes_per_s,
-                    s.fusion.rate_hz,
-                    0.0,
-                )),
+                Some(r) => Some(r.delta_budget(&s.fusion)),
                 None => l.byte_budget,
             };
             Some((NodeId(peer), budget))
@@ -410,7 +406,7 @@ impl<'s> Sim<'s> {
                 Some(Agent::Vehicle(a)) => {
                     let budgets = crate::radio::capacity_budgets(
                         node.links.iter().map(|(&p, l)| (p, l)),
-                        self.s.fusion.rate_hz,
+                        self.s.fusion.budget_rate_hz(),
                     );
                     // A refused budget is counted by reason by the fusion half.
                     let _ = a.set_link_budgets(&budgets);

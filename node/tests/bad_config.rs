@@ -113,6 +113,11 @@ fn cases() -> Vec<Case> {
             expect: Invalid("fusion.correspondence_max_sigma_m", "must be > 0"),
         },
         Case {
+            kind: "bad number (a negative interval between radio deltas)",
+            edit: ("rate_hz = 1.0 ", "radio_interval_s = -1.0\nrate_hz = 1.0 "),
+            expect: Invalid("fusion.radio_interval_s", "must be in [0, 3600] s"),
+        },
+        Case {
             kind: "simulation-time delivery outside decentralized mode",
             edit: (
                 "mode = \"decentralized\"",
@@ -162,6 +167,11 @@ fn cases() -> Vec<Case> {
                 "rate_hz = 1.0\ndelta_compression = \"gzip\"",
             ),
             expect: Parse("gzip", "unknown variant"),
+        },
+        Case {
+            kind: "unknown heap policy",
+            edit: ("duration_s = 300.0", "duration_s = 300.0\nheap = \"huge\""),
+            expect: Parse("huge", "unknown variant"),
         },
         Case {
             kind: "negative duration",

@@ -80,7 +80,10 @@ fn radio_32k() {
     let s = Scenario::load(&file).expect("loads");
     for l in &s.links {
         let r = l.radio.as_ref().expect("every link is a radio");
-        assert_eq!((r.bytes_per_s, r.queue_bytes() as f64), (CAPACITY, QUEUE));
+        assert_eq!(
+            (r.bytes_per_s, r.queue_bytes(&s.fusion) as f64),
+            (CAPACITY, QUEUE)
+        );
     }
     let r = run(&file, &["--quiet"]);
     r.print_standing("radio-32k");

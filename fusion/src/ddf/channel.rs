@@ -204,6 +204,9 @@ pub(crate) struct Channel {
     last_nack: Option<f64>,
     last_hello: Option<f64>,
     last_sync: Option<f64>,
+    /// Round time of the last delta (or CI submap) formed on this capacity-limited link
+    /// ([`super::DdfConfig::budget_interval`]).
+    last_budgeted: Option<f64>,
     /// R_total − R: R_total is everything ever received from the peer and applied, over all
     /// epochs; it differs from R only by what earlier epoch pairs left (`None`: nothing, the
     /// case until a peer restarts), so only that difference is stored.
@@ -350,6 +353,7 @@ impl Channel {
             last_nack: None,
             last_hello: None,
             last_sync: None,
+            last_budgeted: None,
             total_offset: None,
             tracker: SubmapTracker::default(),
             submap_seq: 0,
@@ -452,6 +456,7 @@ impl Channel {
         self.gap_since = None;
         self.last_nack = None;
         self.last_sync = None;
+        self.last_budgeted = None;
         self.peer_history = None;
     }
 
@@ -1059,7 +1064,9 @@ impl Channel {
                 }
             }
             Pair::Synced => {
-                self.send_delta(current, ctx, &mut out)?;
+                if self.budgeted_round_due(now, cfg) {
+                    self.send_delta(current, ctx, &mut out)?;
+                }
                 if self.gap_since.is_some_and(|t| now - t >= cfg.gap_timeout)
                     && self.last_nack.is_none_or(|t| now - t >= cfg.gap_timeout)
                 {
@@ -1100,7 +1107,9 @@ impl Channel {
                 let ack = self.msg(ctx, Body::SubmapAck { seqs });
                 out.push(ack);
             }
-            self.send_submap(now, source, ctx, &mut out);
+            if self.budgeted_round_due(now, ctx.config) {
+                self.send_submap(now, source, ctx, &mut out);
+            }
         }
         if self
             .last_hello
@@ -1110,6 +1119,26 @@ impl Channel {
             out.push(hello);
         }
         out
+    }
+
+    /// Whether this round forms the link's information message: always on a link without a
+    /// byte budget; on a capacity-limited one, at most once per
+    /// [`super::DdfConfig::budget_interval`] (the round's budget then covers the interval).
+    /// A due round is recorded as taken.
+    fn budgeted_round_due(&mut self, now: f64, cfg: &DdfConfig) -> bool {
+        if self.budget.is_none() || cfg.budget_interval <= 0.0 {
+            return true;
+        }
+        // Round times are multiples of the period up to round-off: a round 1e-6 s early
+        // counts as due.
+        if self
+            .last_budgeted
+            .is_some_and(|t| now - t < cfg.budget_interval - 1e-6)
+        {
+            return false;
+        }
+        self.last_budgeted = Some(now);
+        true
     }
 
     fn send_delta(

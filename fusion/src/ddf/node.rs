@@ -49,6 +49,15 @@ pub struct DdfConfig {
     /// How many retired epochs of each peer are remembered (messages from them are dropped),
     /// and how many unproven candidate epochs are kept.
     pub retired_epochs: usize,
+    /// On a capacity-limited link (one with a byte budget), the shortest time [s] between two
+    /// rounds that form its delta (or CI submap); rounds between send only the small protocol
+    /// messages, and what waits stays in Y_i − C_ik (nothing is lost). 0 (default): every
+    /// round. Why: forming a sparsified delta costs a Schur complement over every held-back
+    /// feature, O(k³) per link and round on a map of k states; one delta per interval, with
+    /// the interval's budget, bounds that cost per second at the same bytes per second. The
+    /// driver sizes each round's budget for the interval (a budget is per delta).
+    #[serde(default)]
+    pub budget_interval: f64,
 }
 
 impl Default for DdfConfig {
@@ -64,6 +73,7 @@ impl Default for DdfConfig {
             submap_ack_timeout: default_submap_ack_timeout(),
             delta_precision: DeltaPrecision::F64,
             retired_epochs: 64,
+            budget_interval: 0.0,
         }
     }
 }

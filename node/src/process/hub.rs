@@ -26,6 +26,7 @@ use crate::world::World;
 pub fn run(c: &RoleCommon) -> Result<()> {
     let stop = stop_flag();
     let s = load_resolved(c)?;
+    canopy_fusion::runtime::set_heap_policy(s.run.heap);
     let me = s.fusion.hub_id;
     let world = World::new(&s.world, s.world.seed).context("building the world frame")?;
     let epoch = fresh_epoch();

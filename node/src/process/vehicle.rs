@@ -451,7 +451,7 @@ impl Vehicle<'_> {
         };
         let budgets = crate::radio::capacity_budgets(
             self.links.links.iter().map(|(&p, l)| (NodeId(p), l)),
-            self.s.fusion.rate_hz,
+            self.s.fusion.budget_rate_hz(),
         );
         self.fusion.submit(Job::Round {
             now,
@@ -658,6 +658,8 @@ impl Vehicle<'_> {
 pub fn run(c: &RoleCommon, id: WireId, incarnation: u32) -> Result<()> {
     let stop = stop_flag();
     let s = load_resolved(c)?;
+    // Before the fusion thread starts allocating the round's matrices.
+    canopy_fusion::runtime::set_heap_policy(s.run.heap);
     let cfg = s
         .vehicles
         .iter()
