@@ -74,9 +74,9 @@ pub enum HeapPolicy {
     Lean,
     /// Matrices up to [`WARM_MMAP_THRESHOLD`] (32 MiB) come from the arenas and stay there for
     /// the next round: the temporaries are reused warm. Measured on tree-8 with 128 kB/s radio
-    /// links (300 s, `canopy run`): system time 87 → 14 s, page faults ~40 M → 1.8 M, real-time
-    /// factor 0.92–0.97 → 1.21, largest vehicle RSS 236 → 317 MB (docs/benchmarks.md, twelfth
-    /// pass). Beyond ~660 features the k × k blocks exceed the threshold and are `mmap`ped
+    /// links (300 s, `canopy run`): system time 87 → 14–20 s, page faults ~40 M → 1.2–6.2 M,
+    /// real-time factor 0.92–0.97 → 1.11–1.21, largest vehicle RSS 241 → 324–408 MB
+    /// (docs/benchmarks.md, twelfth pass). Beyond ~660 features the k × k blocks exceed the threshold and are `mmap`ped
     /// as with `Lean`.
     Warm,
 }
