@@ -25,7 +25,8 @@
 //! - [`ci`]: covariance intersection for bandwidth-limited links (full and submap forms).
 //! - [`ddf`]: the channel-filter protocol as a sans-IO state machine (decentralized, central).
 //! - [`topology`]: fusion-network graphs and tree validation (channel filters need a tree).
-//! - [`runtime`]: process set-up for this maths (subnormals flushed to zero, heap kept mapped).
+//! - [`runtime`]: process set-up for this maths (subnormals flushed to zero, heap kept mapped; the
+//!   lean or warm heap policy, `[run] heap`).
 
 pub mod alignment;
 pub mod ci;
