@@ -76,8 +76,8 @@ pub enum HeapPolicy {
     /// the next round: the temporaries are reused warm. Measured on tree-8 with 128 kB/s radio
     /// links (300 s, `canopy run`): system time 87 → 14–20 s, page faults ~40 M → 1.2–6.2 M,
     /// real-time factor 0.92–0.97 → 1.11–1.21, largest vehicle RSS 241 → 324–408 MB
-    /// (docs/benchmarks.md, twelfth pass). Beyond ~660 features the k × k blocks exceed the threshold and are `mmap`ped
-    /// as with `Lean`.
+    /// (docs/benchmarks.md, twelfth pass). Beyond ~660 features the k × k blocks exceed the
+    /// threshold and are `mmap`ped as with `Lean`.
     Warm,
 }
 
@@ -127,13 +127,13 @@ pub fn set_heap_policy(policy: HeapPolicy) {
 /// O(k²)–O(k³) work on the block, and a freed block goes back to the kernel at once.
 /// No effect on other C libraries.
 pub fn tune_allocator() {
+    set_heap_policy(HeapPolicy::Lean);
     #[cfg(all(target_os = "linux", target_env = "gnu"))]
     {
         #[allow(unsafe_code)]
         // SAFETY: mallopt only sets allocator parameters; it is called before any thread of
         // this process allocates concurrently (first thing in the command dispatch).
         unsafe {
-            libc::mallopt(libc::M_MMAP_THRESHOLD, MMAP_THRESHOLD as libc::c_int);
             libc::mallopt(libc::M_TRIM_THRESHOLD, 1 << 30);
         }
     }

@@ -257,7 +257,11 @@ pub const HEADROOM_BYTES: f64 = 512.0;
 /// queue stays below a round's worth and the offered load never exceeds the capacity.
 /// 0 when the backlog eats the round (the round sends no submap).
 pub fn round_budget(bytes_per_s: f64, rate_hz: f64, queued_bytes: f64) -> usize {
-    let b = (1.0 - HEADROOM_FRACTION) * bytes_per_s / rate_hz - HEADROOM_BYTES - queued_bytes;
+    whole_bytes((1.0 - HEADROOM_FRACTION) * bytes_per_s / rate_hz - HEADROOM_BYTES - queued_bytes)
+}
+
+/// A byte budget from its real-valued bound: whole bytes, 0 when negative or not finite.
+fn whole_bytes(b: f64) -> usize {
     if b.is_finite() && b > 0.0 {
         b.floor() as usize
     } else {
@@ -275,12 +279,7 @@ pub fn queued_round_budget(
     queue_bytes: u64,
 ) -> usize {
     let room = (1.0 - HEADROOM_FRACTION) * queue_bytes as f64 - HEADROOM_BYTES - queued_bytes;
-    let room = if room.is_finite() && room > 0.0 {
-        room.floor() as usize
-    } else {
-        0
-    };
-    round_budget(bytes_per_s, rate_hz, queued_bytes).min(room)
+    round_budget(bytes_per_s, rate_hz, queued_bytes).min(whole_bytes(room))
 }
 
 /// The submap budgets of the next round on a node's capacity-limited (radio) links, from each
