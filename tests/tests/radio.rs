@@ -271,7 +271,7 @@ fn radio_range_links_follow_the_separation() {
 /// docs/arch/association.md) and the sparsified links' introduction rule
 /// (`channel::MAX_INTRODUCED_SIGMA_M`, docs/arch/ddf.md) gave 4 such runs of 40 (uav1's map RMSE
 /// 35–138 m, pose ANEES up to 4.73); the build with both, 0 of 80 `canopy run`s (uav1's pose
-/// ANEES 1.62–1.77, map RMSE ≤ 10 m) and 100 of 100 runs of this test (40 of them beside a
+/// ANEES 1.60–1.77, map RMSE 2.7–11.7 m) and 100 of 100 runs of this test (40 of them beside a
 /// `canopy sim` loading the second core). Three of the four old failures had a wrong merge
 /// (none in the 80 new runs), the fourth 42 fusion rounds of uav1 refused for an invalid
 /// estimate (one new run had 33 such refusals, and uav1's map RMSE was 6.3 m).
