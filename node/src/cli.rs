@@ -395,6 +395,9 @@ fn cmd_run(args: &LaunchArgs) -> Result<()> {
     if let Some(r) = outcome.checks.max_confidence_ratio {
         println!("largest confidence ratio vs the centralized reference: {r:.3} (≤ 1 ideal)");
     }
+    if let Some(line) = crate::process::monitor::sparsified_health(&outcome.checks.link_ends) {
+        println!("{line}");
+    }
     for p in &outcome.checks.processes {
         if !p.clean_exit() && !p.killed_by_monitor {
             println!(

@@ -2142,9 +2142,106 @@ fn truth_sample(world: &World, r: &TruthReport) -> TruthSample {
     }
 }
 
+/// One line on the sparsified (capacity-limited) links of a run, for the text summary: how many
+/// deltas went out as conservative marginals, how many rounds sent nothing (their delta stayed
+/// pending, `canopy_fusion::sparse::SparsifyError`), how many had their vector gated, and the
+/// link end worst at each. `None` when no link end sparsified anything.
+///
+/// Why a user needs it: a sparsified link that keeps refusing or gating its rounds holds its
+/// information back for good — the run still ends cleanly, but the far vehicles' maps lag
+/// (docs/benchmarks.md, fourteenth pass: tree-8-radio with a two-second interval, 71 of 133
+/// rounds refused on uav3→uav7, and uav7 and uav8 ending with 439 and 432 of ~600 features).
+pub fn sparsified_health(link_ends: &[LinkEndCheck]) -> Option<String> {
+    let sparse: u64 = link_ends
+        .iter()
+        .map(|e| e.report.channel.sparse_deltas)
+        .sum();
+    let refused: u64 = link_ends
+        .iter()
+        .map(|e| e.report.channel.sparse_refused)
+        .sum();
+    if sparse == 0 && refused == 0 {
+        return None;
+    }
+    let gated: u64 = link_ends
+        .iter()
+        .map(|e| e.report.channel.sparse_vector_dropped)
+        .sum();
+    let worst = |count: &dyn Fn(&LinkEndCheck) -> u64| -> String {
+        link_ends
+            .iter()
+            .filter(|e| count(e) > 0)
+            .max_by_key(|e| count(e))
+            .map_or(String::new(), |e| {
+                let c = &e.report.channel;
+                format!(
+                    " (most: {}→{}, {} of {})",
+                    e.node,
+                    e.peer,
+                    count(e),
+                    c.sparse_deltas + c.sparse_refused
+                )
+            })
+    };
+    let refused_worst = worst(&|e| e.report.channel.sparse_refused);
+    let gated_worst = worst(&|e| e.report.channel.sparse_vector_dropped);
+    Some(format!(
+        "sparsified links: {sparse} marginal deltas sent; {refused} rounds refused{refused_worst}; \
+         {gated} vectors gated{gated_worst}"
+    ))
+}
+
 /// Writes `checks.json` into `dir`.
 pub fn write_checks(checks: &RunChecks, dir: &Path) -> Result<()> {
     let p = dir.join("checks.json");
     let text = serde_json::to_string_pretty(checks).context("serialising checks.json")?;
     std::fs::write(&p, text).with_context(|| format!("writing {}", p.display()))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn end(node: &str, peer: &str, sparse: u64, refused: u64, gated: u64) -> LinkEndCheck {
+        let mut report = LinkReport::default();
+        report.channel.sparse_deltas = sparse;
+        report.channel.sparse_refused = refused;
+        report.channel.sparse_vector_dropped = gated;
+        LinkEndCheck {
+            node: node.into(),
+            peer: peer.into(),
+            incarnation: 0,
+            report,
+        }
+    }
+
+    /// The line adds every end's counters and names the end with the most refused rounds and
+    /// the most gated vectors, each out of that end's sparsified rounds (sent + refused).
+    #[test]
+    fn sparsified_health_totals_and_names_the_worst_end() {
+        let ends = [
+            end("uav3", "uav7", 79, 54, 17),
+            end("uav4", "uav3", 103, 0, 3),
+            end("uav2", "uav3", 102, 25, 0),
+        ];
+        assert_eq!(
+            sparsified_health(&ends).as_deref(),
+            Some(
+                "sparsified links: 284 marginal deltas sent; 79 rounds refused \
+                 (most: uav3→uav7, 54 of 133); 20 vectors gated (most: uav3→uav7, 17 of 133)"
+            )
+        );
+    }
+
+    /// Exact links (nothing sparsified) print nothing; a clean sparsified run prints zeros
+    /// without a "most".
+    #[test]
+    fn sparsified_health_is_silent_on_exact_links() {
+        assert_eq!(sparsified_health(&[end("a", "b", 0, 0, 0)]), None);
+        assert_eq!(sparsified_health(&[]), None);
+        assert_eq!(
+            sparsified_health(&[end("a", "b", 5, 0, 0)]).as_deref(),
+            Some("sparsified links: 5 marginal deltas sent; 0 rounds refused; 0 vectors gated")
+        );
+    }
 }
