@@ -284,6 +284,15 @@ fn cmd_sim(args: &RunArgs) -> Result<()> {
         "{}",
         table(&[(s.run.name.as_deref().unwrap_or("run"), &summary)])
     );
+    let ends: Vec<_> = outcome
+        .checks
+        .link_ends
+        .iter()
+        .map(|(node, peer, c)| (node.as_str(), peer.as_str(), c))
+        .collect();
+    if let Some(line) = crate::process::monitor::sparsified_health(&ends) {
+        println!("{line}");
+    }
     println!("outputs in {}", out.display());
     Ok(())
 }
@@ -395,7 +404,7 @@ fn cmd_run(args: &LaunchArgs) -> Result<()> {
     if let Some(r) = outcome.checks.max_confidence_ratio {
         println!("largest confidence ratio vs the centralized reference: {r:.3} (≤ 1 ideal)");
     }
-    if let Some(line) = crate::process::monitor::sparsified_health(&outcome.checks.link_ends) {
+    if let Some(line) = crate::process::monitor::sparsified_health_of(&outcome.checks.link_ends) {
         println!("{line}");
     }
     for p in &outcome.checks.processes {

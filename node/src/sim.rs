@@ -101,6 +101,8 @@ pub struct SimChecks {
     pub rejected_messages: BTreeMap<String, u64>,
     /// Received deltas the estimators refused, all vehicles.
     pub fuse_refused: u64,
+    /// Every vehicle's DDF channels at the end: (vehicle name, neighbour name, counters).
+    pub link_ends: Vec<(String, String, canopy_fusion::ddf::ChannelStats)>,
     /// Frames or IMU samples the estimators rejected, all vehicles.
     pub inputs_rejected: u64,
 }
@@ -948,6 +950,17 @@ pub fn simulate(s: &Scenario, mut opts: SimOptions<'_>) -> Result<SimOutcome, Si
                 .rejected_messages
                 .insert(node.name.clone(), c.fusion.messages_rejected);
             sim.checks.fuse_refused += c.fusion.fuse_refused;
+            if let Some(d) = a.ddf() {
+                for ch in d.channels() {
+                    let peer = names
+                        .get(&ch.peer.0)
+                        .cloned()
+                        .unwrap_or_else(|| ch.peer.to_string());
+                    sim.checks
+                        .link_ends
+                        .push((node.name.clone(), peer, ch.stats));
+                }
+            }
         }
         fill_record(&truth, cfg.id, &mut sim.records[i], end);
     }

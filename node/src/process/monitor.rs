@@ -26,6 +26,7 @@ use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result};
+use canopy_fusion::ddf::ChannelStats;
 use canopy_fusion::frames::Frame4;
 use canopy_fusion::ins::{VehicleCovariance, VehicleState, VehicleVector};
 use canopy_fusion::sensor::FeatureId;
@@ -2145,50 +2146,47 @@ fn truth_sample(world: &World, r: &TruthReport) -> TruthSample {
 /// One line on the sparsified (capacity-limited) links of a run, for the text summary: how many
 /// deltas went out as conservative marginals, how many rounds sent nothing (their delta stayed
 /// pending, `canopy_fusion::sparse::SparsifyError`), how many had their vector gated, and the
-/// link end worst at each. `None` when no link end sparsified anything.
+/// link end worst at each. `ends` holds (this end's name, the peer's name, its channel's
+/// counters). `None` when no link end sparsified anything.
 ///
 /// Why a user needs it: a sparsified link that keeps refusing or gating its rounds holds its
 /// information back for good — the run still ends cleanly, but the far vehicles' maps lag
 /// (docs/benchmarks.md, fourteenth pass: tree-8-radio with a two-second interval, 71 of 133
 /// rounds refused on uav3→uav7, and uav7 and uav8 ending with 439 and 432 of ~600 features).
-pub fn sparsified_health(link_ends: &[LinkEndCheck]) -> Option<String> {
-    let sparse: u64 = link_ends
-        .iter()
-        .map(|e| e.report.channel.sparse_deltas)
-        .sum();
-    let refused: u64 = link_ends
-        .iter()
-        .map(|e| e.report.channel.sparse_refused)
-        .sum();
+pub fn sparsified_health(ends: &[(&str, &str, &ChannelStats)]) -> Option<String> {
+    let sparse: u64 = ends.iter().map(|e| e.2.sparse_deltas).sum();
+    let refused: u64 = ends.iter().map(|e| e.2.sparse_refused).sum();
     if sparse == 0 && refused == 0 {
         return None;
     }
-    let gated: u64 = link_ends
-        .iter()
-        .map(|e| e.report.channel.sparse_vector_dropped)
-        .sum();
-    let worst = |count: &dyn Fn(&LinkEndCheck) -> u64| -> String {
-        link_ends
-            .iter()
-            .filter(|e| count(e) > 0)
-            .max_by_key(|e| count(e))
-            .map_or(String::new(), |e| {
-                let c = &e.report.channel;
+    let gated: u64 = ends.iter().map(|e| e.2.sparse_vector_dropped).sum();
+    let worst = |count: fn(&ChannelStats) -> u64| -> String {
+        ends.iter()
+            .filter(|e| count(e.2) > 0)
+            .max_by_key(|e| count(e.2))
+            .map_or(String::new(), |(node, peer, c)| {
                 format!(
-                    " (most: {}→{}, {} of {})",
-                    e.node,
-                    e.peer,
-                    count(e),
+                    " (most: {node}→{peer}, {} of {})",
+                    count(c),
                     c.sparse_deltas + c.sparse_refused
                 )
             })
     };
-    let refused_worst = worst(&|e| e.report.channel.sparse_refused);
-    let gated_worst = worst(&|e| e.report.channel.sparse_vector_dropped);
+    let refused_worst = worst(|c| c.sparse_refused);
+    let gated_worst = worst(|c| c.sparse_vector_dropped);
     Some(format!(
         "sparsified links: {sparse} marginal deltas sent; {refused} rounds refused{refused_worst}; \
          {gated} vectors gated{gated_worst}"
     ))
+}
+
+/// [`sparsified_health`] of a multi-process run's link ends (`checks.json`).
+pub fn sparsified_health_of(link_ends: &[LinkEndCheck]) -> Option<String> {
+    let ends: Vec<(&str, &str, &ChannelStats)> = link_ends
+        .iter()
+        .map(|e| (e.node.as_str(), e.peer.as_str(), &e.report.channel))
+        .collect();
+    sparsified_health(&ends)
 }
 
 /// Writes `checks.json` into `dir`.
@@ -2215,6 +2213,10 @@ mod tests {
         }
     }
 
+    fn health(ends: &[LinkEndCheck]) -> Option<String> {
+        sparsified_health_of(ends)
+    }
+
     /// The line adds every end's counters and names the end with the most refused rounds and
     /// the most gated vectors, each out of that end's sparsified rounds (sent + refused).
     #[test]
@@ -2225,7 +2227,7 @@ mod tests {
             end("uav2", "uav3", 102, 25, 0),
         ];
         assert_eq!(
-            sparsified_health(&ends).as_deref(),
+            health(&ends).as_deref(),
             Some(
                 "sparsified links: 284 marginal deltas sent; 79 rounds refused \
                  (most: uav3→uav7, 54 of 133); 20 vectors gated (most: uav3→uav7, 17 of 133)"
@@ -2237,10 +2239,10 @@ mod tests {
     /// without a "most".
     #[test]
     fn sparsified_health_is_silent_on_exact_links() {
-        assert_eq!(sparsified_health(&[end("a", "b", 0, 0, 0)]), None);
-        assert_eq!(sparsified_health(&[]), None);
+        assert_eq!(health(&[end("a", "b", 0, 0, 0)]), None);
+        assert_eq!(health(&[]), None);
         assert_eq!(
-            sparsified_health(&[end("a", "b", 5, 0, 0)]).as_deref(),
+            health(&[end("a", "b", 5, 0, 0)]).as_deref(),
             Some("sparsified links: 5 marginal deltas sent; 0 rounds refused; 0 vectors gated")
         );
     }
