@@ -2213,10 +2213,6 @@ mod tests {
         }
     }
 
-    fn health(ends: &[LinkEndCheck]) -> Option<String> {
-        sparsified_health_of(ends)
-    }
-
     /// The line adds every end's counters and names the end with the most refused rounds and
     /// the most gated vectors, each out of that end's sparsified rounds (sent + refused).
     #[test]
@@ -2227,7 +2223,7 @@ mod tests {
             end("uav2", "uav3", 102, 25, 0),
         ];
         assert_eq!(
-            health(&ends).as_deref(),
+            sparsified_health_of(&ends).as_deref(),
             Some(
                 "sparsified links: 284 marginal deltas sent; 79 rounds refused \
                  (most: uav3→uav7, 54 of 133); 20 vectors gated (most: uav3→uav7, 17 of 133)"
@@ -2239,10 +2235,10 @@ mod tests {
     /// without a "most".
     #[test]
     fn sparsified_health_is_silent_on_exact_links() {
-        assert_eq!(health(&[end("a", "b", 0, 0, 0)]), None);
-        assert_eq!(health(&[]), None);
+        assert_eq!(sparsified_health_of(&[end("a", "b", 0, 0, 0)]), None);
+        assert_eq!(sparsified_health_of(&[]), None);
         assert_eq!(
-            health(&[end("a", "b", 5, 0, 0)]).as_deref(),
+            sparsified_health_of(&[end("a", "b", 5, 0, 0)]).as_deref(),
             Some("sparsified links: 5 marginal deltas sent; 0 rounds refused; 0 vectors gated")
         );
     }
