@@ -49,8 +49,10 @@
 //! [`crate::ddf::ChannelView::sparse_shift`] adds them up per
 //! link, and `fusion/tests/ddf_sparse.rs` asserts the bound run by run).
 //!
-//! A D_RR that is not positive definite at [`MAX_REGULARISATION_REL`] (indefinite beyond
-//! round-off: relinearisation or a removed feature made Y_i − C indefinite) is refused
+//! A D_RR that is not positive definite at [`MAX_REGULARISATION_REL`] of its own scale, nor at
+//! [`OPERAND_REGULARISATION_REL`] of Y_i's (Y_i − C is a cancellation of Y_i's size; with
+//! little pending, D_RR is far smaller than Y_i), is indefinite beyond what regularisation
+//! may absorb (relinearisation or a removed feature made Y_i − C indefinite) and is refused
 //! ([`SparsifyError::Indefinite`], naming the feature of the failing pivot): no D' supported on
 //! S alone can be ⪯ D then (take x = (0, v), v a negative direction of D_RR), and the Schur
 //! complement is no marginalisation. The channel first retries with that feature moved into S
@@ -113,6 +115,35 @@ pub const REGULARISATION_FLOOR_REL: f64 = 1e-9;
 /// both ends booked it); that case is refused by [`MAX_NEGATIVE_REL`]. Over 300 rounds the
 /// bound Σ δ stays below 3e-5 of the largest held-back diagonal.
 pub const MAX_REGULARISATION_REL: f64 = 1e-7;
+
+/// Largest regularisation searched relative to the *operand scale* of the delta (the largest
+/// entry of the information Y_i it was formed from, D = Y_i − C_ik; [`schur_marginal_about`]):
+/// the search stops at the larger of this · scale and [`MAX_REGULARISATION_REL`] · max diag
+/// D_RR (the cap itself tried last).
+///
+/// Why relative to Y_i: D = Y_i − C_ik is a difference of matrices of Y_i's size, and what
+/// makes it indefinite (the estimator's round-off in Y_i, an estimator whose map information
+/// after fusing is not exactly Y + D': module docs) is of Y_i's size too. When little is
+/// pending on the held-back features, max diag D_RR is far below Y_i's entries, and a cap
+/// relative to D_RR alone refuses round after round: the whole delta stays pending and the
+/// link stalls.
+///
+/// Why 1e-6: measured on `topologies/tree-8-radio.toml` with `radio_interval_s = 2` and
+/// `heap = "lean"` as real processes (300 s, 2026-12-07). With the cap relative to D_RR alone,
+/// 188 and 291 of ~1 900 sparsified rounds were refused (up to 119 of 132 at one link end),
+/// 88–334 vectors gated, team map RMSE 1.56 m, two vehicles ending 1.8–2.9 m off. At the
+/// refusals max diag D_RR was 0.7–25 against Y_i's largest entry of 150–190, and λ_min(D_RR)
+/// between −1e-7 and −6e-7 of that entry (897 failed factorisations in one run, persisting
+/// over tens of rounds), with ~150 of D_RR's ~400 eigenvalues at ±1e-8 (features with nothing
+/// pending). Capped at 1e-7 of Y_i: 99 and 170 refused; at 1e-6: 1, 7 and 12 in three runs,
+/// none for an indefinite D_RR (marginals too negative), team map RMSE 0.89–1.37 m (the
+/// vector gate, not this cap, limits that interval: docs/benchmarks.md, fifteenth pass). On
+/// radio-32k (`canopy sim`, seed 1, 300 s) nothing reaches the old cap and the run is the same
+/// to the last digit. The claim it allows, δ ≤ 1e-5 · scale in a round with the margin step
+/// (1.5e-3 m⁻² at scale 150, the information of a 26 m standard deviation), is booked like any
+/// δ and bounded by Σ δ ([`crate::ddf::ChannelView::sparse_shift`]); rounds that escalate at
+/// all are ~2 % (36 of 1 739 in that run).
+pub const OPERAND_REGULARISATION_REL: f64 = 1e-6;
 
 /// Largest information removal accepted from a marginal: λ_min(D') ≥ −`MAX_NEGATIVE_REL` ·
 /// λ_max(D_SS), else refused.
@@ -272,7 +303,7 @@ pub fn schur_marginal(
     delta: &MapInformation,
     keep: &[FeatureId],
 ) -> Result<Marginal, SparsifyError> {
-    marginal(delta, keep, &HashMap::new(), false)
+    marginal(delta, keep, &HashMap::new(), false, 0.0)
 }
 
 /// [`schur_marginal`] evaluated about a reference map `about` (feature positions relative to
@@ -286,12 +317,17 @@ pub fn schur_marginal(
 /// About a reference the marginal's vector is also *gated* against its information (module
 /// docs, "The marginal's vector"; [`VECTOR_GATE_PROBABILITY`], [`Marginal::vector_dropped`]);
 /// [`schur_marginal`] (no reference: d̃ = d carries D x itself) does not gate.
+///
+/// `operand_scale` is the size of what the delta was formed from (the largest entry of the
+/// sender's Y_i, D = Y_i − C_ik; 0 for none): the regularisation is searched up to
+/// [`OPERAND_REGULARISATION_REL`] of it when that exceeds the cap relative to D_RR.
 pub fn schur_marginal_about(
     delta: &MapInformation,
     keep: &[FeatureId],
     about: &HashMap<FeatureId, Vector3<f64>>,
+    operand_scale: f64,
 ) -> Result<Marginal, SparsifyError> {
-    marginal(delta, keep, about, true)
+    marginal(delta, keep, about, true, operand_scale)
 }
 
 fn marginal(
@@ -299,6 +335,7 @@ fn marginal(
     keep: &[FeatureId],
     about: &HashMap<FeatureId, Vector3<f64>>,
     gate: bool,
+    operand_scale: f64,
 ) -> Result<Marginal, SparsifyError> {
     let xbar = Col::from_fn(delta.vector.nrows(), |r| {
         about
@@ -348,6 +385,15 @@ fn marginal(
     if nr > 0 {
         let max_diag = rr.iter().map(|&r| m[(r, r)].abs()).fold(0.0_f64, f64::max);
         regularisation = REGULARISATION_FLOOR_REL * max_diag;
+        // Searched up to D_RR's own scale or the round-off of the operands D was formed from,
+        // whichever is larger ([`OPERAND_REGULARISATION_REL`]).
+        let operand_scale = if operand_scale.is_finite() {
+            operand_scale.abs()
+        } else {
+            0.0
+        };
+        let cap =
+            (MAX_REGULARISATION_REL * max_diag).max(OPERAND_REGULARISATION_REL * operand_scale);
         let mut margin = false;
         // L Lᵀ = D_RR + δI, gathered and factored in one nr × nr buffer (the largest of the
         // marginal: 26 MB at 600 held-back features); a retry gathers it again.
@@ -368,17 +414,16 @@ fn marginal(
                     let feature = r_blocks
                         .get(index.min(nr.saturating_sub(1)) / FEATURE_DIM)
                         .map(|&k| delta.ids[k]);
-                    regularisation *= REGULARISATION_STEP;
                     escalated = true;
-                    // `!(≤)` also refuses a zero or NaN max diag.
-                    if !(regularisation > 0.0
-                        && regularisation <= MAX_REGULARISATION_REL * max_diag * (1.0 + 1e-9))
-                    {
+                    // Tenfold up to the cap, the cap itself tried last. `!(<)` also refuses a
+                    // zero or NaN max diag.
+                    if !(regularisation > 0.0 && regularisation < cap) {
                         return Err(SparsifyError::Indefinite {
                             max_rel: MAX_REGULARISATION_REL,
                             feature,
                         });
                     }
+                    regularisation = (regularisation * REGULARISATION_STEP).min(cap);
                 }
             }
         };
@@ -835,8 +880,8 @@ mod tests {
                 vector,
             };
             let keep = [2, 5];
-            let got = schur_marginal_about(&delta, &keep, &about).expect("marginal");
-            let plain = marginal(&delta, &keep, &about, false).expect("marginal");
+            let got = schur_marginal_about(&delta, &keep, &about, 0.0).expect("marginal");
+            let plain = marginal(&delta, &keep, &about, false, 0.0).expect("marginal");
             assert!(!got.vector_dropped, "trial {trial}: χ² {}", got.vector_chi2);
             assert_eq!(got.info.vector, plain.info.vector, "trial {trial}");
         }
@@ -891,8 +936,8 @@ mod tests {
             vector,
         };
         let keep = [5, 6];
-        let got = schur_marginal_about(&delta, &keep, &about).expect("marginal");
-        let plain = marginal(&delta, &keep, &about, false).expect("marginal");
+        let got = schur_marginal_about(&delta, &keep, &about, 0.0).expect("marginal");
+        let plain = marginal(&delta, &keep, &about, false, 0.0).expect("marginal");
         assert!(got.vector_dropped, "χ² {}", got.vector_chi2);
         assert!(!plain.vector_dropped);
         // d̃_S = 0 and x̄ = 0 here, so d'_S is minus the term.
@@ -950,6 +995,74 @@ mod tests {
         let delta = info(&[1, 2], d, &mut rng);
         assert!(matches!(
             schur_marginal(&delta, &[1]),
+            Err(SparsifyError::Indefinite { .. })
+        ));
+    }
+
+    /// A residual block that is only the round-off of the information it was formed from
+    /// (D_RR of 1e-8 with λ_min −1e-8, what Y_i − C_ik leaves on features with nothing pending
+    /// when Y_i's entries are ~150) is regularised at the operands' scale and the marginal is
+    /// the S block, to the coupling's size; with the cap relative to D_RR alone (operand scale
+    /// 0) the round is refused, as in the tree-8 radio runs before `OPERAND_REGULARISATION_REL`;
+    /// negativity beyond that cap is refused at the operands' scale too.
+    #[test]
+    fn round_off_residual_is_regularised_at_the_operands_scale() {
+        let mut rng = ChaCha8Rng::seed_from_u64(11);
+        let a = random_psd(3, 3, &mut rng);
+        let coupling = 1e-9;
+        // D_RR: eigenvalues −1e-8, 5e-9, 1e-8 along a random basis (round-off, indefinite).
+        let (q, _) = {
+            let g = Mat::from_fn(6, 6, |_, _| rng.random_range(-1.0..1.0));
+            let qr = g.qr();
+            (qr.compute_Q(), ())
+        };
+        let eig = [-1e-8, 5e-9, 1e-8, 2e-9, -3e-9, 8e-9];
+        let e = Mat::from_fn(6, 6, |i, j| {
+            (0..6).map(|k| q[(i, k)] * eig[k] * q[(j, k)]).sum::<f64>()
+        });
+        let mut d = Mat::zeros(9, 9);
+        for i in 0..9 {
+            for j in 0..9 {
+                d[(i, j)] = match (i < 3, j < 3) {
+                    (true, true) => a[(i, j)],
+                    (false, false) => e[(i - 3, j - 3)],
+                    _ => coupling,
+                };
+            }
+        }
+        let delta = info(&[1, 2, 3], d, &mut rng);
+        let about = HashMap::new();
+        assert!(matches!(
+            schur_marginal_about(&delta, &[1], &about, 0.0),
+            Err(SparsifyError::Indefinite { .. })
+        ));
+        let scale = 150.0;
+        let got = schur_marginal_about(&delta, &[1], &about, scale).expect("regularised");
+        let delta_used = got.shift.delta;
+        // Within the cap (one margin step above it at most: `MAX_REGULARISATION_REL` docs).
+        assert!(
+            delta_used > 1e-8 && delta_used <= 10.0 * OPERAND_REGULARISATION_REL * scale,
+            "δ {delta_used:e}"
+        );
+        // D' = A − D_SR (D_RR + δI)⁻¹ D_RS: |D_SR|² ‖(D_RR + δI)⁻¹‖ ≤ (6 · 1e-9)² / (0.9 δ) per
+        // entry (λ_min(D_RR + δI) ≥ 0.9 δ after the margin step).
+        let bound = (6.0 * coupling).powi(2) / (0.9 * delta_used);
+        for i in 0..3 {
+            for j in 0..3 {
+                let err = (got.info.matrix[(i, j)] - a[(i, j)]).abs();
+                assert!(err <= bound, "({i}, {j}): {err:e} > {bound:e}");
+            }
+        }
+        // Negativity beyond the cap (1e-6 · 150 = 1.5e-4 against λ_min −1e-3) is refused
+        // at the operands' scale too.
+        let mut deep = delta.clone();
+        for i in 3..9 {
+            for j in 3..9 {
+                deep.matrix[(i, j)] = e[(i - 3, j - 3)] * 1e5;
+            }
+        }
+        assert!(matches!(
+            schur_marginal_about(&deep, &[1], &about, scale),
             Err(SparsifyError::Indefinite { .. })
         ));
     }

@@ -1175,7 +1175,7 @@ impl Channel {
                     self.switch_to_ci(ctx.origin);
                     return Ok(());
                 }
-                match self.sparsify(&d, b, lazy.source(), ctx) {
+                match self.sparsify(&d, b, y_max, lazy.source(), ctx) {
                     Some((d, shift)) => {
                         // Booked: D' − pad_R(δ I) (module `sparse`, "Booking"): the residual
                         // left in Y_i − C_ik is the exact Schur residual, positive
@@ -1215,13 +1215,15 @@ impl Channel {
         Ok(())
     }
 
-    /// The marginal of `d` on the features that fit `budget` (module [`crate::sparse`]);
+    /// The marginal of `d` on the features that fit `budget` (module [`crate::sparse`]),
+    /// regularised no finer than the round-off of Y_i (`y_max`, its largest entry);
     /// `None` (counted) when not even one feature fits or the residual block is refused.
     /// Booked like any delta by the caller: the residual d − d' stays in Y_i − C_ik.
     fn sparsify(
         &mut self,
         d: &MapInformation,
         budget: usize,
+        y_max: f64,
         source: &dyn MapSource,
         ctx: &NodeCtx<'_>,
     ) -> Option<(MapInformation, sparse::Shift)> {
@@ -1250,7 +1252,7 @@ impl Channel {
                 self.stats.budget_starved += 1;
                 return None;
             }
-            let m = match sparse::schur_marginal_about(d, &keep, &about) {
+            let m = match sparse::schur_marginal_about(d, &keep, &about, y_max) {
                 Ok(m) => m,
                 Err(sparse::SparsifyError::Indefinite {
                     feature: Some(f), ..
