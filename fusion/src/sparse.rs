@@ -167,17 +167,19 @@ pub const MAX_NEGATIVE_REL: f64 = 1e-3;
 /// receiver's map and pose were moved 5–60 m per round (`radio_32k`, issue 13).
 pub const VECTOR_GATE_PROBABILITY: f64 = 1.0 - 1e-6;
 
-/// Factor between successive regularisation attempts (floor, 1e-8, …, 1e-2).
+/// Factor between successive regularisation attempts (the floor, tenfold, up to the cap).
 const REGULARISATION_STEP: f64 = 10.0;
 
 /// Why a delta could not be sparsified (the round sends nothing on that link; counted).
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum SparsifyError {
     /// D_RR + δI was not positive definite even with the largest δ accepted.
-    #[error("residual block not positive definite up to regularisation {max_rel} × max diag")]
+    #[error("residual block not positive definite up to regularisation δ = {max_delta:.3e}")]
     Indefinite {
-        /// [`MAX_REGULARISATION_REL`].
-        max_rel: f64,
+        /// The largest δ tried: [`MAX_REGULARISATION_REL`] · max diag D_RR or
+        /// [`OPERAND_REGULARISATION_REL`] · the operand scale, whichever is larger (0 when
+        /// D_RR's diagonal is zero).
+        max_delta: f64,
         /// The held-back feature of the first non-positive pivot (moving it into S is the
         /// caller's next attempt).
         feature: Option<FeatureId>,
@@ -385,8 +387,8 @@ fn marginal(
     if nr > 0 {
         let max_diag = rr.iter().map(|&r| m[(r, r)].abs()).fold(0.0_f64, f64::max);
         regularisation = REGULARISATION_FLOOR_REL * max_diag;
-        // Searched up to D_RR's own scale or the round-off of the operands D was formed from,
-        // whichever is larger ([`OPERAND_REGULARISATION_REL`]).
+        // Searched up to a cap relative to D_RR's own scale or to the operands D was formed
+        // from, whichever is larger ([`OPERAND_REGULARISATION_REL`]).
         let operand_scale = if operand_scale.is_finite() {
             operand_scale.abs()
         } else {
@@ -419,7 +421,7 @@ fn marginal(
                     // zero or NaN max diag.
                     if !(regularisation > 0.0 && regularisation < cap) {
                         return Err(SparsifyError::Indefinite {
-                            max_rel: MAX_REGULARISATION_REL,
+                            max_delta: regularisation,
                             feature,
                         });
                     }
@@ -1010,12 +1012,11 @@ mod tests {
         let mut rng = ChaCha8Rng::seed_from_u64(11);
         let a = random_psd(3, 3, &mut rng);
         let coupling = 1e-9;
-        // D_RR: eigenvalues −1e-8, 5e-9, 1e-8 along a random basis (round-off, indefinite).
-        let (q, _) = {
-            let g = Mat::from_fn(6, 6, |_, _| rng.random_range(-1.0..1.0));
-            let qr = g.qr();
-            (qr.compute_Q(), ())
-        };
+        // D_RR: eigenvalues from −1e-8 to 1e-8 along a random orthonormal basis (round-off,
+        // indefinite).
+        let q = Mat::from_fn(6, 6, |_, _| rng.random_range(-1.0..1.0))
+            .qr()
+            .compute_Q();
         let eig = [-1e-8, 5e-9, 1e-8, 2e-9, -3e-9, 8e-9];
         let e = Mat::from_fn(6, 6, |i, j| {
             (0..6).map(|k| q[(i, k)] * eig[k] * q[(j, k)]).sum::<f64>()

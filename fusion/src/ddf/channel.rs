@@ -1215,8 +1215,8 @@ impl Channel {
         Ok(())
     }
 
-    /// The marginal of `d` on the features that fit `budget` (module [`crate::sparse`]),
-    /// regularised no finer than the round-off of Y_i (`y_max`, its largest entry);
+    /// The marginal of `d` on the features that fit `budget` (module [`crate::sparse`]), its
+    /// regularisation searched up to a cap that scales with Y_i (`y_max`, its largest entry);
     /// `None` (counted) when not even one feature fits or the residual block is refused.
     /// Booked like any delta by the caller: the residual d − d' stays in Y_i − C_ik.
     fn sparsify(
