@@ -79,6 +79,26 @@
 //! d', so what was not sent stays in the residual; the information matrix — what
 //! conservativeness is about — is untouched. For linear-Gaussian data the gate changes one delta
 //! in 10⁶ (none of the Monte Carlo's 180 000).
+//!
+//! Re-centring. For an EKF sender y_i = Y_i x̄, so d̃ = d − D x̄ = C x̄ − c exactly: the pull of
+//! the common information towards where the sender now is. For linear-Gaussian data that pull
+//! is what new data did to the estimate, and e carries it consistently; for an EKF it also
+//! holds the drift of vectors booked about older estimates. What the gate removes is that
+//! drift, and booked as sent only as far as it went on the wire it stayed pending: the next
+//! marginal found it again (through D_SR (D_RR + δI)⁻¹ d̃_R, whatever S was), and a link could
+//! gate round after round for minutes (801 of 1 733 marginals in one multi-process run of
+//! tree-8-radio with a two-second interval; `fusion/tests/ddf_sparse.rs`,
+//! `a_gated_drift_is_recentred_not_retried`: 30 of 30 rounds). So when the gate keeps
+//! removing (`crate::ddf`'s channel, `RECENTRE_AFTER_GATED` consecutive marginals), the
+//! sender also books [`Marginal::recentre`] = d̃ − pad_S(e) (e as sent) as sent:
+//! its books' vector is re-centred on its estimate, and what stays pending is (D − D') x̄ plus
+//! the shifts — a pull towards x̄ with exactly the information still pending (its e is 0 until
+//! the estimate moves again). The peer never receives the re-centring: it is recorded beside the
+//! shifts ([`crate::ddf`]'s channel, `booked_shift`), so a Cumulative carries what went on
+//! the wire. Only vectors move; the information booked and the argument for conservativeness
+//! are untouched. The price is the pull through C of data not yet delivered on such a round:
+//! the peer's means of the common features then move only with the information sent later —
+//! why an isolated gate does not re-centre (the channel's constant says what it cost).
 
 use crate::info::MapInformation;
 use crate::sensor::FeatureId;
@@ -227,6 +247,11 @@ pub struct Marginal {
     pub vector_chi2: f64,
     /// Some component of e failed its gate ([`VECTOR_GATE_PROBABILITY`]) and was removed.
     pub vector_dropped: bool,
+    /// When the gate removed something ([`Marginal::vector_dropped`]): d̃ − pad_S(e) per
+    /// feature of the delta (e the vector sent, after the gate), the stale part of the books'
+    /// vector that the sender books as sent beside the marginal (module docs, "Re-centring");
+    /// empty otherwise.
+    pub recentre: Vec<(FeatureId, Vector3<f64>)>,
 }
 
 /// How many features' dense delta fits `budget` bytes
@@ -382,6 +407,7 @@ fn marginal(
     let mut regularisation = 0.0;
     let mut escalated = false;
     let (mut vector_chi2, mut vector_dropped) = (0.0, false);
+    let mut recentre = Vec::new();
     // λ_min(D'), when the gate already decomposed D' (the negativity check below reuses it).
     let mut marginal_min = None;
     if nr > 0 {
@@ -457,6 +483,20 @@ fn marginal(
             let g = gate_vector(&d_ss, &mut d_s)?;
             (vector_chi2, vector_dropped) = (g.chi2, g.removed > 0);
             marginal_min = Some(g.lambda_min);
+            if vector_dropped {
+                // d̃ − pad_S(e): what would stay pending beyond (D − D') x̄ once this marginal
+                // is booked (module docs, "Re-centring").
+                recentre = (0..delta.ids.len())
+                    .map(|k| {
+                        let b = FEATURE_DIM * k;
+                        (delta.ids[k], Vector3::from_fn(|a, _| shifted[b + a]))
+                    })
+                    .collect();
+                for (q, &k) in s_blocks.iter().enumerate() {
+                    let b = FEATURE_DIM * q;
+                    recentre[k].1 -= Vector3::from_fn(|a, _| d_s[b + a]);
+                }
+            }
         }
     }
     // Back from d̃: d'_S += D' x̄_S.
@@ -508,6 +548,7 @@ fn marginal(
         held_back: r_blocks.len(),
         vector_chi2,
         vector_dropped,
+        recentre,
     })
 }
 

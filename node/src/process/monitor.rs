@@ -2174,9 +2174,15 @@ pub fn sparsified_health(ends: &[(&str, &str, &ChannelStats)]) -> Option<String>
     };
     let refused_worst = worst(|c| c.sparse_refused);
     let gated_worst = worst(|c| c.sparse_vector_dropped);
+    let recentred: u64 = ends.iter().map(|e| e.2.sparse_recentred).sum();
+    let recentred = if recentred > 0 {
+        format!(", {recentred} re-centrings")
+    } else {
+        String::new()
+    };
     Some(format!(
         "sparsified links: {sparse} marginal deltas sent; {refused} rounds refused{refused_worst}; \
-         {gated} vectors gated{gated_worst}"
+         {gated} vectors gated{gated_worst}{recentred}"
     ))
 }
 
@@ -2205,6 +2211,7 @@ mod tests {
         report.channel.sparse_deltas = sparse;
         report.channel.sparse_refused = refused;
         report.channel.sparse_vector_dropped = gated;
+        report.channel.sparse_recentred = gated / 3;
         LinkEndCheck {
             node: node.into(),
             peer: peer.into(),
@@ -2214,7 +2221,8 @@ mod tests {
     }
 
     /// The line adds every end's counters and names the end with the most refused rounds and
-    /// the most gated vectors, each out of that end's sparsified rounds (sent + refused).
+    /// the most gated vectors, each out of that end's sparsified rounds (sent + refused), and
+    /// the re-centrings (here a third of each end's gated count: 5 + 1).
     #[test]
     fn sparsified_health_totals_and_names_the_worst_end() {
         let ends = [
@@ -2226,7 +2234,8 @@ mod tests {
             sparsified_health_of(&ends).as_deref(),
             Some(
                 "sparsified links: 284 marginal deltas sent; 79 rounds refused \
-                 (most: uav3→uav7, 54 of 133); 20 vectors gated (most: uav3→uav7, 17 of 133)"
+                 (most: uav3→uav7, 54 of 133); 20 vectors gated (most: uav3→uav7, 17 of 133), \
+                 6 re-centrings"
             )
         );
     }
