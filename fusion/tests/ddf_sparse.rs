@@ -39,12 +39,7 @@ const DIM: usize = 3 * FEATURES;
 const ROUNDS: usize = 10;
 
 fn truth(rng: &mut ChaCha8Rng) -> Vec<(FeatureId, Vector3<f64>)> {
-    (0..FEATURES)
-        .map(|k| {
-            let p = origin() + Vector3::from_fn(|_, _| rng.random_range(-200.0..200.0));
-            (100 + k as FeatureId, p)
-        })
-        .collect()
+    static_features(FEATURES, 100, rng)
 }
 
 /// NEES = eᵀ Y e, e = x̂ − x_true, of a node's map (eqs. 21.98, 21.99 for x̂).

@@ -1204,26 +1204,18 @@ impl Channel {
                     }) => {
                         // A gated marginal: the stale part of the books' vector is booked as
                         // sent, not left pending to fail the gate again (module `sparse`,
-                        // "Re-centring"); beside the shifts, so a Cumulative carries only
-                        // what went on the wire.
-                        for (id, g) in &recentre {
-                            book_shift(&mut self.booked_shift, *id, 0.0, -g);
-                        }
-                        self.sent
-                            .add_diagonal(recentre.into_iter().map(|(id, g)| (id, 0.0, g)));
+                        // "Re-centring").
+                        self.book_beyond_wire(recentre.into_iter().map(|(id, g)| (id, 0.0, g)));
                         // Booked: D' − pad_R(δ I) (module `sparse`, "Booking"): the residual
                         // left in Y_i − C_ik is the exact Schur residual, positive
                         // semi-definite, so the regularisation never piles up into an
                         // indefinite residual block that stalls the link.
-                        let booked = shift
-                            .features
-                            .iter()
-                            .map(|(id, x)| (*id, shift.delta, shift.delta * x));
-                        for (id, a, v) in booked.clone() {
-                            book_shift(&mut self.booked_shift, id, a, v);
-                        }
-                        self.sent
-                            .add_diagonal(booked.map(|(id, a, v)| (id, -a, -v)));
+                        self.book_beyond_wire(
+                            shift
+                                .features
+                                .iter()
+                                .map(|(id, x)| (*id, -shift.delta, -shift.delta * x)),
+                        );
                         self.sparse_shift += shift.delta;
                         d
                     }
@@ -1247,6 +1239,17 @@ impl Channel {
         );
         out.push(msg);
         Ok(())
+    }
+
+    /// Books (a, v) — a·I on a feature's diagonal block, v in its vector — in S beyond what
+    /// goes on the wire, and records it in [`Self::booked_shift`] with the opposite sign, so
+    /// that [`Self::wire_sent`] (what a Cumulative carries) stays what the peer received: the
+    /// regularisation shifts and the re-centrings of sparsified marginals.
+    fn book_beyond_wire(&mut self, entries: impl Iterator<Item = (FeatureId, f64, Vector3<f64>)>) {
+        for (id, a, v) in entries {
+            book_shift(&mut self.booked_shift, id, -a, -v);
+            self.sent.add_diagonal([(id, a, v)]);
+        }
     }
 
     /// The marginal of `d` on the features that fit `budget` (module [`crate::sparse`]), its
