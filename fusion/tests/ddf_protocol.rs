@@ -6,7 +6,7 @@ mod common;
 
 use canopy_fusion::ddf::{
     Body, DdfConfig, DdfError, DdfMessage, DdfNode, FuseRejected, FuseTarget, Header, LinkMode,
-    Outgoing,
+    MAX_UNCERTAIN, Outgoing,
 };
 use canopy_fusion::info::{InfoError, MapInformation};
 use canopy_fusion::topology::NodeId;
@@ -266,8 +266,23 @@ fn bad_input_is_rejected_counted_and_harmless() {
             body: Body::Delta { seq: 1, info: i },
         }
     };
+    let uncertain = |features: Vec<(u64, f32)>| DdfMessage {
+        header,
+        body: Body::Uncertain { features },
+    };
     let (node, est) = net.nodes.get_mut(&B).unwrap();
     let cases: Vec<(DdfMessage, ErrorCheck)> = vec![
+        // A list of loosely held features: longer than MAX_UNCERTAIN, a NaN, a σ ≤ 0.
+        (
+            uncertain((0..=MAX_UNCERTAIN as u64).map(|k| (k, 20.0)).collect()),
+            |e| matches!(e, InfoError::Dimension { .. }),
+        ),
+        (uncertain(vec![(1, 20.0), (2, f32::NAN)]), |e| {
+            matches!(e, InfoError::NonFinite { row: 1, .. })
+        }),
+        (uncertain(vec![(1, -3.0)]), |e| {
+            matches!(e, InfoError::NonFinite { row: 0, .. })
+        }),
         (bad(&|i| i.matrix[(0, 1)] = f64::NAN), |e| {
             matches!(e, InfoError::NonFinite { .. })
         }),

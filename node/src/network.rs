@@ -198,6 +198,11 @@ pub struct FusionConfig {
     /// maps a longer interval is what keeps the fusion within real time
     /// (`canopy_fusion::ddf::DdfConfig::budget_interval`).
     pub radio_interval_s: f64,
+    /// Sparsified links: each vehicle lists its loosely held features (σ > 10 m) to its
+    /// radio neighbours, which put the ones they hold far better first into their next
+    /// marginals (default true; `false` is the ablation:
+    /// `canopy_fusion::ddf::DdfConfig::uncertain_lists`).
+    pub uncertain_lists: bool,
 }
 
 /// When a vehicle process applies what its neighbours send (`[fusion] delivery`).
@@ -236,6 +241,7 @@ impl Default for FusionConfig {
             correspondence_max_sigma_m: canopy_fusion::slam::CorrespondenceConfig::default()
                 .max_difference_sigma_m,
             radio_interval_s: 0.0,
+            uncertain_lists: true,
         }
     }
 }
@@ -308,6 +314,7 @@ impl FusionConfig {
             submap_ack_timeout: 3.0 / self.rate_hz,
             delta_precision: self.delta_precision,
             budget_interval: self.radio_interval_s,
+            uncertain_lists: self.uncertain_lists,
             ci_criterion: match self.ci_criterion {
                 CiCriterionConfig::Trace => CiCriterion::Trace,
                 CiCriterionConfig::Determinant => CiCriterion::Determinant,

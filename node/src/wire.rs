@@ -40,7 +40,9 @@ impl Validate for DdfBody {
 /// `DDF_DELTA`, heartbeats and Nacks `DDF_CONTROL`.
 pub fn ddf_kind(msg: &DdfMessage) -> MessageKind {
     match msg.body {
-        Body::Hello(_) | Body::Nack { .. } | Body::SubmapAck { .. } => MessageKind::DDF_CONTROL,
+        Body::Hello(_) | Body::Nack { .. } | Body::SubmapAck { .. } | Body::Uncertain { .. } => {
+            MessageKind::DDF_CONTROL
+        }
         _ => MessageKind::DDF_DELTA,
     }
 }

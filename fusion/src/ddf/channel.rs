@@ -1,7 +1,7 @@
 //! One channel filter: node i's record of what it shares with neighbour k, and the per-link
 //! protocol state (sequence numbers, reorder buffer, epochs, sync, CI fallback).
 
-use super::message::{Body, DdfMessage, Header, Hello, MAX_LIST, MAX_SUBMAP_ACKS};
+use super::message::{Body, DdfMessage, Header, Hello, MAX_LIST, MAX_SUBMAP_ACKS, MAX_UNCERTAIN};
 use super::node::{DdfConfig, DdfError};
 use super::store::{self, PackedInformation};
 use super::{FuseTarget, LinkMode, MapSource};
@@ -118,6 +118,13 @@ pub struct ChannelStats {
     /// [`MAX_INTRODUCED_SIGMA_M`] (they stay in the residual for later rounds).
     #[serde(default)]
     pub sparse_withheld_new: u64,
+    /// [`Body::Uncertain`] lists sent (this node's loosely held features).
+    #[serde(default)]
+    pub uncertain_sent: u64,
+    /// Features put first into a sparsified marginal because the peer listed them as
+    /// loosely held and this node holds them far better ([`PROMOTE_SIGMA_RATIO`]).
+    #[serde(default)]
+    pub uncertain_promoted: u64,
 }
 
 impl ChannelStats {
@@ -158,6 +165,19 @@ pub const MAX_INTRODUCED_SIGMA_M: f64 = 100.0;
 /// a storm is tens of consecutive rounds (up to 115 of 131 marginals at one end in a tree-8-radio
 /// run with a two-second interval), so re-centring at the third costs it two rounds.
 pub(crate) const RECENTRE_AFTER_GATED: u32 = 3;
+
+/// A feature held with a marginal σ = √tr P_ff above this [m] is listed to the peers of
+/// sparsified links ([`Body::Uncertain`]). Why 10 m: the shipped radio scenarios hold a
+/// feature they observe at σ ≤ 5 m; the features the per-feature priority left unrefined
+/// (docs/benchmarks.md, seventeenth pass) sat at 18–73 m for minutes at leaves whose hub held
+/// them at 2.2 m.
+pub const UNCERTAIN_SIGMA_M: f64 = 10.0;
+
+/// A feature the peer listed as loosely held goes first into this node's next marginal when
+/// its σ here is at most the peer's divided by this. Why 3: the marginal then carries an
+/// information gain of at least ln 9 per axis to the peer, more than the typical feature of a
+/// round's selection, and a feature both sides hold about equally is left to the priority.
+pub const PROMOTE_SIGMA_RATIO: f64 = 3.0;
 
 /// How many features a sparsified delta may hold back by [`MAX_INTRODUCED_SIGMA_M`] before
 /// the round sends nothing on the link (each costs a Schur marginal).
@@ -226,6 +246,11 @@ pub(crate) struct Channel {
     last_budgeted: Option<f64>,
     /// Consecutive sparsified marginals whose vector was gated ([`RECENTRE_AFTER_GATED`]).
     gated_streak: u32,
+    /// The peer's latest [`Body::Uncertain`] list: its loosely held features, σ [m].
+    peer_uncertain: HashMap<FeatureId, f64>,
+    /// Whether the last [`Body::Uncertain`] this node sent listed anything (an empty list is
+    /// sent once to clear the peer's record).
+    listed_uncertain: bool,
     /// R_total − R: R_total is everything ever received from the peer and applied, over all
     /// epochs; it differs from R only by what earlier epoch pairs left (`None`: nothing, the
     /// case until a peer restarts), so only that difference is stored.
@@ -374,6 +399,8 @@ impl Channel {
             last_sync: None,
             last_budgeted: None,
             gated_streak: 0,
+            peer_uncertain: HashMap::new(),
+            listed_uncertain: false,
             total_offset: None,
             tracker: SubmapTracker::default(),
             submap_seq: 0,
@@ -840,6 +867,13 @@ impl Channel {
                 self.tracker.acknowledge(&seqs);
                 Ok(())
             }
+            Body::Uncertain { features } => {
+                self.peer_uncertain = features
+                    .into_iter()
+                    .map(|(id, sigma)| (id, f64::from(sigma)))
+                    .collect();
+                Ok(())
+            }
             // Handled by the node (they concern every channel); nothing left to do here.
             Body::Merges { .. }
             | Body::Describe { .. }
@@ -1122,6 +1156,9 @@ impl Channel {
             return out;
         }
         self.descriptor_messages(source, keys, ctx, &mut out);
+        if self.mode == LinkMode::Sparse && self.is_synced() && ctx.config.uncertain_lists {
+            self.uncertain_message(source, ctx, &mut out);
+        }
         if self.mode == LinkMode::Ci {
             if !self.submap_acks.is_empty() {
                 let seqs = std::mem::take(&mut self.submap_acks);
@@ -1140,6 +1177,72 @@ impl Channel {
             out.push(hello);
         }
         out
+    }
+
+    /// The [`Body::Uncertain`] of this round on a sparsified link: the features held with σ
+    /// above [`UNCERTAIN_SIGMA_M`], loosest first, at most [`MAX_UNCERTAIN`]; nothing when
+    /// there are none and the peer was told so already.
+    fn uncertain_message(
+        &mut self,
+        source: &dyn MapSource,
+        ctx: &NodeCtx<'_>,
+        out: &mut Vec<DdfMessage>,
+    ) {
+        let mut loose: Vec<(FeatureId, f64)> = source
+            .feature_covariances()
+            .into_iter()
+            .map(|(id, p)| (id, p.trace().max(0.0).sqrt()))
+            .filter(|(_, sigma)| *sigma > UNCERTAIN_SIGMA_M && sigma.is_finite())
+            .collect();
+        if loose.is_empty() && !self.listed_uncertain {
+            return;
+        }
+        loose.sort_by(|a, b| b.1.total_cmp(&a.1).then(a.0.cmp(&b.0)));
+        loose.truncate(MAX_UNCERTAIN);
+        self.listed_uncertain = !loose.is_empty();
+        self.stats.uncertain_sent += 1;
+        let features = loose
+            .into_iter()
+            .map(|(id, sigma)| (id, sigma as f32))
+            .collect();
+        let msg = self.msg(ctx, Body::Uncertain { features });
+        out.push(msg);
+    }
+
+    /// Puts first into `keep` (keeping its length) the features of `d` the peer listed as
+    /// loosely held ([`Body::Uncertain`]) that this node holds at least
+    /// [`PROMOTE_SIGMA_RATIO`] times better, by that ratio, at most half of `keep`: the
+    /// per-feature priority sees only this node's covariance, and a feature relayed to the
+    /// peer as a loose cluster would otherwise wait behind every feature observed since.
+    fn promote_uncertain(
+        &mut self,
+        d: &MapInformation,
+        covariances: &HashMap<FeatureId, Matrix3<f64>>,
+        keep: &mut Vec<FeatureId>,
+    ) {
+        if self.peer_uncertain.is_empty() || keep.is_empty() {
+            return;
+        }
+        let mut promoted: Vec<(f64, FeatureId)> = d
+            .ids
+            .iter()
+            .filter_map(|id| {
+                let peer = *self.peer_uncertain.get(id)?;
+                let own = covariances.get(id)?.trace().max(0.0).sqrt();
+                (own * PROMOTE_SIGMA_RATIO <= peer).then_some((peer / own.max(1e-9), *id))
+            })
+            .collect();
+        if promoted.is_empty() {
+            return;
+        }
+        promoted.sort_by(|a, b| b.0.total_cmp(&a.0).then(a.1.cmp(&b.1)));
+        promoted.truncate((keep.len() / 2).max(1));
+        self.stats.uncertain_promoted += promoted.len() as u64;
+        let n = keep.len();
+        let first: Vec<FeatureId> = promoted.into_iter().map(|(_, id)| id).collect();
+        keep.retain(|id| !first.contains(id));
+        keep.splice(0..0, first);
+        keep.truncate(n);
     }
 
     /// Whether this round forms the link's information message: always on a link without a
@@ -1282,6 +1385,9 @@ impl Channel {
             .map(|(id, x)| (id, x - ctx.origin))
             .collect();
         let mut keep = sparse::select(d, &covariances, budget, f32_blocks);
+        if ctx.config.uncertain_lists {
+            self.promote_uncertain(d, &covariances, &mut keep);
+        }
         // D_RR not positive definite: the feature of the failing pivot joins S in place of the
         // lowest-priority one, a few times, before the round is refused.
         let mut swaps = 0;
@@ -1455,6 +1561,20 @@ impl Channel {
             }
             Body::Describe { features } => at_most("descriptors", MAX_LIST, features.len()),
             Body::DescribeRequest { keys } => at_most("describe request", MAX_LIST, keys.len()),
+            Body::Uncertain { features } => {
+                at_most("uncertain features", MAX_UNCERTAIN, features.len())?;
+                match features
+                    .iter()
+                    .position(|(_, sigma)| !(sigma.is_finite() && *sigma > 0.0))
+                {
+                    Some(row) => Err(InfoError::NonFinite {
+                        what: "uncertain feature σ (not finite and positive)",
+                        row,
+                        col: 0,
+                    }),
+                    None => Ok(()),
+                }
+            }
             Body::Anchor { features } => {
                 at_most(
                     "anchor features",

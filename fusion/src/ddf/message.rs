@@ -133,6 +133,16 @@ pub enum Body {
         /// The features (at most [`MAX_ANCHOR_FEATURES`]).
         features: Vec<AnchorFeature>,
     },
+    /// The features the sender holds only loosely — marginal σ = √tr P_ff above
+    /// `channel::UNCERTAIN_SIGMA_M`, loosest first — sent on a sparsified link so that the
+    /// peer, whose per-feature priority sees only its own covariance, puts the ones it knows
+    /// far better into its next marginal (docs/arch/ddf.md, "What the peer lacks"). Advisory:
+    /// it changes which features a marginal carries, never what is booked. An empty list
+    /// clears the peer's record.
+    Uncertain {
+        /// (key, σ [m]), at most [`MAX_UNCERTAIN`].
+        features: Vec<(FeatureId, f32)>,
+    },
 }
 
 /// Most features one [`Body::Anchor`] carries.
@@ -185,6 +195,9 @@ impl AnchorFeature {
     }
 }
 
+/// Most features one [`Body::Uncertain`] lists (more is rejected as malformed).
+pub const MAX_UNCERTAIN: usize = 32;
+
 /// Most entries of one [`Body::Merges`] or [`Body::Describe`] (more is rejected as malformed).
 pub const MAX_LIST: usize = 65_536;
 
@@ -215,6 +228,7 @@ impl DdfMessage {
             Body::Describe { .. } => "describe",
             Body::DescribeRequest { .. } => "describe-request",
             Body::Anchor { .. } => "anchor",
+            Body::Uncertain { .. } => "uncertain",
         }
     }
 
@@ -236,6 +250,7 @@ impl DdfMessage {
                 Body::Describe { features } => 9 + (9 + 4 * 9) * features.len(),
                 Body::DescribeRequest { keys } => 9 + 9 * keys.len(),
                 Body::Anchor { features } => 9 + (9 + 9 * 8 + 4 * 9) * features.len(),
+                Body::Uncertain { features } => 9 + (9 + 4) * features.len(),
             }
     }
 }

@@ -87,10 +87,10 @@ mod message;
 mod node;
 mod store;
 
-pub use channel::{ChannelStats, MAX_INTRODUCED_SIGMA_M};
+pub use channel::{ChannelStats, MAX_INTRODUCED_SIGMA_M, PROMOTE_SIGMA_RATIO, UNCERTAIN_SIGMA_M};
 pub use message::{
     AnchorFeature, Body, DdfMessage, Header, Hello, MAX_ANCHOR_FEATURES, MAX_LIST, MAX_SUBMAP_ACKS,
-    Outgoing, from_upper_triangle, upper_triangle,
+    MAX_UNCERTAIN, Outgoing, from_upper_triangle, upper_triangle,
 };
 pub use node::{ChannelView, DdfConfig, DdfError, DdfNode, DeltaPrecision, NodeStats, RoundOutput};
 pub use store::PackedInformation;

@@ -58,6 +58,12 @@ pub struct DdfConfig {
     /// driver sizes each round's budget for the interval (a budget is per delta).
     #[serde(default)]
     pub budget_interval: f64,
+    /// On a sparsified link, list this node's loosely held features to the peer
+    /// ([`super::message::Body::Uncertain`]) and put the peer's, where this node holds them far
+    /// better, first into its marginals (default true; false is the ablation: the per-feature
+    /// priority alone).
+    #[serde(default = "default_true")]
+    pub uncertain_lists: bool,
 }
 
 impl Default for DdfConfig {
@@ -74,8 +80,13 @@ impl Default for DdfConfig {
             delta_precision: DeltaPrecision::F64,
             retired_epochs: 64,
             budget_interval: 0.0,
+            uncertain_lists: true,
         }
     }
+}
+
+fn default_true() -> bool {
+    true
 }
 
 /// Three rounds at the default 1 Hz: the receiver acknowledges at its next round.
@@ -507,6 +518,11 @@ impl DdfNode {
                     self.adopt_merge(m.from, m.into, target);
                 }
                 info.rekey(&self.keys);
+            }
+            Body::Uncertain { features } => {
+                for f in features.iter_mut() {
+                    f.0 = self.keys.canonical(f.0);
+                }
             }
             Body::Sync { baseline, .. } => baseline.rekey(&self.keys),
             Body::Submap { submap, .. } => *submap = submap.rekeyed(&self.keys),

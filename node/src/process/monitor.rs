@@ -2146,7 +2146,8 @@ fn truth_sample(world: &World, r: &TruthReport) -> TruthSample {
 /// One line on the sparsified (capacity-limited) links of a run, for the text summary: how many
 /// deltas went out as conservative marginals, how many rounds sent nothing (their delta stayed
 /// pending, `canopy_fusion::sparse::SparsifyError`), how many had their vector gated, and the
-/// link end worst at each. `ends` holds (this end's name, the peer's name, its channel's
+/// link end worst at each; then the re-centrings and the features sent first because a peer
+/// listed them as loosely held (`canopy_fusion::ddf::Body::Uncertain`), when there were any. `ends` holds (this end's name, the peer's name, its channel's
 /// counters). `None` when no link end sparsified anything.
 ///
 /// Why a user needs it: a sparsified link that keeps refusing or gating its rounds holds its
@@ -2180,9 +2181,15 @@ pub fn sparsified_health(ends: &[(&str, &str, &ChannelStats)]) -> Option<String>
     } else {
         String::new()
     };
+    let promoted: u64 = ends.iter().map(|e| e.2.uncertain_promoted).sum();
+    let promoted = if promoted > 0 {
+        format!("; {promoted} features a peer held loosely sent first")
+    } else {
+        String::new()
+    };
     Some(format!(
         "sparsified links: {sparse} marginal deltas sent; {refused} rounds refused{refused_worst}; \
-         {gated} vectors gated{gated_worst}{recentred}"
+         {gated} vectors gated{gated_worst}{recentred}{promoted}"
     ))
 }
 
@@ -2222,20 +2229,23 @@ mod tests {
 
     /// The line adds every end's counters and names the end with the most refused rounds and
     /// the most gated vectors, each out of that end's sparsified rounds (sent + refused), and
-    /// the re-centrings (here a third of each end's gated count: 5 + 1).
+    /// the re-centrings (here a third of each end's gated count: 5 + 1) and the features sent
+    /// first because the peer listed them as loosely held (4 + 7).
     #[test]
     fn sparsified_health_totals_and_names_the_worst_end() {
-        let ends = [
+        let mut ends = [
             end("uav3", "uav7", 79, 54, 17),
             end("uav4", "uav3", 103, 0, 3),
             end("uav2", "uav3", 102, 25, 0),
         ];
+        ends[0].report.channel.uncertain_promoted = 4;
+        ends[2].report.channel.uncertain_promoted = 7;
         assert_eq!(
             sparsified_health_of(&ends).as_deref(),
             Some(
                 "sparsified links: 284 marginal deltas sent; 79 rounds refused \
                  (most: uav3→uav7, 54 of 133); 20 vectors gated (most: uav3→uav7, 17 of 133), \
-                 6 re-centrings"
+                 6 re-centrings; 11 features a peer held loosely sent first"
             )
         );
     }
