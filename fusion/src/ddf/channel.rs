@@ -506,6 +506,9 @@ impl Channel {
         self.last_budgeted = None;
         self.gated_streak = 0;
         self.peer_history = None;
+        // A new pair starts without lists (a restarted peer holds another map).
+        self.peer_uncertain.clear();
+        self.listed_uncertain = false;
     }
 
     fn new_peer_epoch(&mut self, epoch: u64, ctx: &NodeCtx<'_>) {
