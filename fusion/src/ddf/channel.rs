@@ -14,6 +14,7 @@ use crate::topology::NodeId;
 use nalgebra::Matrix3;
 use nalgebra::Vector3;
 use serde::{Deserialize, Serialize};
+use std::cell::OnceCell;
 use std::collections::{BTreeMap, BTreeSet, HashMap, HashSet, VecDeque};
 
 /// How many times a sparsified round moves the feature of a failing pivot of D_RR into S
@@ -1151,6 +1152,7 @@ impl Channel {
         &mut self,
         now: f64,
         source: &dyn MapSource,
+        loose: &LooseFeatures,
         keys: &KeyMap,
         ctx: &NodeCtx<'_>,
     ) -> Vec<DdfMessage> {
@@ -1160,7 +1162,7 @@ impl Channel {
         }
         self.descriptor_messages(source, keys, ctx, &mut out);
         if self.mode == LinkMode::Sparse && self.is_synced() && ctx.config.uncertain_lists {
-            self.uncertain_message(source, ctx, &mut out);
+            self.uncertain_message(loose.get_or_init(|| loose_features(source)), ctx, &mut out);
         }
         if self.mode == LinkMode::Ci {
             if !self.submap_acks.is_empty() {
@@ -1182,33 +1184,26 @@ impl Channel {
         out
     }
 
-    /// The [`Body::Uncertain`] of this round on a sparsified link: the features held with σ
-    /// above [`UNCERTAIN_SIGMA_M`], loosest first, at most [`MAX_UNCERTAIN`]; nothing when
-    /// there are none and the peer was told so already.
+    /// The [`Body::Uncertain`] of this round on a sparsified link, listing `loose` (this
+    /// node's [`loose_features`]); nothing when there are none and the peer was told so
+    /// already.
     fn uncertain_message(
         &mut self,
-        source: &dyn MapSource,
+        loose: &[(FeatureId, f32)],
         ctx: &NodeCtx<'_>,
         out: &mut Vec<DdfMessage>,
     ) {
-        let mut loose: Vec<(FeatureId, f64)> = source
-            .feature_covariances()
-            .into_iter()
-            .map(|(id, p)| (id, p.trace().max(0.0).sqrt()))
-            .filter(|(_, sigma)| *sigma > UNCERTAIN_SIGMA_M && sigma.is_finite())
-            .collect();
         if loose.is_empty() && !self.listed_uncertain {
             return;
         }
-        loose.sort_by(|a, b| b.1.total_cmp(&a.1).then(a.0.cmp(&b.0)));
-        loose.truncate(MAX_UNCERTAIN);
         self.listed_uncertain = !loose.is_empty();
         self.stats.uncertain_sent += 1;
-        let features = loose
-            .into_iter()
-            .map(|(id, sigma)| (id, sigma as f32))
-            .collect();
-        let msg = self.msg(ctx, Body::Uncertain { features });
+        let msg = self.msg(
+            ctx,
+            Body::Uncertain {
+                features: loose.to_vec(),
+            },
+        );
         out.push(msg);
     }
 
@@ -1231,7 +1226,7 @@ impl Channel {
             .iter()
             .filter_map(|id| {
                 let peer = *self.peer_uncertain.get(id)?;
-                let own = covariances.get(id)?.trace().max(0.0).sqrt();
+                let own = feature_sigma(covariances.get(id)?);
                 (own * PROMOTE_SIGMA_RATIO <= peer).then_some((peer / own.max(1e-9), *id))
             })
             .collect();
@@ -1608,6 +1603,33 @@ impl Channel {
             }
         }
     }
+}
+
+/// A node's loosely held features for its [`Body::Uncertain`] lists, formed at most once per
+/// round whatever the number of sparsified links ([`loose_features`]).
+pub(crate) type LooseFeatures = OnceCell<Vec<(FeatureId, f32)>>;
+
+/// The features `source` holds with σ ([`feature_sigma`]) above [`UNCERTAIN_SIGMA_M`],
+/// loosest first (ties: the smaller id), at most [`MAX_UNCERTAIN`].
+fn loose_features(source: &dyn MapSource) -> Vec<(FeatureId, f32)> {
+    let mut loose: Vec<(FeatureId, f64)> = source
+        .feature_covariances()
+        .iter()
+        .map(|(id, p)| (*id, feature_sigma(p)))
+        .filter(|(_, sigma)| *sigma > UNCERTAIN_SIGMA_M && sigma.is_finite())
+        .collect();
+    loose.sort_by(|a, b| b.1.total_cmp(&a.1).then(a.0.cmp(&b.0)));
+    loose.truncate(MAX_UNCERTAIN);
+    loose
+        .into_iter()
+        .map(|(id, sigma)| (id, sigma as f32))
+        .collect()
+}
+
+/// A feature's σ = √tr P_ff [m], the measure of both ends of a [`Body::Uncertain`] list (what
+/// the peer lists and what this node compares it with, [`PROMOTE_SIGMA_RATIO`]).
+fn feature_sigma(covariance: &Matrix3<f64>) -> f64 {
+    covariance.trace().max(0.0).sqrt()
 }
 
 /// What [`Channel::sparsify`] sends and books: the marginal (as it goes on the wire), its

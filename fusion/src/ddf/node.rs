@@ -395,8 +395,9 @@ impl DdfNode {
                 emit(Outgoing { to: peer, message });
             }
         }
+        let loose = super::channel::LooseFeatures::new();
         for (&peer, channel) in self.channels.iter_mut() {
-            for message in channel.round_finish(now, info.source(), &self.keys, &ctx) {
+            for message in channel.round_finish(now, info.source(), &loose, &self.keys, &ctx) {
                 emit(Outgoing { to: peer, message });
             }
         }

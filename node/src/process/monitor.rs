@@ -2147,8 +2147,9 @@ fn truth_sample(world: &World, r: &TruthReport) -> TruthSample {
 /// deltas went out as conservative marginals, how many rounds sent nothing (their delta stayed
 /// pending, `canopy_fusion::sparse::SparsifyError`), how many had their vector gated, and the
 /// link end worst at each; then the re-centrings and the features sent first because a peer
-/// listed them as loosely held (`canopy_fusion::ddf::Body::Uncertain`), when there were any. `ends` holds (this end's name, the peer's name, its channel's
-/// counters). `None` when no link end sparsified anything.
+/// listed them as loosely held (`canopy_fusion::ddf::Body::Uncertain`), when there were any.
+/// `ends` holds (this end's name, the peer's name, its channel's counters). `None` when no
+/// link end sparsified anything.
 ///
 /// Why a user needs it: a sparsified link that keeps refusing or gating its rounds holds its
 /// information back for good — the run still ends cleanly, but the far vehicles' maps lag
