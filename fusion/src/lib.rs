@@ -24,6 +24,8 @@
 //! - [`keys`]: feature keys and correspondences (merges as linear re-keyings of information).
 //! - [`ci`]: covariance intersection for bandwidth-limited links (full and submap forms).
 //! - [`ddf`]: the channel-filter protocol as a sans-IO state machine (decentralized, central).
+//! - [`share`]: data sharing: every vehicle's records relayed over the tree, once and in order
+//!   (sans-IO; the alternative to map information on links of tens of kB/s).
 //! - [`topology`]: fusion-network graphs and tree validation (channel filters need a tree).
 //! - [`runtime`]: process set-up for this maths (subnormals flushed to zero, heap kept mapped; the
 //!   lean or warm heap policy, `[run] heap`).
@@ -42,6 +44,7 @@ pub mod observation;
 pub mod rotation;
 pub mod runtime;
 pub mod sensor;
+pub mod share;
 pub mod slam;
 pub mod sparse;
 pub mod state;
