@@ -36,6 +36,8 @@ use std::collections::{BTreeMap, VecDeque};
 
 use serde::{Deserialize, Serialize};
 
+use crate::ins::{VehicleCovariance, VehicleState};
+use crate::sensor::{ImuSample, Measurement, ObservationFrame};
 use crate::topology::{NodeId, Topology, TopologyError};
 
 /// A record's number in its stream, from 0.
@@ -593,6 +595,96 @@ impl<R: ShareRecord> Relay<R> {
             s.ahead.insert(seq, r);
         }
         Ok(true)
+    }
+}
+
+/// Most observations one shared frame may carry (more is refused as malformed).
+pub const MAX_FRAME_OBSERVATIONS: usize = 4096;
+
+/// A record of a vehicle's stream in data sharing: what its own estimator took, in order.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub enum Item {
+    /// The vehicle's initial estimate: the first record of every stream.
+    Start {
+        /// The estimate.
+        state: VehicleState,
+        /// Its covariance (boxed: 1.8 kB, once per stream).
+        covariance: Box<VehicleCovariance>,
+    },
+    /// IMU samples summed into one increment: the mean specific force and rate over its Δt
+    /// (Δv / Δt, Δθ / Δt), ending at its time.
+    Imu(ImuSample),
+    /// A terrain-sensor frame as the vehicle's estimator took it (tracker ids, appearance).
+    Frame(ObservationFrame),
+}
+
+impl ShareRecord for Item {
+    /// An upper bound of bincode's standard encoding (f64 fixed, integers varint ≤ 9).
+    fn wire_bytes(&self) -> usize {
+        1 + match self {
+            Item::Start { .. } => 15 * 8 + 225 * 8,
+            Item::Imu(_) => 8 * 8,
+            Item::Frame(f) => {
+                8 + 9
+                    + f.observations
+                        .iter()
+                        .map(|o| {
+                            9 + 1
+                                + match o.z {
+                                    Measurement::RangeBearing(_) => 24,
+                                    Measurement::Bearing(_) | Measurement::Pixel(_) => 16,
+                                }
+                                + 1
+                                + if o.appearance.is_some() { 4 * 9 } else { 0 }
+                        })
+                        .sum::<usize>()
+            }
+        }
+    }
+
+    fn validate(&self) -> Result<(), String> {
+        match self {
+            Item::Start { state, covariance } => {
+                if !state.is_finite() {
+                    return Err("start state not finite".into());
+                }
+                if !covariance.iter().all(|v| v.is_finite()) {
+                    return Err("start covariance not finite".into());
+                }
+                if covariance.cholesky().is_none() {
+                    return Err("start covariance not positive definite".into());
+                }
+                Ok(())
+            }
+            Item::Imu(s) => {
+                let finite = s.time.is_finite()
+                    && s.specific_force
+                        .iter()
+                        .chain(s.angular_rate.iter())
+                        .all(|v| v.is_finite());
+                if !finite {
+                    Err("IMU increment not finite".into())
+                } else if !(s.dt.is_finite() && s.dt > 0.0) {
+                    Err(format!("IMU increment Δt {} not positive", s.dt))
+                } else {
+                    Ok(())
+                }
+            }
+            Item::Frame(f) => {
+                if !f.time.is_finite() {
+                    Err("frame time not finite".into())
+                } else if f.observations.len() > MAX_FRAME_OBSERVATIONS {
+                    Err(format!(
+                        "{} observations in a frame (at most {MAX_FRAME_OBSERVATIONS})",
+                        f.observations.len()
+                    ))
+                } else {
+                    // The estimator refuses a non-finite measurement alone
+                    // (`RejectReason::InvalidMeasurement`), as for its own frames.
+                    Ok(())
+                }
+            }
+        }
     }
 }
 

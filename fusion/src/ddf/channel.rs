@@ -878,11 +878,13 @@ impl Channel {
                     .collect();
                 Ok(())
             }
-            // Handled by the node (they concern every channel); nothing left to do here.
+            // Handled by the node (they concern every channel, or, a data-sharing batch, are
+            // refused by it); nothing left to do here.
             Body::Merges { .. }
             | Body::Describe { .. }
             | Body::DescribeRequest { .. }
-            | Body::Anchor { .. } => Ok(()),
+            | Body::Anchor { .. }
+            | Body::Share(_) => Ok(()),
             _ if self.mode == LinkMode::Ci || !addressed => {
                 // Exact-protocol messages on a CI link, or not addressed to this epoch.
                 self.stats.stale += 1;
@@ -1546,7 +1548,8 @@ impl Channel {
             Ok(())
         };
         match &msg.body {
-            Body::Hello(_) | Body::Nack { .. } => Ok(()),
+            // A data-sharing batch is refused by the node before this (`DdfError::Unexpected`).
+            Body::Hello(_) | Body::Nack { .. } | Body::Share(_) => Ok(()),
             Body::SubmapAck { seqs } => {
                 at_most("submap acknowledgements", MAX_SUBMAP_ACKS, seqs.len())
             }

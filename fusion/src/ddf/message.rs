@@ -143,6 +143,9 @@ pub enum Body {
         /// (key, σ [m]), at most [`MAX_UNCERTAIN`].
         features: Vec<(FeatureId, f32)>,
     },
+    /// Data sharing (`crate::share`): a round's batch of the team's records for a neighbour.
+    /// Only nodes in data-sharing mode take it; a DDF node refuses it.
+    Share(crate::share::Batch<crate::share::Item>),
 }
 
 /// Most features one [`Body::Anchor`] carries.
@@ -229,6 +232,7 @@ impl DdfMessage {
             Body::DescribeRequest { .. } => "describe-request",
             Body::Anchor { .. } => "anchor",
             Body::Uncertain { .. } => "uncertain",
+            Body::Share(_) => "share",
         }
     }
 
@@ -251,6 +255,16 @@ impl DdfMessage {
                 Body::DescribeRequest { keys } => 9 + 9 * keys.len(),
                 Body::Anchor { features } => 9 + (9 + 9 * 8 + 4 * 9) * features.len(),
                 Body::Uncertain { features } => 9 + (9 + 4) * features.len(),
+                Body::Share(batch) => {
+                    use crate::share::ShareRecord;
+                    9 + 9
+                        + batch.have.len() * (9 + 9 + 9)
+                        + batch
+                            .records
+                            .iter()
+                            .map(|(_, _, r)| 9 + 9 + 9 + r.wire_bytes())
+                            .sum::<usize>()
+                }
             }
     }
 }

@@ -144,6 +144,15 @@ pub enum DdfError {
     /// panicked on.
     #[error("internal error: {0}")]
     Internal(InfoError),
+    /// A message kind this node does not take (a data-sharing batch at a channel-filter node:
+    /// a neighbour configured for another fusion mode).
+    #[error("a {kind} message from node {from}, which this node's fusion mode does not take")]
+    Unexpected {
+        /// The sender.
+        from: NodeId,
+        /// [`DdfMessage::kind`].
+        kind: &'static str,
+    },
 }
 
 /// Node-level counters.
@@ -527,7 +536,7 @@ impl DdfNode {
             }
             Body::Sync { baseline, .. } => baseline.rekey(&self.keys),
             Body::Submap { submap, .. } => *submap = submap.rekeyed(&self.keys),
-            Body::Hello(_) | Body::Nack { .. } | Body::SubmapAck { .. } => {}
+            Body::Hello(_) | Body::Nack { .. } | Body::SubmapAck { .. } | Body::Share(_) => {}
         }
         Some(message)
     }
@@ -552,6 +561,14 @@ impl DdfNode {
             self.stats.unknown_sender += 1;
             return Err(DdfError::UnknownSender(from));
         };
+        if matches!(message.body, Body::Share(_)) {
+            channel.stats.messages_received += 1;
+            channel.stats.rejected += 1;
+            return Err(DdfError::Unexpected {
+                from,
+                kind: message.kind(),
+            });
+        }
         if let Err(source) = Channel::validate_payload(&message, origin) {
             channel.stats.messages_received += 1;
             channel.stats.rejected += 1;

@@ -760,6 +760,49 @@ impl SlamFilter {
         Ok(nis)
     }
 
+    /// Starts vehicle `vehicle` at `state` with `covariance`: how a team filter of data sharing
+    /// learns a vehicle's initial estimate, from the first record of its stream
+    /// (`crate::share`). Only a vehicle nothing has touched can be started: no prediction
+    /// pending and its block exactly uncorrelated with every other state. Replacing its prior
+    /// is then exact (that prior was never used). Anything else is an error that changes
+    /// nothing.
+    pub fn start_vehicle(
+        &mut self,
+        vehicle: usize,
+        state: &VehicleState,
+        covariance: &VehicleCovariance,
+    ) -> Result<(), SlamError> {
+        let off = self.check_vehicle(vehicle)?;
+        if !state.is_finite() {
+            return Err(SlamError::InvalidConfig(format!(
+                "vehicle {vehicle}: non-finite start state"
+            )));
+        }
+        if !is_symmetric_pd(covariance) {
+            return Err(SlamError::InvalidConfig(format!(
+                "vehicle {vehicle}: start covariance is not symmetric positive definite"
+            )));
+        }
+        let n = self.layout.dim();
+        let touched = self.vehicles[vehicle].has_pending
+            || (off..off + VEHICLE_DIM).any(|i| {
+                (0..n).any(|j| !(off..off + VEHICLE_DIM).contains(&j) && self.p[(i, j)] != 0.0)
+            });
+        if touched {
+            return Err(SlamError::InvalidConfig(format!(
+                "vehicle {vehicle} cannot be started: it has been predicted or correlated"
+            )));
+        }
+        let xv = state.to_vector();
+        for i in 0..VEHICLE_DIM {
+            self.x[off + i] = xv[i];
+            for j in 0..VEHICLE_DIM {
+                self.p[(off + i, off + j)] = covariance[(i, j)];
+            }
+        }
+        Ok(())
+    }
+
     /// INS prediction of one vehicle over one IMU sample (eqs. 21.19–21.25 / 21.33–21.38 for the
     /// mean, 21.46/21.47 for the covariance, applied lazily to the cross terms; module docs).
     /// An invalid sample or a non-finite result is a typed error and changes nothing.

@@ -2148,3 +2148,57 @@ fn feature_means_are_the_marginal_means() {
         assert_eq!(x, Vector3::from_fn(|a, _| marginal.mean[3 * b + a]));
     }
 }
+
+/// What it proves: starting a vehicle nothing has touched (data sharing's start record) is
+/// exact — the filter then predicts bit for bit as one built with that estimate from the
+/// start, and the other vehicle is unchanged — and starting one that was predicted, or with a
+/// non-finite state or a covariance that is not positive definite, is refused and changes
+/// nothing.
+#[test]
+fn starting_an_untouched_vehicle_is_exact_and_anything_else_is_refused() {
+    let cfg = config(NavFrame::Local, AssociationMode::Descriptor);
+    let own = vehicle(Vector3::new(0.0, 0.0, -100.0));
+    let placeholder = vehicle(Vector3::new(0.0, 0.0, -100.0));
+    let mut actual = vehicle(Vector3::new(500.0, -300.0, -150.0));
+    actual.covariance[(0, 0)] = 4.0;
+    actual.covariance[(0, 1)] = 0.5;
+    actual.covariance[(1, 0)] = 0.5;
+    let mut started = SlamFilter::new(cfg, &[own, placeholder]).unwrap();
+    let mut direct = SlamFilter::new(cfg, &[own, actual]).unwrap();
+    // The own vehicle moves first (as a team filter's own samples arrive before others').
+    for k in 0..5 {
+        started.predict(0, &imu(0.01 * k as f64)).unwrap();
+        direct.predict(0, &imu(0.01 * k as f64)).unwrap();
+    }
+    started
+        .start_vehicle(1, &actual.state, &actual.covariance)
+        .unwrap();
+    for k in 0..20 {
+        started.predict(1, &imu(0.01 * k as f64)).unwrap();
+        direct.predict(1, &imu(0.01 * k as f64)).unwrap();
+    }
+    assert_eq!(snapshot(&started), snapshot(&direct));
+
+    // Predicted already: refused, nothing changes.
+    let before = snapshot(&started);
+    assert!(matches!(
+        started.start_vehicle(1, &actual.state, &actual.covariance),
+        Err(SlamError::InvalidConfig(_))
+    ));
+    assert_eq!(snapshot(&started), before);
+
+    // Bad content on an untouched vehicle: refused, nothing changes.
+    let mut fresh = SlamFilter::new(cfg, &[own, placeholder]).unwrap();
+    let before = snapshot(&fresh);
+    let mut nan = actual.state;
+    nan.velocity.y = f64::NAN;
+    let mut not_pd = actual.covariance;
+    not_pd[(2, 2)] = -1.0;
+    assert!(fresh.start_vehicle(1, &nan, &actual.covariance).is_err());
+    assert!(fresh.start_vehicle(1, &actual.state, &not_pd).is_err());
+    assert_eq!(
+        fresh.start_vehicle(2, &actual.state, &actual.covariance),
+        Err(SlamError::UnknownVehicle(2))
+    );
+    assert_eq!(snapshot(&fresh), before);
+}
