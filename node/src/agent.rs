@@ -1220,6 +1220,9 @@ pub struct VehicleAgent {
     id: NodeId,
     estimator: VehicleEstimator,
     fusion: VehicleFusion,
+    /// Data sharing (`[fusion] mode = "shared_data"`): when set, it takes every input and
+    /// message, its team filter is the estimate, and the two halves above stay idle.
+    sharing: Option<Box<crate::sharing::Sharing>>,
 }
 
 impl VehicleAgent {
@@ -1248,7 +1251,33 @@ impl VehicleAgent {
             id,
             estimator,
             fusion,
+            sharing: None,
         })
+    }
+
+    /// Switches the agent to data sharing ([`crate::sharing`]): from now on `sharing` takes
+    /// the inputs and messages and its team filter is the estimate.
+    pub fn use_sharing(&mut self, sharing: crate::sharing::Sharing) {
+        self.sharing = Some(Box::new(sharing));
+    }
+
+    /// The data-sharing half, when the agent shares data.
+    pub fn sharing(&self) -> Option<&crate::sharing::Sharing> {
+        self.sharing.as_deref()
+    }
+
+    /// This vehicle's index in [`filter`](Self::filter) (0, or its place in the team filter
+    /// of data sharing).
+    pub fn vehicle_index(&self) -> usize {
+        self.sharing.as_ref().map_or(0, |s| s.vehicle_index())
+    }
+
+    /// The other vehicles' frames the team filter processed since the last call (data
+    /// sharing; empty otherwise).
+    pub fn take_remote_frames(&mut self) -> Vec<crate::sharing::RemoteFrame> {
+        self.sharing
+            .as_mut()
+            .map_or_else(Vec::new, |s| s.take_remote_frames())
     }
 
     /// Bearing-only initialization options and zero-velocity updates of the vehicle's
@@ -1274,6 +1303,9 @@ impl VehicleAgent {
     /// Fuses the received information batched since the last call into the EKF (done at the
     /// start of every round; call it before reading a final map).
     pub fn flush_fusion(&mut self) {
+        if self.sharing.is_some() {
+            return;
+        }
         self.fusion.flush(self.estimator.filter_mut());
     }
 
@@ -1300,16 +1332,25 @@ impl VehicleAgent {
 
     /// The estimator.
     pub fn filter(&self) -> &SlamFilter {
-        self.estimator.filter()
+        match &self.sharing {
+            Some(s) => s.filter(),
+            None => self.estimator.filter(),
+        }
     }
 
-    /// The DDF node (None in isolated mode).
+    /// The DDF node (None in isolated mode and with data sharing).
     pub fn ddf(&self) -> Option<&DdfNode> {
+        if self.sharing.is_some() {
+            return None;
+        }
         self.fusion.ddf()
     }
 
     /// The inputs its estimator rejected and the failures of its fusion half, by reason.
     pub fn rejections(&self) -> Rejections {
+        if let Some(s) = &self.sharing {
+            return s.rejections().clone();
+        }
         let mut r = self.estimator.rejections().clone();
         r.merge(&self.fusion.rejections().counts);
         r
@@ -1317,6 +1358,9 @@ impl VehicleAgent {
 
     /// Counters of both halves.
     pub fn counters(&self) -> AgentCounters {
+        if let Some(s) = &self.sharing {
+            return s.counters();
+        }
         self.estimator
             .counters()
             .with_fusion(self.fusion.counters())
@@ -1324,12 +1368,18 @@ impl VehicleAgent {
 
     /// One IMU sample (eqs. 21.46/21.47). A rejected sample leaves the estimate unchanged.
     pub fn on_imu(&mut self, imu: &ImuSample) -> Result<(), SlamError> {
-        self.estimator.on_imu(imu)
+        match &mut self.sharing {
+            Some(s) => s.on_imu(imu),
+            None => self.estimator.on_imu(imu),
+        }
     }
 
     /// One terrain-sensor frame (association, update, initialization).
     pub fn on_frame(&mut self, frame: &ObservationFrame) -> Result<FrameReport, SlamError> {
-        self.estimator.on_frame(frame)
+        match &mut self.sharing {
+            Some(s) => s.on_frame(frame),
+            None => self.estimator.on_frame(frame),
+        }
     }
 
     /// Makes the link to `peer` covariance intersection from the start.
@@ -1344,11 +1394,18 @@ impl VehicleAgent {
 
     /// Sets the byte budgets (delta or submap) of the next round, per link.
     pub fn set_link_budgets(&mut self, budgets: &[(NodeId, usize)]) -> Result<(), AgentError> {
+        if let Some(s) = &mut self.sharing {
+            s.set_link_budgets(budgets);
+            return Ok(());
+        }
         self.fusion.set_link_budgets(budgets)
     }
 
     /// A fusion round at time `now`: the messages to send.
     pub fn on_round(&mut self, now: f64) -> Result<Vec<Outgoing>, AgentError> {
+        if let Some(s) = &mut self.sharing {
+            return Ok(s.on_round(now));
+        }
         let out = self.fusion.round(self.estimator.filter_mut(), now);
         // The round may have moved the filter into the team frame (own frames).
         self.estimator.set_frame_owner(self.fusion.frame_owner());
@@ -1380,16 +1437,28 @@ impl VehicleAgent {
         from: NodeId,
         msg: DdfMessage,
     ) -> Result<Vec<Outgoing>, AgentError> {
+        if let Some(s) = &mut self.sharing {
+            s.on_message(now, from, msg);
+            return Ok(Vec::new());
+        }
         self.fusion.on_message(now, from, msg)
     }
 
     /// The link to `peer` came up.
     pub fn on_link_up(&mut self, now: f64, peer: NodeId) -> Result<Vec<Outgoing>, AgentError> {
+        if let Some(s) = &mut self.sharing {
+            s.on_link_up(now, peer);
+            return Ok(Vec::new());
+        }
         self.fusion.on_link_up(now, peer)
     }
 
     /// The link to `peer` went down.
     pub fn on_link_down(&mut self, peer: NodeId) -> Result<(), AgentError> {
+        if let Some(s) = &mut self.sharing {
+            s.on_link_down(peer);
+            return Ok(());
+        }
         self.fusion.on_link_down(peer)
     }
 }

@@ -20,6 +20,8 @@
 //!   true feature, wrong associations and merges, duplicates, unmatched features.
 //! - [`output`]: summary.json, TUM trajectories, CSVs and report.html.
 //! - [`agent`]: the vehicle and hub agents (estimator + DDF node, sans-IO).
+//! - [`sharing`]: data sharing (`[fusion] mode = "shared_data"`) — a vehicle's team filter
+//!   fed its own data and every other vehicle's records relayed over the tree.
 //! - [`frames`]: local SLAM in own frames — anchors, the alignment of a vehicle's frame with
 //!   the team frame, joining the channel filters after it.
 //! - [`sim`]: `canopy sim`, the whole scenario in one deterministic process.
@@ -52,6 +54,7 @@ pub mod radio;
 pub mod record;
 pub mod replay;
 pub mod scenario;
+pub mod sharing;
 pub mod sim;
 pub mod team;
 pub mod truth;

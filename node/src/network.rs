@@ -97,6 +97,10 @@ pub enum FusionMode {
     Central,
     /// No fusion: every vehicle runs its own SLAM (the baseline that shows the benefit).
     Isolated,
+    /// Data sharing: every vehicle's data (IMU increments, frames) relayed over the tree, and
+    /// every vehicle runs the team's EKF on all of it (`crate::sharing`; `canopy sim` only so
+    /// far).
+    SharedData,
 }
 
 impl std::fmt::Display for FusionMode {
@@ -105,6 +109,7 @@ impl std::fmt::Display for FusionMode {
             FusionMode::Decentralized => "decentralized",
             FusionMode::Central => "central",
             FusionMode::Isolated => "isolated",
+            FusionMode::SharedData => "shared_data",
         })
     }
 }
@@ -203,6 +208,9 @@ pub struct FusionConfig {
     /// marginals (default true; `false` is the ablation:
     /// `canopy_fusion::ddf::DdfConfig::uncertain_lists`).
     pub uncertain_lists: bool,
+    /// Data sharing: the rate [Hz] of the IMU increments a vehicle publishes (its IMU summed
+    /// over 1/`share_imu_hz`; default 10). A frame closes the increment before it.
+    pub share_imu_hz: f64,
 }
 
 /// When a vehicle process applies what its neighbours send (`[fusion] delivery`).
@@ -242,6 +250,7 @@ impl Default for FusionConfig {
                 .max_difference_sigma_m,
             radio_interval_s: 0.0,
             uncertain_lists: true,
+            share_imu_hz: 10.0,
         }
     }
 }
@@ -330,7 +339,8 @@ impl FusionConfig {
             FusionMode::Central => Mode::Central {
                 hub: NodeId(self.hub_id),
             },
-            FusionMode::Isolated => Mode::Isolated,
+            // Data sharing runs no channel filters (the agent's sharing half takes over).
+            FusionMode::Isolated | FusionMode::SharedData => Mode::Isolated,
         }
     }
 }
@@ -773,6 +783,31 @@ pub fn validate(s: &Scenario) -> Result<(), ScenarioError> {
             format!("must be in [0, 3600] s, got {}", f.radio_interval_s),
         ));
     }
+    if !(f.share_imu_hz.is_finite() && f.share_imu_hz > 0.0 && f.share_imu_hz <= 1000.0) {
+        return Err(ScenarioError::invalid(
+            "fusion.share_imu_hz",
+            format!("must be in (0, 1000] Hz, got {}", f.share_imu_hz),
+        ));
+    }
+    if f.mode == FusionMode::SharedData {
+        if s.world.frames == crate::scenario::Frames::Own {
+            return Err(ScenarioError::invalid(
+                "fusion.mode",
+                "\"shared_data\" needs the team's shared frame ([world] frames = \"shared\"): \
+                 a team filter over vehicles in unknown own frames is not built yet",
+            ));
+        }
+        if let Some(e) = s.events.iter().find(|e| e.restart_after_s.is_some()) {
+            return Err(ScenarioError::invalid(
+                "fusion.mode",
+                format!(
+                    "\"shared_data\" does not share restarts yet (the [[event]] at {} s \
+                     restarts a vehicle)",
+                    e.at_s
+                ),
+            ));
+        }
+    }
     let identity = s.world.appearance.identity;
     let kind = f.association_kind(identity);
     if kind == AssociationKind::Appearance && identity == Identity::Perfect {
@@ -889,11 +924,12 @@ pub fn validate(s: &Scenario) -> Result<(), ScenarioError> {
             .validate(&format!("{field}.faults"), run.duration_s)?;
         if let Some(r) = &l.radio {
             r.validate(&format!("{field}.radio"), s, [l.a, l.b])?;
-            if f.mode != FusionMode::Decentralized {
+            if !matches!(f.mode, FusionMode::Decentralized | FusionMode::SharedData) {
                 return Err(ScenarioError::invalid(
                     format!("{field}.radio"),
-                    "radio links need fusion.mode = \"decentralized\" (the hub keeps only \
-                     information, so it cannot fuse the CI submaps a radio link carries)",
+                    "radio links need fusion.mode = \"decentralized\" or \"shared_data\" (the \
+                     hub keeps only information, so it cannot fuse the CI submaps a radio link \
+                     carries)",
                 ));
             }
             if l.faults.bandwidth_bytes_per_s.is_some() {

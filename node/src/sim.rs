@@ -80,6 +80,14 @@ pub enum SimError {
     /// The reference filter could not be built.
     #[error("building the centralized reference: {0}")]
     Baseline(canopy_fusion::slam::SlamError),
+    /// The data-sharing half could not be built.
+    #[error("building {node}: {source}")]
+    Sharing {
+        /// Node name.
+        node: String,
+        /// Cause.
+        source: crate::sharing::SharingError,
+    },
     /// The simulated network could not be built.
     #[error("building link {link}: {reason}")]
     Link {
@@ -278,6 +286,37 @@ pub fn vehicle_agent(
             .then(|| s.world.appearance.association_distance());
         agent.use_own_frame(NodeId(root), distance);
     }
+    if s.fusion.mode == crate::network::FusionMode::SharedData {
+        // The team filter: every vehicle's models from the scenario; the others' estimates are
+        // placeholders (this vehicle's) until their streams' start records arrive.
+        let team: Vec<NodeId> = s.vehicles.iter().map(|v| NodeId(v.id)).collect();
+        let setups: Vec<_> = s
+            .vehicles
+            .iter()
+            .map(|v| estimator_setup(v, estimate))
+            .collect();
+        let sharing_error = |source| SimError::Sharing {
+            node: cfg.display_name(),
+            source,
+        };
+        let mut sharing = crate::sharing::Sharing::new(
+            NodeId(cfg.id),
+            epoch,
+            slam,
+            &team,
+            &setups,
+            &topo,
+            s.fusion.share_imu_hz,
+            s.world.appearance.identity == Identity::Appearance,
+        )
+        .map_err(sharing_error)?;
+        sharing
+            .filter_mut()
+            .set_bearing_config(cfg.bearing.config())
+            .map_err(|e| sharing_error(e.into()))?;
+        agent.use_sharing(sharing);
+        return Ok(agent);
+    }
     // Capacity-limited links: sparsified channel filters (default) or CI submaps from the
     // first round (`fusion = "ci"`).
     for &(peer, fusion) in &radio_peers {
@@ -319,6 +358,9 @@ struct Sim<'s> {
     /// `[world] frames = "own"`: each vehicle's own frame in the launch frame (truth, for the
     /// metrics only); empty with shared frames.
     launch_from_own: BTreeMap<NodeId, Frame4>,
+    /// Data sharing: the true ids of every vehicle's frames by (vehicle, time bits), for the
+    /// audit of the frames other vehicles' team filters process (truth, metrics only).
+    frame_truth: BTreeMap<(u32, u64), Vec<canopy_fusion::sensor::FeatureId>>,
 }
 
 impl<'s> Sim<'s> {
@@ -406,9 +448,15 @@ impl<'s> Sim<'s> {
             let node = self.nodes.get_mut(&id).expect("node exists");
             let out = match node.agent.as_mut() {
                 Some(Agent::Vehicle(a)) => {
+                    // Data sharing sends every round: a round's share of the capacity.
+                    let rate = if a.sharing().is_some() {
+                        self.s.fusion.rate_hz
+                    } else {
+                        self.s.fusion.budget_rate_hz()
+                    };
                     let budgets = crate::radio::capacity_budgets(
                         node.links.iter().map(|(&p, l)| (p, l)),
-                        self.s.fusion.budget_rate_hz(),
+                        rate,
                     );
                     // A refused budget is counted by reason by the fusion half.
                     let _ = a.set_link_budgets(&budgets);
@@ -420,6 +468,25 @@ impl<'s> Sim<'s> {
             node.send(now, out);
         }
         self.poll_network(now);
+        self.audit_remote_frames();
+    }
+
+    /// Data sharing: the other vehicles' frames each team filter processed, audited against
+    /// their true ids under the processing vehicle's keys.
+    fn audit_remote_frames(&mut self) {
+        for (id, node) in &mut self.nodes {
+            let Some(Agent::Vehicle(a)) = node.agent.as_mut() else {
+                continue;
+            };
+            for f in a.take_remote_frames() {
+                let truth = self.frame_truth.get(&(f.origin.0, f.time.to_bits()));
+                self.audit.frame(
+                    id.0,
+                    &FrameAssociations::from_report(f.time, &f.report),
+                    truth.map(Vec::as_slice),
+                );
+            }
+        }
     }
 
     fn record(&mut self, now: f64) {
@@ -428,7 +495,8 @@ impl<'s> Sim<'s> {
             if let Some(Agent::Vehicle(a)) = self.nodes.get(&id).and_then(|n| n.agent.as_ref()) {
                 let f = a.filter();
                 self.held[i].observe(now, f.features().into_iter().map(|x| x.0));
-                if let (Ok(est), Ok(cov)) = (f.vehicle_state(0), f.vehicle_covariance(0)) {
+                let v = a.vehicle_index();
+                if let (Ok(est), Ok(cov)) = (f.vehicle_state(v), f.vehicle_covariance(v)) {
                     let (est, cov) = state_in(&self.launch_from(a.frame_owner()), &est, &cov);
                     self.records[i].samples.push(match sim.truth() {
                         Some(truth) => pose_sample(&self.world, &est, &cov, truth),
@@ -552,6 +620,7 @@ pub fn simulate(s: &Scenario, mut opts: SimOptions<'_>) -> Result<SimOutcome, Si
     };
     let mut sim = Sim {
         launch_from_own,
+        frame_truth: BTreeMap::new(),
         s,
         world: world.clone(),
         vehicles,
@@ -843,6 +912,12 @@ pub fn simulate(s: &Scenario, mut opts: SimOptions<'_>) -> Result<SimOutcome, Si
                 sim.checks.inputs_rejected += 1;
             }
             if let Some((frame, true_ids)) = &out.frame {
+                if a.sharing().is_some()
+                    && let Some(ids) = true_ids
+                {
+                    sim.frame_truth
+                        .insert((id.0, frame.time.to_bits()), ids.clone());
+                }
                 match a.on_frame(frame) {
                     Ok(report) => {
                         sim.audit.frame(

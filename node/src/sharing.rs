@@ -1,0 +1,649 @@
+//! Data sharing at a vehicle (`[fusion] mode = "shared_data"`, docs/arch/sharing.md).
+//!
+//! Instead of map information, the team's *data* travels: each vehicle publishes its initial
+//! estimate, its IMU summed into increments of [`crate::network::FusionConfig::share_imu_hz`]
+//! and its terrain frames as records of its stream; the relay
+//! ([`canopy_fusion::share::Relay`]) carries every stream over the tree to every node, once and
+//! in order, within each link's byte budget. Every vehicle runs one EKF over the whole team
+//! (M = N vehicles, the centralized reference's filter): its own samples as they come, every
+//! other vehicle's records as they arrive. A static map makes the order across vehicles
+//! immaterial (each vehicle's records stay in their order), so each node holds the centralized
+//! estimate of the data it has received: consistent as the reference is, and equal to it up to
+//! the linearisation points once the data is through.
+//!
+//! Tracker ids are per vehicle: a remote frame's descriptors are moved into its origin's
+//! namespace before association (under appearance identities; with perfect identities the
+//! descriptors are the true ids, the ablation, and stay as they are).
+
+use std::collections::BTreeMap;
+
+use canopy_fusion::ddf::{Body, DdfMessage, Header, Outgoing};
+use canopy_fusion::ins::{VehicleCovariance, VehicleState};
+use canopy_fusion::sensor::{ImuSample, ObservationFrame};
+use canopy_fusion::share::{Item, Relay, RelayConfig, ShareError, StreamId};
+use canopy_fusion::slam::{FrameReport, SlamConfig, SlamError, SlamFilter, VehicleSetup};
+use canopy_fusion::topology::{NodeId, Topology};
+use nalgebra::Vector3;
+
+use crate::agent::{AgentCounters, Rejections, variant_key};
+
+/// A round's batch budget on a link without a radio (shared memory, zenoh): large enough for
+/// any backlog of a team's data without being unbounded.
+pub const UNLIMITED_ROUND_BYTES: usize = 4 << 20;
+
+/// A remote frame the team filter processed: what the monitor audits against the truth.
+#[derive(Clone, Debug)]
+pub struct RemoteFrame {
+    /// The vehicle that observed it.
+    pub origin: NodeId,
+    /// Its time.
+    pub time: f64,
+    /// What the filter did with it.
+    pub report: FrameReport,
+}
+
+/// Counters of data sharing at one vehicle.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+pub struct SharingCounters {
+    /// Records of other vehicles applied to the team filter.
+    pub applied: u64,
+    /// Records the team filter refused (counted by reason in the rejections).
+    pub refused: u64,
+    /// The relay's counters.
+    pub relay: canopy_fusion::share::RelayCounters,
+}
+
+/// Sums IMU samples into one increment (mean specific force and rate over its Δt).
+#[derive(Clone, Debug, Default)]
+struct Increment {
+    sum: Option<ImuSample>,
+}
+
+impl Increment {
+    fn add(&mut self, s: &ImuSample) {
+        let a = self.sum.get_or_insert(ImuSample {
+            time: s.time,
+            dt: 0.0,
+            specific_force: Vector3::zeros(),
+            angular_rate: Vector3::zeros(),
+        });
+        a.time = s.time;
+        a.dt += s.dt;
+        a.specific_force += s.specific_force * s.dt;
+        a.angular_rate += s.angular_rate * s.dt;
+    }
+
+    fn dt(&self) -> f64 {
+        self.sum.as_ref().map_or(0.0, |a| a.dt)
+    }
+
+    fn take(&mut self) -> Option<ImuSample> {
+        let mut a = self.sum.take()?;
+        a.specific_force /= a.dt;
+        a.angular_rate /= a.dt;
+        Some(a)
+    }
+}
+
+/// The data-sharing half of a vehicle: its team filter and relay.
+#[derive(Debug)]
+pub struct Sharing {
+    me: NodeId,
+    epoch: u64,
+    /// Team order (the scenario's): index in the team filter.
+    team: Vec<NodeId>,
+    index: usize,
+    filter: SlamFilter,
+    relay: Relay<Item>,
+    started: Vec<bool>,
+    increment: Increment,
+    increment_s: f64,
+    namespaced: bool,
+    budgets: BTreeMap<NodeId, usize>,
+    neighbours: Vec<NodeId>,
+    remote_frames: Vec<RemoteFrame>,
+    counters: AgentCounters,
+    sharing: SharingCounters,
+    rejections: Rejections,
+}
+
+impl Sharing {
+    /// The sharing half of vehicle `me` (process start `epoch`). `setups` gives every vehicle
+    /// of `team` (scenario order) its models (IMU noise, sensor, mount); the state and
+    /// covariance of each one but `me` are placeholders until its stream's start record
+    /// arrives (nothing touches a vehicle before). `namespaced`: remote tracker ids are
+    /// moved into their origin's namespace (appearance identities).
+    #[allow(clippy::too_many_arguments)]
+    pub fn new(
+        me: NodeId,
+        epoch: u64,
+        slam: SlamConfig,
+        team: &[NodeId],
+        setups: &[VehicleSetup],
+        topology: &Topology,
+        share_imu_hz: f64,
+        namespaced: bool,
+    ) -> Result<Self, SharingError> {
+        let index = team
+            .iter()
+            .position(|&v| v == me)
+            .ok_or(SharingError::NotInTeam(me))?;
+        if setups.len() != team.len() {
+            return Err(SharingError::Setup(format!(
+                "{} setups for {} vehicles",
+                setups.len(),
+                team.len()
+            )));
+        }
+        if !(share_imu_hz.is_finite() && share_imu_hz > 0.0) {
+            return Err(SharingError::Setup(format!(
+                "share_imu_hz {share_imu_hz} must be positive"
+            )));
+        }
+        let filter = SlamFilter::new(slam, setups)?;
+        let mut relay = Relay::new(me, epoch, topology, RelayConfig::default())?;
+        let own = &setups[index];
+        relay.publish(Item::Start {
+            state: own.state,
+            covariance: Box::new(own.covariance),
+        })?;
+        let mut started = vec![false; team.len()];
+        started[index] = true;
+        Ok(Self {
+            me,
+            epoch,
+            team: team.to_vec(),
+            index,
+            filter,
+            relay,
+            started,
+            increment: Increment::default(),
+            increment_s: 1.0 / share_imu_hz,
+            namespaced,
+            budgets: BTreeMap::new(),
+            neighbours: topology.neighbours(me).unwrap_or_default().to_vec(),
+            remote_frames: Vec::new(),
+            counters: AgentCounters::default(),
+            sharing: SharingCounters::default(),
+            rejections: Rejections::default(),
+        })
+    }
+
+    /// The team filter.
+    pub fn filter(&self) -> &SlamFilter {
+        &self.filter
+    }
+
+    /// The team filter, mutable (bearing options).
+    pub fn filter_mut(&mut self) -> &mut SlamFilter {
+        &mut self.filter
+    }
+
+    /// This vehicle's index in the team filter.
+    pub fn vehicle_index(&self) -> usize {
+        self.index
+    }
+
+    /// Counters of its own inputs.
+    pub fn counters(&self) -> AgentCounters {
+        self.counters
+    }
+
+    /// Counters of sharing.
+    pub fn sharing_counters(&self) -> SharingCounters {
+        SharingCounters {
+            relay: self.relay.counters(),
+            ..self.sharing
+        }
+    }
+
+    /// Everything refused, by reason.
+    pub fn rejections(&self) -> &Rejections {
+        &self.rejections
+    }
+
+    /// The remote frames processed since the last call.
+    pub fn take_remote_frames(&mut self) -> Vec<RemoteFrame> {
+        std::mem::take(&mut self.remote_frames)
+    }
+
+    /// The relay (what it holds).
+    pub fn relay(&self) -> &Relay<Item> {
+        &self.relay
+    }
+
+    fn publish(&mut self, item: Item) {
+        if let Err(e) = self.relay.publish(item) {
+            self.rejections
+                .add(format!("share.publish.{}", e.reason()), 1, &e);
+        }
+    }
+
+    fn publish_increment(&mut self) {
+        if let Some(inc) = self.increment.take() {
+            self.publish(Item::Imu(inc));
+        }
+    }
+
+    /// One own IMU sample: predicted at once, summed into the increment it publishes.
+    pub fn on_imu(&mut self, imu: &ImuSample) -> Result<(), SlamError> {
+        match self.filter.predict(self.index, imu) {
+            Ok(()) => {
+                self.counters.imu_samples += 1;
+                self.increment.add(imu);
+                if self.increment.dt() >= self.increment_s - 1e-9 {
+                    self.publish_increment();
+                }
+                Ok(())
+            }
+            Err(e) => {
+                self.counters.imu_rejected += 1;
+                self.rejections.imu(&e);
+                Err(e)
+            }
+        }
+    }
+
+    /// One own frame: the increment up to it is published first, then the frame; the team
+    /// filter processes it at once.
+    pub fn on_frame(&mut self, frame: &ObservationFrame) -> Result<FrameReport, SlamError> {
+        self.publish_increment();
+        self.publish(Item::Frame(frame.clone()));
+        let own = self.namespace(self.index, frame);
+        match self.filter.process_frame(self.index, &own) {
+            Ok(report) => {
+                self.counters.frames += 1;
+                self.counters.observations += report.outcomes.len() as u64;
+                self.counters.associated += report.associated() as u64;
+                self.counters.initialized += report.initialized() as u64;
+                self.counters.rejected_observations += report.rejected() as u64;
+                self.rejections.outcomes(&report);
+                Ok(report)
+            }
+            Err(e) => {
+                self.counters.frames_rejected += 1;
+                self.rejections.frame(&e, frame.observations.len());
+                Err(e)
+            }
+        }
+    }
+
+    /// Tracker ids of vehicle `index` in its own namespace (appearance identities).
+    fn namespace(&self, index: usize, frame: &ObservationFrame) -> ObservationFrame {
+        let mut f = frame.clone();
+        if self.namespaced {
+            for o in &mut f.observations {
+                o.descriptor ^= (index as u64 + 1) << 48;
+            }
+        }
+        f
+    }
+
+    /// The byte budgets of the next round, per link (links not listed: [`UNLIMITED_ROUND_BYTES`]).
+    pub fn set_link_budgets(&mut self, budgets: &[(NodeId, usize)]) {
+        self.budgets = budgets.iter().copied().collect();
+    }
+
+    /// A round: applies what arrived, then a batch for every neighbour whose link is up.
+    pub fn on_round(&mut self, now: f64) -> Vec<Outgoing> {
+        self.apply_ready();
+        let mut out = Vec::new();
+        for peer in self.neighbours.clone() {
+            let budget = self
+                .budgets
+                .get(&peer)
+                .copied()
+                .unwrap_or(UNLIMITED_ROUND_BYTES);
+            if let Some(batch) = self.relay.outgoing(peer, budget, now) {
+                out.push(Outgoing {
+                    to: peer,
+                    message: DdfMessage {
+                        header: Header {
+                            from_epoch: self.epoch,
+                            to_epoch: None,
+                            challenge: 0,
+                            echo_epoch: 0,
+                            echo: 0,
+                        },
+                        body: Body::Share(batch),
+                    },
+                });
+            }
+        }
+        out
+    }
+
+    /// A message from a neighbour: a batch is taken by the relay (refused records counted by
+    /// reason); any other kind is refused (a neighbour in another fusion mode).
+    pub fn on_message(&mut self, now: f64, from: NodeId, msg: DdfMessage) {
+        let kind = msg.kind();
+        let Body::Share(batch) = msg.body else {
+            let e = SharingError::Unexpected { from, kind };
+            self.rejections.add(
+                format!("share.message.{}", variant_key(&format!("{e:?}"))),
+                1,
+                &e,
+            );
+            return;
+        };
+        match self.relay.on_batch(from, batch, now) {
+            Ok(got) => {
+                for e in &got.refused {
+                    self.rejections
+                        .add(format!("share.record.{}", e.reason()), 1, e);
+                }
+            }
+            Err(e) => self
+                .rejections
+                .add(format!("share.batch.{}", e.reason()), 1, &e),
+        }
+        // Applied at the next round (as the channel filters fuse their batch).
+    }
+
+    /// The link to `peer` came up.
+    pub fn on_link_up(&mut self, now: f64, peer: NodeId) {
+        self.relay.on_link_up(peer, now);
+    }
+
+    /// The link to `peer` went down.
+    pub fn on_link_down(&mut self, peer: NodeId) {
+        self.relay.on_link_down(peer);
+    }
+
+    /// Applies every record that is ready, in each stream's order.
+    fn apply_ready(&mut self) {
+        for (stream, seq, item) in self.relay.take_ready() {
+            if stream.origin == self.me {
+                if stream.epoch != self.epoch {
+                    self.refuse(
+                        stream,
+                        seq,
+                        "earlier_incarnation",
+                        &"restarts are not shared yet",
+                    );
+                }
+                continue;
+            }
+            let Some(index) = self.team.iter().position(|&v| v == stream.origin) else {
+                self.refuse(stream, seq, "not_in_team", &"origin not in the team");
+                continue;
+            };
+            match item {
+                Item::Start { state, covariance } => {
+                    self.start(stream, seq, index, &state, &covariance)
+                }
+                Item::Imu(imu) if self.started[index] => {
+                    if let Err(e) = self.filter.predict(index, &imu) {
+                        self.refuse(
+                            stream,
+                            seq,
+                            &format!("imu.{}", variant_key(&format!("{e:?}"))),
+                            &e,
+                        );
+                    } else {
+                        self.sharing.applied += 1;
+                    }
+                }
+                Item::Frame(frame) if self.started[index] => {
+                    let f = self.namespace(index, &frame);
+                    match self.filter.process_frame(index, &f) {
+                        Ok(report) => {
+                            self.sharing.applied += 1;
+                            self.remote_frames.push(RemoteFrame {
+                                origin: stream.origin,
+                                time: frame.time,
+                                report,
+                            });
+                        }
+                        Err(e) => self.refuse(
+                            stream,
+                            seq,
+                            &format!("frame.{}", variant_key(&format!("{e:?}"))),
+                            &e,
+                        ),
+                    }
+                }
+                Item::Imu(_) | Item::Frame(_) => self.refuse(
+                    stream,
+                    seq,
+                    "before_start",
+                    &"a record before its stream's start",
+                ),
+            }
+        }
+    }
+
+    fn start(
+        &mut self,
+        stream: StreamId,
+        seq: u64,
+        index: usize,
+        state: &VehicleState,
+        covariance: &VehicleCovariance,
+    ) {
+        if self.started[index] {
+            // A second start: a restart of that vehicle (a new stream), not shared yet.
+            self.refuse(stream, seq, "restart", &"restarts are not shared yet");
+            return;
+        }
+        match self.filter.start_vehicle(index, state, covariance) {
+            Ok(()) => {
+                self.started[index] = true;
+                self.sharing.applied += 1;
+            }
+            Err(e) => self.refuse(stream, seq, "start", &e),
+        }
+    }
+
+    fn refuse(&mut self, stream: StreamId, seq: u64, reason: &str, cause: &dyn std::fmt::Display) {
+        self.sharing.refused += 1;
+        let _ = (stream, seq);
+        self.rejections
+            .add(format!("share.apply.{reason}"), 1, cause);
+    }
+}
+
+/// Errors of data sharing at a vehicle.
+#[derive(Debug, thiserror::Error)]
+pub enum SharingError {
+    /// The vehicle is not in the team.
+    #[error("vehicle {0} is not in the team")]
+    NotInTeam(NodeId),
+    /// The setup is unusable.
+    #[error("data sharing: {0}")]
+    Setup(String),
+    /// The team filter could not be built.
+    #[error(transparent)]
+    Filter(#[from] SlamError),
+    /// The relay could not be built.
+    #[error(transparent)]
+    Relay(#[from] ShareError),
+    /// A message kind data sharing does not take.
+    #[error("a {kind} message from node {from}: data sharing takes batches only")]
+    Unexpected {
+        /// The sender.
+        from: NodeId,
+        /// Its kind.
+        kind: &'static str,
+    },
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::network::FusionMode;
+    use crate::scenario::Scenario;
+    use canopy_fusion::share::{Batch, ShareRecord};
+
+    /// The built-in team (tree 1 − 3, 2 − 3, 3 − 4) in data-sharing mode, and uav3's and
+    /// uav1's agents (uav3 is index 2, the hub; uav1 a leaf).
+    fn agents() -> (
+        Scenario,
+        crate::agent::VehicleAgent,
+        crate::agent::VehicleAgent,
+    ) {
+        let mut s = Scenario::builtin_default();
+        s.fusion.mode = FusionMode::SharedData;
+        let (world, sources) = crate::replay::SensorSource::for_scenario(&s).unwrap();
+        let build = |i: usize| {
+            crate::sim::vehicle_agent(
+                &s,
+                &s.vehicles[i],
+                &world,
+                &sources[i].initial_estimate(),
+                0,
+                11 + i as u64,
+            )
+            .unwrap()
+        };
+        let (hub, leaf) = (build(2), build(0));
+        (s, hub, leaf)
+    }
+
+    fn batch(records: Vec<(StreamId, u64, Item)>) -> DdfMessage {
+        DdfMessage {
+            header: Header {
+                from_epoch: 99,
+                to_epoch: None,
+                challenge: 0,
+                echo_epoch: 0,
+                echo: 0,
+            },
+            body: Body::Share(Batch {
+                epoch: 99,
+                number: 1,
+                have: Vec::new(),
+                records,
+            }),
+        }
+    }
+
+    /// What it proves: a vehicle publishes its start, then its IMU as increments at
+    /// `share_imu_hz` (10 per second of 100-Hz samples), a frame closing the increment before
+    /// it; each increment's Δt sums its samples'.
+    #[test]
+    fn own_data_goes_out_as_a_start_and_ten_increments_per_second() {
+        let (s, _, mut leaf) = agents();
+        let (_, mut sources) = crate::replay::SensorSource::for_scenario(&s).unwrap();
+        let mut frames = 0;
+        let mut imu_dt = 0.0;
+        for _ in 0..100 {
+            let st = sources[0].step().unwrap();
+            imu_dt += st.imu.dt;
+            leaf.on_imu(&st.imu).unwrap();
+            if let Some((f, _)) = &st.frame {
+                frames += 1;
+                let _ = leaf.on_frame(f);
+            }
+        }
+        let sharing = leaf.sharing().unwrap();
+        let own = sharing.relay().own_stream();
+        let mut relay = sharing.relay().clone();
+        let records: Vec<Item> = relay
+            .take_ready()
+            .into_iter()
+            .filter(|(id, _, _)| *id == own)
+            .map(|(_, _, r)| r)
+            .collect();
+        assert!(matches!(records[0], Item::Start { .. }));
+        let increments: Vec<&ImuSample> = records
+            .iter()
+            .filter_map(|r| match r {
+                Item::Imu(i) => Some(i),
+                _ => None,
+            })
+            .collect();
+        let shared_frames = records
+            .iter()
+            .filter(|r| matches!(r, Item::Frame(_)))
+            .count();
+        assert_eq!(shared_frames, frames);
+        // 1 s of samples: 10 increments, plus one more per frame that closed one early.
+        assert!(
+            (10..=10 + frames).contains(&increments.len()),
+            "{} increments, {frames} frames",
+            increments.len()
+        );
+        let summed: f64 = increments.iter().map(|i| i.dt).sum();
+        assert!((summed - imu_dt).abs() < 1e-9, "{summed} vs {imu_dt}");
+        assert!(records.iter().all(|r| r.validate().is_ok()));
+    }
+
+    /// What it proves: hostile or misdirected input is refused, counted by reason, and leaves
+    /// the team filter as it was: a channel-filter message at a data-sharing vehicle, a batch
+    /// from a vehicle that is not a neighbour, a start record whose covariance is not positive
+    /// definite, and frames of a vehicle whose start has not arrived; and a data-sharing batch
+    /// at a channel-filter vehicle is refused there by its DDF node.
+    #[test]
+    fn hostile_input_is_refused_by_reason_and_harmless() {
+        let (s, mut hub, _) = agents();
+        let uav1 = NodeId(s.vehicles[0].id);
+        let uav2 = NodeId(s.vehicles[1].id);
+        let stream = StreamId {
+            origin: uav1,
+            epoch: 5,
+        };
+        let features = hub.filter().num_features();
+        let state = hub.filter().vehicle_state(0).unwrap();
+        let mut hello = batch(Vec::new());
+        hello.body = Body::Nack { applied: 0 };
+        hub.on_message(0.0, uav1, hello).unwrap();
+        hub.on_message(0.0, NodeId(77), batch(Vec::new())).unwrap();
+        let mut not_pd = VehicleCovariance::identity();
+        not_pd[(4, 4)] = -1.0;
+        hub.on_message(
+            0.0,
+            uav1,
+            batch(vec![(
+                stream,
+                0,
+                Item::Start {
+                    state,
+                    covariance: Box::new(not_pd),
+                },
+            )]),
+        )
+        .unwrap();
+        let frame = ObservationFrame {
+            time: 0.5,
+            observations: Vec::new(),
+        };
+        hub.on_message(
+            0.0,
+            uav2,
+            batch(vec![(
+                StreamId {
+                    origin: uav2,
+                    epoch: 6,
+                },
+                0,
+                Item::Frame(frame.clone()),
+            )]),
+        )
+        .unwrap();
+        hub.on_round(1.0).unwrap();
+        let r = hub.rejections().counts;
+        assert_eq!(r.get("share.message.unexpected"), Some(&1), "{r:?}");
+        assert_eq!(r.get("share.batch.not_neighbour"), Some(&1), "{r:?}");
+        assert_eq!(r.get("share.record.invalid_record"), Some(&1), "{r:?}");
+        assert_eq!(r.get("share.apply.before_start"), Some(&1), "{r:?}");
+        assert_eq!(hub.filter().num_features(), features);
+        assert_eq!(hub.filter().vehicle_state(0).unwrap(), state);
+
+        // A channel-filter vehicle refuses a data-sharing batch.
+        let mut ddf = s.clone();
+        ddf.fusion.mode = FusionMode::Decentralized;
+        let (world, sources) = crate::replay::SensorSource::for_scenario(&ddf).unwrap();
+        let mut dec = crate::sim::vehicle_agent(
+            &ddf,
+            &ddf.vehicles[2],
+            &world,
+            &sources[2].initial_estimate(),
+            0,
+            3,
+        )
+        .unwrap();
+        assert!(dec.on_message(0.0, uav1, batch(Vec::new())).is_err());
+        assert_eq!(dec.counters().fusion.messages_rejected, 1);
+    }
+}
