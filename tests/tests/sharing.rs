@@ -1,0 +1,187 @@
+//! Data sharing (`[fusion] mode = "shared_data"`, issue 13; docs/arch/sharing.md) in
+//! `canopy sim`: every vehicle's data relayed over the tree and every vehicle running the
+//! team's EKF on all of it.
+//!
+//! It proves, on the shipped radio scenarios with the mode switched to data sharing, over the
+//! issue's 300 s: each vehicle's final map is the centralized all-data reference's (pooled map
+//! RMSE within 5 %, map and pose ANEES within 10 % of the reference's), no vehicle is ever
+//! more confident about a feature than the reference, no association is wrong, and every link
+//! end stays within its radio's capacity (mean and every ten-second window) — at 8 kB/s, the
+//! issue's goal beyond, and over range-limited links that drop and come back. The reference
+//! is an independent filter (one EKF fed every sample in time order, with the true ids); the
+//! vehicles get the data late, out of order across vehicles, with remote IMU in 0.1-s
+//! increments and appearance association, so equality is not built in: a stream lost, applied
+//! twice or out of order shows as a larger RMSE or ANEES.
+
+use canopy_node::network::FusionMode;
+use canopy_node::record::{LinkRecord, VehicleRecord};
+use canopy_node::scenario::Scenario;
+use canopy_node::sim::{SimOptions, SimOutcome, simulate};
+use canopy_tests::montecarlo::{map_consistency, pose_consistency};
+
+/// The issue's duration.
+const DURATION: f64 = 300.0;
+/// Largest team map RMSE / reference: measured 1.002 (radio-8k) and 1.007 (radio-range). The
+/// vehicles' filters are the reference's EKF on the same data, linearised in another order
+/// (remote data arrives a round per hop late) with remote IMU in 0.1-s increments; 5 % bounds
+/// that, while a lost stream (a vehicle's frames missing from the others' maps) or one applied
+/// twice moves it by far more (decentralized channel filters at 8 kB/s: 1.02–1.18).
+const MAX_MAP_RATIO: f64 = 1.05;
+/// Largest map or pose ANEES / the reference's: the issue's bar (1.1× the exact run's).
+const MAX_ANEES_RATIO: f64 = 1.1;
+/// Largest λ_max(P_ref P_i⁻¹) over features and record times: linearisation points differ
+/// between the filters (the decentralized suite's bound, tests/tests/mc_team.rs); counting
+/// data twice would show as ≈ 2.
+const MAX_CONFIDENCE_RATIO: f64 = 1.2;
+
+fn load(path: &str) -> Scenario {
+    let file = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("..")
+        .join(path);
+    let mut s = Scenario::load(&file).expect("scenario loads");
+    s.fusion.mode = FusionMode::SharedData;
+    s.run.duration_s = DURATION;
+    s
+}
+
+fn run(s: &Scenario) -> SimOutcome {
+    simulate(
+        s,
+        SimOptions {
+            baseline: Some(true),
+            ..SimOptions::default()
+        },
+    )
+    .expect("simulation runs")
+}
+
+/// Largest mean and ten-second-window rate [bytes/s] any end of `link` sent.
+fn rates(link: &LinkRecord) -> (f64, f64) {
+    let mut mean: f64 = 0.0;
+    let mut window: f64 = 0.0;
+    for end in [0, 1] {
+        let series: Vec<(f64, f64)> = link
+            .samples
+            .iter()
+            .map(|x| (x.t, if end == 0 { x.bytes_ab } else { x.bytes_ba } as f64))
+            .collect();
+        if let Some(&(t, b)) = series.last() {
+            mean = mean.max(b / t);
+        }
+        for w in series.windows(11) {
+            let (t0, b0) = w[0];
+            let (t1, b1) = w[10];
+            window = window.max((b1 - b0) / (t1 - t0));
+        }
+    }
+    (mean, window)
+}
+
+/// The checks of the module docs on one run; returns (map ratio, busiest mean, busiest window).
+fn assert_is_the_reference(name: &str, o: &SimOutcome, capacity: f64) -> (f64, f64, f64) {
+    let vehicles: Vec<&VehicleRecord> = o.record.vehicles.iter().collect();
+    let reference = o.record.baseline.as_ref().expect("the reference ran");
+    let ours = map_consistency(&vehicles);
+    let theirs = map_consistency(&[&reference[0]]);
+    let pose_ours = pose_consistency(&vehicles, 0.0).time_mean;
+    let pose_theirs = pose_consistency(&reference.iter().collect::<Vec<_>>(), 0.0).time_mean;
+    let ratio = ours.rmse / theirs.rmse;
+    let confidence = o
+        .checks
+        .confidence_ratio
+        .iter()
+        .map(|x| x.1)
+        .fold(0.0, f64::max);
+    let wrong: u64 = vehicles
+        .iter()
+        .map(|v| v.association.wrong_associations)
+        .sum();
+    let (mut mean, mut window) = (0.0_f64, 0.0_f64);
+    for l in &o.record.links {
+        let (m, w) = rates(l);
+        mean = mean.max(m);
+        window = window.max(w);
+    }
+    println!(
+        "{name}: map RMSE {:.3} m (reference {:.3}, {ratio:.3}×), map ANEES {:.3} ({:.3}), \
+         pose ANEES {pose_ours:.3} ({pose_theirs:.3}), confidence ratio ≤ {confidence:.3}, \
+         busiest link end {mean:.0} B/s mean, {window:.0} B/s over 10 s",
+        ours.rmse, theirs.rmse, ours.anees, theirs.anees
+    );
+    assert!(
+        ratio <= MAX_MAP_RATIO,
+        "{name}: map RMSE {ratio:.3}× the reference"
+    );
+    assert!(
+        ours.anees <= MAX_ANEES_RATIO * theirs.anees,
+        "{name}: map ANEES {:.3} against the reference's {:.3}",
+        ours.anees,
+        theirs.anees
+    );
+    assert!(
+        pose_ours <= MAX_ANEES_RATIO * pose_theirs,
+        "{name}: pose ANEES {pose_ours:.3} against the reference's {pose_theirs:.3}"
+    );
+    assert!(
+        confidence <= MAX_CONFIDENCE_RATIO,
+        "{name}: a vehicle was {confidence:.3}× more confident than the reference"
+    );
+    assert_eq!(wrong, 0, "{name}: wrong associations");
+    assert!(
+        mean <= capacity,
+        "{name}: a link end averaged {mean:.0} B/s"
+    );
+    assert!(
+        window <= capacity,
+        "{name}: a link end sent {window:.0} B/s over 10 s"
+    );
+    for v in &vehicles {
+        let refused: u64 = v
+            .rejections
+            .iter()
+            .filter(|(k, _)| k.starts_with("share."))
+            .map(|(_, n)| n)
+            .sum();
+        assert_eq!(
+            refused, 0,
+            "{name}: {} refused shared records: {:?}",
+            v.name, v.rejections
+        );
+    }
+    (ratio, mean, window)
+}
+
+/// Over 8 kB/s radios (the issue's goal beyond: ≤ 8 kB/s per link at ≤ 1.25× the
+/// reference), each vehicle holds the reference's map.
+#[test]
+fn shared_data_over_8k_radios_is_the_reference() {
+    let s = load("topologies/radio-8k.toml");
+    let o = run(&s);
+    assert_is_the_reference("radio-8k", &o, 8_000.0);
+}
+
+/// Over range-limited radios (`topologies/radio-range.toml`: a link is up only while its two
+/// vehicles are within 1200 m), the records lost while a link was out of range are sent
+/// again when it is back, and each vehicle still ends with the reference's map. Premise
+/// asserted: the links did drop messages.
+#[test]
+fn shared_data_over_range_limited_radios_catches_up() {
+    let s = load("topologies/radio-range.toml");
+    let capacity = s
+        .links
+        .iter()
+        .filter_map(|l| l.radio.as_ref().map(|r| r.bytes_per_s))
+        .fold(f64::INFINITY, f64::min);
+    let o = run(&s);
+    let drops: u64 = o
+        .record
+        .links
+        .iter()
+        .filter_map(|l| l.samples.last().map(|x| x.drops))
+        .sum();
+    assert!(
+        drops > 0,
+        "the premise: range-limited links dropped messages"
+    );
+    assert_is_the_reference("radio-range", &o, capacity);
+}
