@@ -537,9 +537,10 @@ fn cmd_check(path: &Path) -> Result<()> {
             Some(r) => format!(
                 ", radio {} B/s ({} of ≤ {} bytes per round), queue {} B, latency {} s{}",
                 r.bytes_per_s,
-                match r.fusion {
-                    crate::radio::RadioFusion::Sparse => "sparsified deltas",
-                    crate::radio::RadioFusion::Ci => "CI submaps",
+                match (s.fusion.mode, r.fusion) {
+                    (FusionMode::SharedData, _) => "data batches",
+                    (_, crate::radio::RadioFusion::Sparse) => "sparsified deltas",
+                    (_, crate::radio::RadioFusion::Ci) => "CI submaps",
                 },
                 r.delta_budget(&s.fusion),
                 r.queue_bytes(&s.fusion),

@@ -2,8 +2,8 @@
 //! `canopy sim`: every vehicle's data relayed over the tree and every vehicle running the
 //! team's EKF on all of it.
 //!
-//! It proves, on the shipped radio scenarios with the mode switched to data sharing, over the
-//! issue's 300 s: each vehicle's final map is the centralized all-data reference's (pooled map
+//! It proves, on the shipped `topologies/shared-data-8k.toml` and on the range-limited radio
+//! team switched to data sharing, over the 300 s: each vehicle's final map is the centralized all-data reference's (pooled map
 //! RMSE within 5 %, map and pose ANEES within 10 % of the reference's), no vehicle is ever
 //! more confident about a feature than the reference, no association is wrong, and every link
 //! end stays within its radio's capacity (mean and every ten-second window) — at 8 kB/s, the
@@ -152,10 +152,11 @@ fn assert_is_the_reference(name: &str, o: &SimOutcome, capacity: f64) -> (f64, f
 }
 
 /// Over 8 kB/s radios (the goal beyond: ≤ 8 kB/s per link at ≤ 1.25× the
-/// reference), each vehicle holds the reference's map.
+/// reference), each vehicle holds the reference's map: the shipped
+/// `topologies/shared-data-8k.toml`.
 #[test]
 fn shared_data_over_8k_radios_is_the_reference() {
-    let s = load("topologies/radio-8k.toml");
+    let s = load("topologies/shared-data-8k.toml");
     let o = run(&s);
     assert_is_the_reference("radio-8k", &o, 8_000.0);
 }
