@@ -338,6 +338,11 @@ impl<R: ShareRecord> Relay<R> {
             .collect()
     }
 
+    /// The records held of `stream`, contiguous from the first.
+    pub fn records(&self, stream: StreamId) -> &[R] {
+        self.streams.get(&stream).map_or(&[], |s| &s.records)
+    }
+
     /// Appends a record to this node's stream; its number.
     pub fn publish(&mut self, record: R) -> Result<Seq, ShareError> {
         let stream = self.streams.entry(self.own).or_default();

@@ -377,6 +377,9 @@ pub struct VehicleFusion {
     /// paired with its dead incarnation until it speaks (and it says nothing before it has
     /// aligned): it gets anchors until its information arrives.
     reanchor: BTreeSet<NodeId>,
+    /// Data sharing (`[fusion] mode = "shared_data"`): the relay, and the other vehicles'
+    /// records applied at each round instead of channel filters.
+    sharing: Option<Box<crate::sharing::Relaying>>,
 }
 
 impl VehicleFusion {
@@ -414,7 +417,32 @@ impl VehicleFusion {
             team_frame: None,
             awaiting_rebase: None,
             reanchor: BTreeSet::new(),
+            sharing: None,
         })
+    }
+
+    /// Data sharing: `relaying` takes the messages and the rounds.
+    pub fn use_sharing(&mut self, relaying: crate::sharing::Relaying) {
+        self.sharing = Some(Box::new(relaying));
+    }
+
+    /// The data-sharing half, when the vehicle shares data.
+    pub fn sharing(&self) -> Option<&crate::sharing::Relaying> {
+        self.sharing.as_deref()
+    }
+
+    /// Data sharing: this vehicle's records into its stream (nothing otherwise).
+    pub fn publish_own(&mut self, records: Vec<canopy_fusion::share::Item>) {
+        if let Some(s) = self.sharing.as_mut() {
+            s.publish(records, &mut self.rejections);
+        }
+    }
+
+    /// Data sharing: the other vehicles' frames processed since the last call.
+    pub fn take_remote_frames(&mut self) -> Vec<crate::sharing::RemoteFrame> {
+        self.sharing
+            .as_mut()
+            .map_or_else(Vec::new, |s| s.take_remote_frames())
     }
 
     /// Local SLAM with every vehicle in its own frame (module [`crate::frames`]): this vehicle
@@ -781,6 +809,10 @@ impl VehicleFusion {
     /// Sets the submap byte budgets of the next round, per link (capacity-limited links: the
     /// driver derives them from each link's capacity and outbound queue, [`crate::radio`]).
     pub fn set_link_budgets(&mut self, budgets: &[(NodeId, usize)]) -> Result<(), AgentError> {
+        if let Some(s) = self.sharing.as_mut() {
+            s.set_link_budgets(budgets);
+            return Ok(());
+        }
         if let Some(d) = self.ddf.as_mut() {
             for &(peer, b) in budgets {
                 if let Err(e) = d.set_link_budget(peer, Some(b)) {
@@ -814,6 +846,11 @@ impl VehicleFusion {
         now: f64,
         emit: &mut dyn FnMut(Outgoing),
     ) -> Result<(), AgentError> {
+        if let Some(s) = self.sharing.as_mut() {
+            self.counters.rounds += 1;
+            s.round(filter, now, &mut self.rejections, emit);
+            return Ok(());
+        }
         if self.ddf.is_none() {
             // Isolated: no neighbours, but the vehicle's own duplicates are still merged.
             self.correspond(filter);
@@ -865,6 +902,10 @@ impl VehicleFusion {
         from: NodeId,
         msg: DdfMessage,
     ) -> Result<Vec<Outgoing>, AgentError> {
+        if let Some(s) = self.sharing.as_mut() {
+            s.on_message(now, from, msg, &mut self.rejections);
+            return Ok(Vec::new());
+        }
         let outside = self.outside_team();
         if !outside && matches!(msg.body, Body::Delta { .. } | Body::Cumulative { .. }) {
             // Information from it: it is in the team frame.
@@ -937,6 +978,10 @@ impl VehicleFusion {
 
     /// The link to `peer` came up.
     pub fn on_link_up(&mut self, now: f64, peer: NodeId) -> Result<Vec<Outgoing>, AgentError> {
+        if let Some(s) = self.sharing.as_mut() {
+            s.on_link_up(now, peer);
+            return Ok(Vec::new());
+        }
         // Outside the team frame the channel learns the link state but sends nothing yet.
         let outside = self.outside_team();
         if self.team_frame.is_some() && !outside {
@@ -954,6 +999,10 @@ impl VehicleFusion {
 
     /// The link to `peer` went down.
     pub fn on_link_down(&mut self, peer: NodeId) -> Result<(), AgentError> {
+        if let Some(s) = self.sharing.as_mut() {
+            s.on_link_down(peer);
+            return Ok(());
+        }
         match self.ddf.as_mut().map(|d| d.on_link_down(peer)) {
             Some(Err(e)) => {
                 self.reject("link_down", &e, 1, &format!("peer {peer:?}: {e}"));
@@ -978,6 +1027,9 @@ pub struct VehicleEstimator {
     /// Whose own frame the estimate is in (local SLAM in own frames; `None`: the frame shared
     /// by the team, the launch frame or ECEF).
     frame_owner: Option<NodeId>,
+    /// Data sharing: the filter is the team's and this vehicle publishes its records
+    /// ([`crate::sharing::OwnRecords`]).
+    own: Option<crate::sharing::OwnRecords>,
 }
 
 /// A filter lent out for a fusion round ([`VehicleEstimator::lend`]).
@@ -1013,7 +1065,25 @@ impl VehicleEstimator {
             lent: None,
             rest: None,
             frame_owner: None,
+            own: None,
         })
+    }
+
+    /// Data sharing: `filter` (the team's, over every vehicle) replaces the vehicle's own, and
+    /// the records it takes are published through `own`.
+    pub fn use_sharing(&mut self, filter: SlamFilter, own: crate::sharing::OwnRecords) {
+        self.filter = filter;
+        self.own = Some(own);
+    }
+
+    /// This vehicle's index in its filter (0, or its place in the team filter).
+    pub fn vehicle_index(&self) -> usize {
+        self.own.as_ref().map_or(0, |o| o.index())
+    }
+
+    /// Data sharing: the records this vehicle published since the last call (empty otherwise).
+    pub fn take_records(&mut self) -> Vec<canopy_fusion::share::Item> {
+        self.own.as_mut().map_or_else(Vec::new, |o| o.take())
     }
 
     /// Applies zero-velocity updates from the first IMU sample on until `z.until_s`.
@@ -1045,7 +1115,8 @@ impl VehicleEstimator {
         if t < r.next {
             return;
         }
-        match self.filter.zero_velocity_update(0, r.config.sigma_mps) {
+        let index = self.own.as_ref().map_or(0, |o| o.index());
+        match self.filter.zero_velocity_update(index, r.config.sigma_mps) {
             Ok(_nis) => r.applied += 1,
             Err(e) => self.rejections.add(
                 format!("zero_velocity.{}", variant_key(&format!("{e:?}"))),
@@ -1078,9 +1149,12 @@ impl VehicleEstimator {
 
     /// One IMU sample (eqs. 21.46/21.47). A rejected sample leaves the estimate unchanged.
     pub fn on_imu(&mut self, imu: &ImuSample) -> Result<(), SlamError> {
-        match self.filter.predict(0, imu) {
+        match self.filter.predict(self.vehicle_index(), imu) {
             Ok(()) => {
                 self.counters.imu_samples += 1;
+                if let Some(o) = self.own.as_mut() {
+                    o.on_imu(imu);
+                }
                 if let Some(l) = self.lent.as_mut() {
                     l.samples.push(*imu);
                 }
@@ -1147,8 +1221,9 @@ impl VehicleEstimator {
             );
             return Err(e);
         };
+        let index = self.vehicle_index();
         for imu in &lent.samples {
-            if let Err(e) = fused.predict(0, imu) {
+            if let Err(e) = fused.predict(index, imu) {
                 self.rejections.add(
                     format!("fusion.give_back.{}", variant_key(&format!("{e:?}"))),
                     1,
@@ -1187,7 +1262,16 @@ impl VehicleEstimator {
             return Err(e);
         }
         self.rest_update(frame.time);
-        match self.filter.process_frame(0, frame) {
+        let index = self.vehicle_index();
+        let shared;
+        let frame = match self.own.as_mut() {
+            Some(o) => {
+                shared = o.on_frame(frame);
+                &shared
+            }
+            None => frame,
+        };
+        match self.filter.process_frame(index, frame) {
             Ok(report) => {
                 self.counters.frames += 1;
                 self.counters.observations += report.outcomes.len() as u64;
@@ -1220,9 +1304,6 @@ pub struct VehicleAgent {
     id: NodeId,
     estimator: VehicleEstimator,
     fusion: VehicleFusion,
-    /// Data sharing (`[fusion] mode = "shared_data"`): when set, it takes every input and
-    /// message, its team filter is the estimate, and the two halves above stay idle.
-    sharing: Option<Box<crate::sharing::Sharing>>,
 }
 
 impl VehicleAgent {
@@ -1251,33 +1332,47 @@ impl VehicleAgent {
             id,
             estimator,
             fusion,
-            sharing: None,
         })
     }
 
-    /// Switches the agent to data sharing ([`crate::sharing`]): from now on `sharing` takes
-    /// the inputs and messages and its team filter is the estimate.
-    pub fn use_sharing(&mut self, sharing: crate::sharing::Sharing) {
-        self.sharing = Some(Box::new(sharing));
+    /// Switches the agent to data sharing ([`crate::sharing::build`]): the estimator runs the
+    /// team filter and publishes its own records, the fusion half relays them and applies the
+    /// other vehicles' records at each round.
+    pub fn use_sharing(
+        &mut self,
+        filter: SlamFilter,
+        own: crate::sharing::OwnRecords,
+        relaying: crate::sharing::Relaying,
+    ) {
+        self.estimator.use_sharing(filter, own);
+        self.fusion.use_sharing(relaying);
     }
 
-    /// The data-sharing half, when the agent shares data.
-    pub fn sharing(&self) -> Option<&crate::sharing::Sharing> {
-        self.sharing.as_deref()
+    /// Whether the agent shares data.
+    pub fn is_sharing(&self) -> bool {
+        self.fusion.sharing().is_some()
+    }
+
+    /// The data-sharing relay half (data sharing only).
+    pub fn sharing(&self) -> Option<&crate::sharing::Relaying> {
+        self.fusion.sharing()
+    }
+
+    /// The data-sharing counters (data sharing only).
+    pub fn sharing_counters(&self) -> Option<crate::sharing::SharingCounters> {
+        self.fusion.sharing().map(|s| s.counters())
     }
 
     /// This vehicle's index in [`filter`](Self::filter) (0, or its place in the team filter
     /// of data sharing).
     pub fn vehicle_index(&self) -> usize {
-        self.sharing.as_ref().map_or(0, |s| s.vehicle_index())
+        self.estimator.vehicle_index()
     }
 
     /// The other vehicles' frames the team filter processed since the last call (data
     /// sharing; empty otherwise).
     pub fn take_remote_frames(&mut self) -> Vec<crate::sharing::RemoteFrame> {
-        self.sharing
-            .as_mut()
-            .map_or_else(Vec::new, |s| s.take_remote_frames())
+        self.fusion.take_remote_frames()
     }
 
     /// Bearing-only initialization options and zero-velocity updates of the vehicle's
@@ -1303,9 +1398,6 @@ impl VehicleAgent {
     /// Fuses the received information batched since the last call into the EKF (done at the
     /// start of every round; call it before reading a final map).
     pub fn flush_fusion(&mut self) {
-        if self.sharing.is_some() {
-            return;
-        }
         self.fusion.flush(self.estimator.filter_mut());
     }
 
@@ -1332,25 +1424,16 @@ impl VehicleAgent {
 
     /// The estimator.
     pub fn filter(&self) -> &SlamFilter {
-        match &self.sharing {
-            Some(s) => s.filter(),
-            None => self.estimator.filter(),
-        }
+        self.estimator.filter()
     }
 
     /// The DDF node (None in isolated mode and with data sharing).
     pub fn ddf(&self) -> Option<&DdfNode> {
-        if self.sharing.is_some() {
-            return None;
-        }
         self.fusion.ddf()
     }
 
     /// The inputs its estimator rejected and the failures of its fusion half, by reason.
     pub fn rejections(&self) -> Rejections {
-        if let Some(s) = &self.sharing {
-            return s.rejections().clone();
-        }
         let mut r = self.estimator.rejections().clone();
         r.merge(&self.fusion.rejections().counts);
         r
@@ -1358,9 +1441,6 @@ impl VehicleAgent {
 
     /// Counters of both halves.
     pub fn counters(&self) -> AgentCounters {
-        if let Some(s) = &self.sharing {
-            return s.counters();
-        }
         self.estimator
             .counters()
             .with_fusion(self.fusion.counters())
@@ -1368,18 +1448,12 @@ impl VehicleAgent {
 
     /// One IMU sample (eqs. 21.46/21.47). A rejected sample leaves the estimate unchanged.
     pub fn on_imu(&mut self, imu: &ImuSample) -> Result<(), SlamError> {
-        match &mut self.sharing {
-            Some(s) => s.on_imu(imu),
-            None => self.estimator.on_imu(imu),
-        }
+        self.estimator.on_imu(imu)
     }
 
     /// One terrain-sensor frame (association, update, initialization).
     pub fn on_frame(&mut self, frame: &ObservationFrame) -> Result<FrameReport, SlamError> {
-        match &mut self.sharing {
-            Some(s) => s.on_frame(frame),
-            None => self.estimator.on_frame(frame),
-        }
+        self.estimator.on_frame(frame)
     }
 
     /// Makes the link to `peer` covariance intersection from the start.
@@ -1394,18 +1468,13 @@ impl VehicleAgent {
 
     /// Sets the byte budgets (delta or submap) of the next round, per link.
     pub fn set_link_budgets(&mut self, budgets: &[(NodeId, usize)]) -> Result<(), AgentError> {
-        if let Some(s) = &mut self.sharing {
-            s.set_link_budgets(budgets);
-            return Ok(());
-        }
         self.fusion.set_link_budgets(budgets)
     }
 
     /// A fusion round at time `now`: the messages to send.
     pub fn on_round(&mut self, now: f64) -> Result<Vec<Outgoing>, AgentError> {
-        if let Some(s) = &mut self.sharing {
-            return Ok(s.on_round(now));
-        }
+        // Data sharing: this vehicle's records since the last round go into its stream.
+        self.fusion.publish_own(self.estimator.take_records());
         let out = self.fusion.round(self.estimator.filter_mut(), now);
         // The round may have moved the filter into the team frame (own frames).
         self.estimator.set_frame_owner(self.fusion.frame_owner());
@@ -1437,28 +1506,16 @@ impl VehicleAgent {
         from: NodeId,
         msg: DdfMessage,
     ) -> Result<Vec<Outgoing>, AgentError> {
-        if let Some(s) = &mut self.sharing {
-            s.on_message(now, from, msg);
-            return Ok(Vec::new());
-        }
         self.fusion.on_message(now, from, msg)
     }
 
     /// The link to `peer` came up.
     pub fn on_link_up(&mut self, now: f64, peer: NodeId) -> Result<Vec<Outgoing>, AgentError> {
-        if let Some(s) = &mut self.sharing {
-            s.on_link_up(now, peer);
-            return Ok(Vec::new());
-        }
         self.fusion.on_link_up(now, peer)
     }
 
     /// The link to `peer` went down.
     pub fn on_link_down(&mut self, peer: NodeId) -> Result<(), AgentError> {
-        if let Some(s) = &mut self.sharing {
-            s.on_link_down(peer);
-            return Ok(());
-        }
         self.fusion.on_link_down(peer)
     }
 }

@@ -356,13 +356,6 @@ fn cmd_router(args: &RouterArgs) -> Result<()> {
 
 fn cmd_run(args: &LaunchArgs) -> Result<()> {
     let s = load_scenario(args.run.scenario.as_deref())?;
-    if s.fusion.mode == FusionMode::SharedData {
-        anyhow::bail!(
-            "[fusion] mode = \"shared_data\" runs in `canopy sim` only so far: the vehicle \
-             process's two threads (estimator and fusion) do not carry a team filter yet \
-             (docs/arch/sharing.md)"
-        );
-    }
     if let Some(name) = &args.host {
         return cmd_run_host(args, s, name);
     }

@@ -98,8 +98,7 @@ pub enum FusionMode {
     /// No fusion: every vehicle runs its own SLAM (the baseline that shows the benefit).
     Isolated,
     /// Data sharing: every vehicle's data (IMU increments, frames) relayed over the tree, and
-    /// every vehicle runs the team's EKF on all of it (`crate::sharing`; `canopy sim` only so
-    /// far).
+    /// every vehicle runs the team's EKF on all of it (`crate::sharing`).
     SharedData,
 }
 

@@ -18,14 +18,13 @@
 use std::collections::BTreeMap;
 
 use canopy_fusion::ddf::{Body, DdfMessage, Header, Outgoing};
-use canopy_fusion::ins::{VehicleCovariance, VehicleState};
 use canopy_fusion::sensor::{ImuSample, ObservationFrame};
-use canopy_fusion::share::{Item, Relay, RelayConfig, ShareError, StreamId};
+use canopy_fusion::share::{Item, Relay, RelayConfig, ShareError};
 use canopy_fusion::slam::{FrameReport, SlamConfig, SlamError, SlamFilter, VehicleSetup};
 use canopy_fusion::topology::{NodeId, Topology};
 use nalgebra::Vector3;
 
-use crate::agent::{AgentCounters, Rejections, variant_key};
+use crate::agent::{Rejections, variant_key};
 
 /// A round's batch budget on a link without a radio (shared memory, zenoh): large enough for
 /// any backlog of a team's data without being unbounded.
@@ -85,124 +84,155 @@ impl Increment {
     }
 }
 
-/// The data-sharing half of a vehicle: its team filter and relay.
+/// Tracker ids of vehicle `index` moved into its own namespace (appearance identities), so that
+/// the team filter never takes one vehicle's track for another's.
+pub fn namespaced(index: usize, frame: &ObservationFrame) -> ObservationFrame {
+    let mut f = frame.clone();
+    for o in &mut f.observations {
+        o.descriptor ^= (index as u64 + 1) << 48;
+    }
+    f
+}
+
+/// The estimator's side of data sharing: this vehicle's index in the team filter and the
+/// records it publishes (its IMU summed into increments, its frames), handed to the relay at
+/// each round.
+#[derive(Clone, Debug)]
+pub struct OwnRecords {
+    index: usize,
+    increment: Increment,
+    increment_s: f64,
+    namespaced: bool,
+    outbox: Vec<Item>,
+}
+
+impl OwnRecords {
+    /// This vehicle's index in the team filter.
+    pub fn index(&self) -> usize {
+        self.index
+    }
+
+    /// An own IMU sample the filter took: summed into the increment, published when it spans
+    /// 1/`share_imu_hz`.
+    pub fn on_imu(&mut self, imu: &ImuSample) {
+        self.increment.add(imu);
+        if self.increment.dt() >= self.increment_s - 1e-9
+            && let Some(inc) = self.increment.take()
+        {
+            self.outbox.push(Item::Imu(inc));
+        }
+    }
+
+    /// An own frame (before the filter takes it): the increment up to it is published first,
+    /// then the frame as the sensor gave it. Returns the frame the team filter takes.
+    pub fn on_frame(&mut self, frame: &ObservationFrame) -> ObservationFrame {
+        if let Some(inc) = self.increment.take() {
+            self.outbox.push(Item::Imu(inc));
+        }
+        self.outbox.push(Item::Frame(frame.clone()));
+        if self.namespaced {
+            namespaced(self.index, frame)
+        } else {
+            frame.clone()
+        }
+    }
+
+    /// The records published since the last call.
+    pub fn take(&mut self) -> Vec<Item> {
+        std::mem::take(&mut self.outbox)
+    }
+}
+
+/// The fusion side of data sharing: the relay, and the other vehicles' records applied to the
+/// team filter at each round.
 #[derive(Debug)]
-pub struct Sharing {
+pub struct Relaying {
     me: NodeId,
     epoch: u64,
     /// Team order (the scenario's): index in the team filter.
     team: Vec<NodeId>,
-    index: usize,
-    filter: SlamFilter,
     relay: Relay<Item>,
     started: Vec<bool>,
-    increment: Increment,
-    increment_s: f64,
     namespaced: bool,
     budgets: BTreeMap<NodeId, usize>,
     neighbours: Vec<NodeId>,
     remote_frames: Vec<RemoteFrame>,
-    counters: AgentCounters,
-    sharing: SharingCounters,
-    rejections: Rejections,
+    counters: SharingCounters,
 }
 
-impl Sharing {
-    /// The sharing half of vehicle `me` (process start `epoch`). `setups` gives every vehicle
-    /// of `team` (scenario order) its models (IMU noise, sensor, mount); the state and
-    /// covariance of each one but `me` are placeholders until its stream's start record
-    /// arrives (nothing touches a vehicle before). `namespaced`: remote tracker ids are
-    /// moved into their origin's namespace (appearance identities).
-    #[allow(clippy::too_many_arguments)]
-    pub fn new(
-        me: NodeId,
-        epoch: u64,
-        slam: SlamConfig,
-        team: &[NodeId],
-        setups: &[VehicleSetup],
-        topology: &Topology,
-        share_imu_hz: f64,
-        namespaced: bool,
-    ) -> Result<Self, SharingError> {
-        let index = team
-            .iter()
-            .position(|&v| v == me)
-            .ok_or(SharingError::NotInTeam(me))?;
-        if setups.len() != team.len() {
-            return Err(SharingError::Setup(format!(
-                "{} setups for {} vehicles",
-                setups.len(),
-                team.len()
-            )));
-        }
-        if !(share_imu_hz.is_finite() && share_imu_hz > 0.0) {
-            return Err(SharingError::Setup(format!(
-                "share_imu_hz {share_imu_hz} must be positive"
-            )));
-        }
-        let filter = SlamFilter::new(slam, setups)?;
-        let mut relay = Relay::new(me, epoch, topology, RelayConfig::default())?;
-        let own = &setups[index];
-        relay.publish(Item::Start {
-            state: own.state,
-            covariance: Box::new(own.covariance),
-        })?;
-        let mut started = vec![false; team.len()];
-        started[index] = true;
-        Ok(Self {
-            me,
-            epoch,
-            team: team.to_vec(),
-            index,
-            filter,
-            relay,
-            started,
-            increment: Increment::default(),
-            increment_s: 1.0 / share_imu_hz,
-            namespaced,
-            budgets: BTreeMap::new(),
-            neighbours: topology.neighbours(me).unwrap_or_default().to_vec(),
-            remote_frames: Vec::new(),
-            counters: AgentCounters::default(),
-            sharing: SharingCounters::default(),
-            rejections: Rejections::default(),
-        })
+/// Data sharing for vehicle `me` (process start `epoch`): its team filter, over every vehicle
+/// of `team` (scenario order) with the models of `setups` — the state and covariance of each
+/// vehicle but `me` are placeholders until its stream's start record arrives (nothing touches
+/// a vehicle before) — the estimator's side and the relay's. `namespaced`: tracker ids are
+/// moved into their vehicle's namespace (appearance identities).
+#[allow(clippy::too_many_arguments)]
+pub fn build(
+    me: NodeId,
+    epoch: u64,
+    slam: SlamConfig,
+    team: &[NodeId],
+    setups: &[VehicleSetup],
+    topology: &Topology,
+    share_imu_hz: f64,
+    namespaced: bool,
+) -> Result<(SlamFilter, OwnRecords, Relaying), SharingError> {
+    let index = team
+        .iter()
+        .position(|&v| v == me)
+        .ok_or(SharingError::NotInTeam(me))?;
+    if setups.len() != team.len() {
+        return Err(SharingError::Setup(format!(
+            "{} setups for {} vehicles",
+            setups.len(),
+            team.len()
+        )));
     }
-
-    /// The team filter.
-    pub fn filter(&self) -> &SlamFilter {
-        &self.filter
+    if !(share_imu_hz.is_finite() && share_imu_hz > 0.0) {
+        return Err(SharingError::Setup(format!(
+            "share_imu_hz {share_imu_hz} must be positive"
+        )));
     }
+    let filter = SlamFilter::new(slam, setups)?;
+    let mut relay = Relay::new(me, epoch, topology, RelayConfig::default())?;
+    let own = &setups[index];
+    relay.publish(Item::Start {
+        state: own.state,
+        covariance: Box::new(own.covariance),
+    })?;
+    let mut started = vec![false; team.len()];
+    started[index] = true;
+    let records = OwnRecords {
+        index,
+        increment: Increment::default(),
+        increment_s: 1.0 / share_imu_hz,
+        namespaced,
+        outbox: Vec::new(),
+    };
+    let relaying = Relaying {
+        me,
+        epoch,
+        team: team.to_vec(),
+        relay,
+        started,
+        namespaced,
+        budgets: BTreeMap::new(),
+        neighbours: topology.neighbours(me).unwrap_or_default().to_vec(),
+        remote_frames: Vec::new(),
+        counters: SharingCounters::default(),
+    };
+    Ok((filter, records, relaying))
+}
 
-    /// The team filter, mutable (bearing options).
-    pub fn filter_mut(&mut self) -> &mut SlamFilter {
-        &mut self.filter
-    }
-
-    /// This vehicle's index in the team filter.
-    pub fn vehicle_index(&self) -> usize {
-        self.index
-    }
-
-    /// Counters of its own inputs.
-    pub fn counters(&self) -> AgentCounters {
-        self.counters
-    }
-
+impl Relaying {
     /// Counters of sharing.
-    pub fn sharing_counters(&self) -> SharingCounters {
+    pub fn counters(&self) -> SharingCounters {
         SharingCounters {
             relay: self.relay.counters(),
-            ..self.sharing
+            ..self.counters
         }
     }
 
-    /// Everything refused, by reason.
-    pub fn rejections(&self) -> &Rejections {
-        &self.rejections
-    }
-
-    /// The remote frames processed since the last call.
+    /// The other vehicles' frames processed since the last call.
     pub fn take_remote_frames(&mut self) -> Vec<RemoteFrame> {
         std::mem::take(&mut self.remote_frames)
     }
@@ -212,82 +242,31 @@ impl Sharing {
         &self.relay
     }
 
-    fn publish(&mut self, item: Item) {
-        if let Err(e) = self.relay.publish(item) {
-            self.rejections
-                .add(format!("share.publish.{}", e.reason()), 1, &e);
-        }
-    }
-
-    fn publish_increment(&mut self) {
-        if let Some(inc) = self.increment.take() {
-            self.publish(Item::Imu(inc));
-        }
-    }
-
-    /// One own IMU sample: predicted at once, summed into the increment it publishes.
-    pub fn on_imu(&mut self, imu: &ImuSample) -> Result<(), SlamError> {
-        match self.filter.predict(self.index, imu) {
-            Ok(()) => {
-                self.counters.imu_samples += 1;
-                self.increment.add(imu);
-                if self.increment.dt() >= self.increment_s - 1e-9 {
-                    self.publish_increment();
-                }
-                Ok(())
-            }
-            Err(e) => {
-                self.counters.imu_rejected += 1;
-                self.rejections.imu(&e);
-                Err(e)
+    /// This vehicle's records since the last round, into its stream.
+    pub fn publish(&mut self, records: Vec<Item>, rejections: &mut Rejections) {
+        for r in records {
+            if let Err(e) = self.relay.publish(r) {
+                rejections.add(format!("share.publish.{}", e.reason()), 1, &e);
             }
         }
     }
 
-    /// One own frame: the increment up to it is published first, then the frame; the team
-    /// filter processes it at once.
-    pub fn on_frame(&mut self, frame: &ObservationFrame) -> Result<FrameReport, SlamError> {
-        self.publish_increment();
-        self.publish(Item::Frame(frame.clone()));
-        let own = self.namespace(self.index, frame);
-        match self.filter.process_frame(self.index, &own) {
-            Ok(report) => {
-                self.counters.frames += 1;
-                self.counters.observations += report.outcomes.len() as u64;
-                self.counters.associated += report.associated() as u64;
-                self.counters.initialized += report.initialized() as u64;
-                self.counters.rejected_observations += report.rejected() as u64;
-                self.rejections.outcomes(&report);
-                Ok(report)
-            }
-            Err(e) => {
-                self.counters.frames_rejected += 1;
-                self.rejections.frame(&e, frame.observations.len());
-                Err(e)
-            }
-        }
-    }
-
-    /// Tracker ids of vehicle `index` in its own namespace (appearance identities).
-    fn namespace(&self, index: usize, frame: &ObservationFrame) -> ObservationFrame {
-        let mut f = frame.clone();
-        if self.namespaced {
-            for o in &mut f.observations {
-                o.descriptor ^= (index as u64 + 1) << 48;
-            }
-        }
-        f
-    }
-
-    /// The byte budgets of the next round, per link (links not listed: [`UNLIMITED_ROUND_BYTES`]).
+    /// The byte budgets of the next round, per link (links not listed:
+    /// [`UNLIMITED_ROUND_BYTES`]).
     pub fn set_link_budgets(&mut self, budgets: &[(NodeId, usize)]) {
         self.budgets = budgets.iter().copied().collect();
     }
 
-    /// A round: applies what arrived, then a batch for every neighbour whose link is up.
-    pub fn on_round(&mut self, now: f64) -> Vec<Outgoing> {
-        self.apply_ready();
-        let mut out = Vec::new();
+    /// A round on the team filter: applies what arrived, then a batch for every neighbour
+    /// whose link is up, each handed to `emit`.
+    pub fn round(
+        &mut self,
+        filter: &mut SlamFilter,
+        now: f64,
+        rejections: &mut Rejections,
+        emit: &mut dyn FnMut(Outgoing),
+    ) {
+        self.apply_ready(filter, rejections);
         for peer in self.neighbours.clone() {
             let budget = self
                 .budgets
@@ -295,7 +274,7 @@ impl Sharing {
                 .copied()
                 .unwrap_or(UNLIMITED_ROUND_BYTES);
             if let Some(batch) = self.relay.outgoing(peer, budget, now) {
-                out.push(Outgoing {
+                emit(Outgoing {
                     to: peer,
                     message: DdfMessage {
                         header: Header {
@@ -310,16 +289,22 @@ impl Sharing {
                 });
             }
         }
-        out
     }
 
     /// A message from a neighbour: a batch is taken by the relay (refused records counted by
-    /// reason); any other kind is refused (a neighbour in another fusion mode).
-    pub fn on_message(&mut self, now: f64, from: NodeId, msg: DdfMessage) {
+    /// reason); any other kind is refused (a neighbour in another fusion mode). What it
+    /// brought is applied at the next round, as the channel filters fuse their batch.
+    pub fn on_message(
+        &mut self,
+        now: f64,
+        from: NodeId,
+        msg: DdfMessage,
+        rejections: &mut Rejections,
+    ) {
         let kind = msg.kind();
         let Body::Share(batch) = msg.body else {
             let e = SharingError::Unexpected { from, kind };
-            self.rejections.add(
+            rejections.add(
                 format!("share.message.{}", variant_key(&format!("{e:?}"))),
                 1,
                 &e,
@@ -329,15 +314,11 @@ impl Sharing {
         match self.relay.on_batch(from, batch, now) {
             Ok(got) => {
                 for e in &got.refused {
-                    self.rejections
-                        .add(format!("share.record.{}", e.reason()), 1, e);
+                    rejections.add(format!("share.record.{}", e.reason()), 1, e);
                 }
             }
-            Err(e) => self
-                .rejections
-                .add(format!("share.batch.{}", e.reason()), 1, &e),
+            Err(e) => rejections.add(format!("share.batch.{}", e.reason()), 1, &e),
         }
-        // Applied at the next round (as the channel filters fuse their batch).
     }
 
     /// The link to `peer` came up.
@@ -351,13 +332,12 @@ impl Sharing {
     }
 
     /// Applies every record that is ready, in each stream's order.
-    fn apply_ready(&mut self) {
-        for (stream, seq, item) in self.relay.take_ready() {
+    fn apply_ready(&mut self, filter: &mut SlamFilter, rejections: &mut Rejections) {
+        for (stream, _seq, item) in self.relay.take_ready() {
             if stream.origin == self.me {
                 if stream.epoch != self.epoch {
                     self.refuse(
-                        stream,
-                        seq,
+                        rejections,
                         "earlier_incarnation",
                         &"restarts are not shared yet",
                     );
@@ -365,47 +345,54 @@ impl Sharing {
                 continue;
             }
             let Some(index) = self.team.iter().position(|&v| v == stream.origin) else {
-                self.refuse(stream, seq, "not_in_team", &"origin not in the team");
+                self.refuse(rejections, "not_in_team", &"origin not in the team");
                 continue;
             };
             match item {
                 Item::Start { state, covariance } => {
-                    self.start(stream, seq, index, &state, &covariance)
-                }
-                Item::Imu(imu) if self.started[index] => {
-                    if let Err(e) = self.filter.predict(index, &imu) {
-                        self.refuse(
-                            stream,
-                            seq,
-                            &format!("imu.{}", variant_key(&format!("{e:?}"))),
-                            &e,
-                        );
-                    } else {
-                        self.sharing.applied += 1;
+                    if self.started[index] {
+                        // A second start: a restart of that vehicle (a new stream).
+                        self.refuse(rejections, "restart", &"restarts are not shared yet");
+                        continue;
+                    }
+                    match filter.start_vehicle(index, &state, &covariance) {
+                        Ok(()) => {
+                            self.started[index] = true;
+                            self.counters.applied += 1;
+                        }
+                        Err(e) => self.refuse(rejections, "start", &e),
                     }
                 }
+                Item::Imu(imu) if self.started[index] => match filter.predict(index, &imu) {
+                    Ok(()) => self.counters.applied += 1,
+                    Err(e) => {
+                        let key = format!("imu.{}", variant_key(&format!("{e:?}")));
+                        self.refuse(rejections, &key, &e);
+                    }
+                },
                 Item::Frame(frame) if self.started[index] => {
-                    let f = self.namespace(index, &frame);
-                    match self.filter.process_frame(index, &f) {
+                    let f = if self.namespaced {
+                        namespaced(index, &frame)
+                    } else {
+                        frame.clone()
+                    };
+                    match filter.process_frame(index, &f) {
                         Ok(report) => {
-                            self.sharing.applied += 1;
+                            self.counters.applied += 1;
                             self.remote_frames.push(RemoteFrame {
                                 origin: stream.origin,
                                 time: frame.time,
                                 report,
                             });
                         }
-                        Err(e) => self.refuse(
-                            stream,
-                            seq,
-                            &format!("frame.{}", variant_key(&format!("{e:?}"))),
-                            &e,
-                        ),
+                        Err(e) => {
+                            let key = format!("frame.{}", variant_key(&format!("{e:?}")));
+                            self.refuse(rejections, &key, &e);
+                        }
                     }
                 }
                 Item::Imu(_) | Item::Frame(_) => self.refuse(
-                    stream,
-                    seq,
+                    rejections,
                     "before_start",
                     &"a record before its stream's start",
                 ),
@@ -413,33 +400,9 @@ impl Sharing {
         }
     }
 
-    fn start(
-        &mut self,
-        stream: StreamId,
-        seq: u64,
-        index: usize,
-        state: &VehicleState,
-        covariance: &VehicleCovariance,
-    ) {
-        if self.started[index] {
-            // A second start: a restart of that vehicle (a new stream), not shared yet.
-            self.refuse(stream, seq, "restart", &"restarts are not shared yet");
-            return;
-        }
-        match self.filter.start_vehicle(index, state, covariance) {
-            Ok(()) => {
-                self.started[index] = true;
-                self.sharing.applied += 1;
-            }
-            Err(e) => self.refuse(stream, seq, "start", &e),
-        }
-    }
-
-    fn refuse(&mut self, stream: StreamId, seq: u64, reason: &str, cause: &dyn std::fmt::Display) {
-        self.sharing.refused += 1;
-        let _ = (stream, seq);
-        self.rejections
-            .add(format!("share.apply.{reason}"), 1, cause);
+    fn refuse(&mut self, rejections: &mut Rejections, reason: &str, cause: &dyn std::fmt::Display) {
+        self.counters.refused += 1;
+        rejections.add(format!("share.apply.{reason}"), 1, cause);
     }
 }
 
@@ -473,7 +436,8 @@ mod tests {
     use super::*;
     use crate::network::FusionMode;
     use crate::scenario::Scenario;
-    use canopy_fusion::share::{Batch, ShareRecord};
+    use canopy_fusion::ins::VehicleCovariance;
+    use canopy_fusion::share::{Batch, ShareRecord, StreamId};
 
     /// The built-in team (tree 1 − 3, 2 − 3, 3 − 4) in data-sharing mode, and uav3's and
     /// uav1's agents (uav3 is index 2, the hub; uav1 a leaf).
@@ -536,15 +500,11 @@ mod tests {
                 let _ = leaf.on_frame(f);
             }
         }
+        // Published into the stream at the round.
+        leaf.on_round(1.0).unwrap();
         let sharing = leaf.sharing().unwrap();
         let own = sharing.relay().own_stream();
-        let mut relay = sharing.relay().clone();
-        let records: Vec<Item> = relay
-            .take_ready()
-            .into_iter()
-            .filter(|(id, _, _)| *id == own)
-            .map(|(_, _, r)| r)
-            .collect();
+        let records = sharing.relay().records(own);
         assert!(matches!(records[0], Item::Start { .. }));
         let increments: Vec<&ImuSample> = records
             .iter()

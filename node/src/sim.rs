@@ -299,7 +299,7 @@ pub fn vehicle_agent(
             node: cfg.display_name(),
             source,
         };
-        let mut sharing = crate::sharing::Sharing::new(
+        let (mut filter, own, relaying) = crate::sharing::build(
             NodeId(cfg.id),
             epoch,
             slam,
@@ -310,11 +310,10 @@ pub fn vehicle_agent(
             s.world.appearance.identity == Identity::Appearance,
         )
         .map_err(sharing_error)?;
-        sharing
-            .filter_mut()
+        filter
             .set_bearing_config(cfg.bearing.config())
             .map_err(|e| sharing_error(e.into()))?;
-        agent.use_sharing(sharing);
+        agent.use_sharing(filter, own, relaying);
         return Ok(agent);
     }
     // Capacity-limited links: sparsified channel filters (default) or CI submaps from the
@@ -449,7 +448,7 @@ impl<'s> Sim<'s> {
             let out = match node.agent.as_mut() {
                 Some(Agent::Vehicle(a)) => {
                     // Data sharing sends every round: a round's share of the capacity.
-                    let rate = if a.sharing().is_some() {
+                    let rate = if a.is_sharing() {
                         self.s.fusion.rate_hz
                     } else {
                         self.s.fusion.budget_rate_hz()
@@ -912,7 +911,7 @@ pub fn simulate(s: &Scenario, mut opts: SimOptions<'_>) -> Result<SimOutcome, Si
                 sim.checks.inputs_rejected += 1;
             }
             if let Some((frame, true_ids)) = &out.frame {
-                if a.sharing().is_some()
+                if a.is_sharing()
                     && let Some(ids) = true_ids
                 {
                     sim.frame_truth

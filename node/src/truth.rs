@@ -372,6 +372,7 @@ mod tests {
             t,
             outcomes,
             initialized_tracks: Vec::new(),
+            origin: None,
         }
     }
 

@@ -12,6 +12,15 @@
 //! vehicles get the data late, out of order across vehicles, with remote IMU in 0.1-s
 //! increments and appearance association, so equality is not built in: a stream lost, applied
 //! twice or out of order shows as a larger RMSE or ANEES.
+//!
+//! And `topologies/shared-data-8k.toml` as real processes (`canopy run`: one process per
+//! vehicle over iceoryx2 with the radio model in each link end, the estimator and the relay on
+//! the vehicle's two threads): the run is sound ([`procs::assert_sound`]), the team's map is
+//! the reference's within the same 5 %, and every link end stays within 8 kB/s.
+
+mod procs;
+
+use std::collections::BTreeMap;
 
 use canopy_node::network::FusionMode;
 use canopy_node::record::{LinkRecord, VehicleRecord};
@@ -185,4 +194,60 @@ fn shared_data_over_range_limited_radios_catches_up() {
         "the premise: range-limited links dropped messages"
     );
     assert_is_the_reference("radio-range", &o, capacity);
+}
+
+/// `topologies/shared-data-8k.toml` as real processes (module docs).
+#[test]
+fn shared_data_8k_runs_as_processes() {
+    let _g = procs::serial();
+    let file = procs::topology("shared-data-8k.toml");
+    let r = procs::run(&file, &["--quiet"]);
+    r.print_standing("shared-data-8k");
+    procs::assert_sound(&r);
+    let maps = r.maps();
+    let pooled = |m: &mut dyn Iterator<Item = &BTreeMap<u64, (f64, f64, f64)>>| {
+        let errs: Vec<f64> = m
+            .flat_map(|x| x.values().map(|v| v.1))
+            .filter(|e| e.is_finite())
+            .collect();
+        (errs.iter().map(|e| e * e).sum::<f64>() / errs.len().max(1) as f64).sqrt()
+    };
+    let base = pooled(&mut maps.get("baseline").into_iter());
+    let team = pooled(
+        &mut maps
+            .iter()
+            .filter(|(k, _)| k.as_str() != "baseline")
+            .map(|(_, m)| m),
+    );
+    let ratio = team / base;
+    let duration = r.summary.duration_s;
+    let mut busiest: f64 = 0.0;
+    for e in &r.checks.link_ends {
+        let rate = e.report.sent_bytes as f64 / duration;
+        busiest = busiest.max(rate);
+        assert!(rate <= 8_000.0, "{}->{}: {rate:.0} B/s", e.node, e.peer);
+    }
+    eprintln!(
+        "shared-data-8k as processes: team map RMSE {team:.3} m, reference {base:.3} m \
+         ({ratio:.3}×), busiest link end {busiest:.0} B/s"
+    );
+    assert!(
+        ratio <= MAX_MAP_RATIO,
+        "team map RMSE {ratio:.3}× the reference"
+    );
+    for v in &r.checks.vehicles {
+        for c in &v.counters {
+            let refused: u64 = c
+                .rejections
+                .iter()
+                .filter(|(k, _)| k.starts_with("share."))
+                .map(|(_, n)| n)
+                .sum();
+            assert_eq!(
+                refused, 0,
+                "{}: shared records refused: {:?}",
+                v.name, c.rejections
+            );
+        }
+    }
 }

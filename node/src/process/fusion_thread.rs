@@ -71,6 +71,8 @@ pub enum Job {
         /// Submap budgets of the capacity-limited links for this round
         /// ([`crate::radio::capacity_budgets`]).
         budgets: Vec<(NodeId, usize)>,
+        /// Data sharing: this vehicle's records since the last round (empty otherwise).
+        records: Vec<canopy_fusion::share::Item>,
     },
 }
 
@@ -139,6 +141,9 @@ pub enum Done {
         now: f64,
         /// The filter, fused (its messages went ahead as [`Done::Send`]).
         filter: Box<SlamFilter>,
+        /// Data sharing: the other vehicles' frames the round processed, for the monitor's
+        /// audit.
+        remote: Vec<crate::sharing::RemoteFrame>,
         /// Counters and channels now.
         view: FusionView,
     },
@@ -213,9 +218,11 @@ impl FusionThread {
                             now,
                             mut filter,
                             budgets,
+                            records,
                         } => {
                             // A refused budget is counted by reason by the fusion half.
                             let _counted = fusion.set_link_budgets(&budgets);
+                            fusion.publish_own(records);
                             // Each message encoded as it is formed (module docs). Messages
                             // formed before a refusal are booked and go out; the refusal is
                             // counted by reason by the fusion half.
@@ -229,6 +236,7 @@ impl FusionThread {
                             Done::Round {
                                 now,
                                 filter,
+                                remote: fusion.take_remote_frames(),
                                 view: FusionView::of(&fusion),
                             }
                         }

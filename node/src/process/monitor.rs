@@ -2095,7 +2095,13 @@ fn audit(m: &Monitor) -> KeyTruth {
     let mut audit = TruthAudit::default();
     for (&id, v) in &m.vehicles {
         for fa in &v.associations {
-            audit.frame(id, fa, m.true_ids.get(&(id, ms(fa.t))).map(Vec::as_slice));
+            // A frame another vehicle observed (data sharing) has that vehicle's true ids.
+            let observer = fa.origin.unwrap_or(id);
+            audit.frame(
+                id,
+                fa,
+                m.true_ids.get(&(observer, ms(fa.t))).map(Vec::as_slice),
+            );
         }
         audit.set_merges(id, v.merges.clone());
     }

@@ -314,6 +314,10 @@ pub struct FrameAssociations {
     pub outcomes: Vec<Outcome>,
     /// (track, feature) pairs.
     pub initialized_tracks: Vec<(u64, FeatureId)>,
+    /// Data sharing: the vehicle that observed the frame, when another than the reporting one
+    /// (its team filter processed it); the monitor audits it against that vehicle's true ids.
+    #[serde(default)]
+    pub origin: Option<u32>,
 }
 
 impl FrameAssociations {
@@ -333,6 +337,15 @@ impl FrameAssociations {
                 })
                 .collect(),
             initialized_tracks: report.initialized_tracks.clone(),
+            origin: None,
+        }
+    }
+
+    /// The same, for a frame another vehicle observed (data sharing).
+    pub fn from_origin(self, origin: u32) -> Self {
+        Self {
+            origin: Some(origin),
+            ..self
         }
     }
 }

@@ -323,8 +323,18 @@ impl Vehicle<'_> {
                 self.links.send_wire(now, vec![out]);
                 self.stall.add(start, Work::Messages);
             }
-            Done::Round { now, filter, view } => {
+            Done::Round {
+                now,
+                filter,
+                remote,
+                view,
+            } => {
                 self.view = view;
+                // Data sharing: the other vehicles' frames the round processed, audited by the
+                // monitor against their own true ids.
+                self.associations.extend(remote.into_iter().map(|f| {
+                    FrameAssociations::from_report(f.time, &f.report).from_origin(f.origin.0)
+                }));
                 if self.estimator.give_back(*filter).is_err() {
                     self.give_back_failed += 1;
                 }
@@ -389,7 +399,8 @@ impl Vehicle<'_> {
 
     fn estimate_report(&mut self) {
         let f = self.estimator.filter();
-        let (Ok(x), Ok(p)) = (f.vehicle_state(0), f.vehicle_covariance(0)) else {
+        let v = self.estimator.vehicle_index();
+        let (Ok(x), Ok(p)) = (f.vehicle_state(v), f.vehicle_covariance(v)) else {
             return;
         };
         let links = self
@@ -449,14 +460,21 @@ impl Vehicle<'_> {
             // Out already: only if the fusion thread is gone (`fusion_lost`, a bug); counted.
             Err(_) => return,
         };
+        // Data sharing sends every round: a round's share of the capacity.
+        let rate = if self.s.fusion.mode == crate::network::FusionMode::SharedData {
+            self.s.fusion.rate_hz
+        } else {
+            self.s.fusion.budget_rate_hz()
+        };
         let budgets = crate::radio::capacity_budgets(
             self.links.links.iter().map(|(&p, l)| (NodeId(p), l)),
-            self.s.fusion.budget_rate_hz(),
+            rate,
         );
         self.fusion.submit(Job::Round {
             now,
             filter,
             budgets,
+            records: self.estimator.take_records(),
         });
         self.stall.add(start, Work::Lend);
     }
