@@ -16,7 +16,8 @@
 //! And `topologies/shared-data-8k.toml` as real processes (`canopy run`: one process per
 //! vehicle over iceoryx2 with the radio model in each link end, the estimator and the relay on
 //! the vehicle's two threads): the run is sound ([`procs::assert_sound`]), the team's map is
-//! the reference's within the same 5 %, and every link end stays within 8 kB/s.
+//! the reference's within the same 5 %, and every link end stays within 8 kB/s; and the
+//! range-limited team the same way, with the outage suite's checks ([`procs::assert_sound`]).
 
 mod procs;
 
@@ -250,4 +251,63 @@ fn shared_data_8k_runs_as_processes() {
             );
         }
     }
+}
+
+/// `topologies/radio-range.toml` switched to data sharing, as real processes: links go out of
+/// range and come back, and the run passes the outage suite's checks (clean processes, no
+/// lost input, never more confident than the reference, pose NEES in band) with the team's
+/// map within 5 % of the reference's. Premise asserted: the links dropped messages.
+#[test]
+fn shared_data_over_range_limited_radios_runs_as_processes() {
+    let _g = procs::serial();
+    let text = std::fs::read_to_string(procs::topology("radio-range.toml")).expect("reads");
+    assert!(text.contains("mode = \"decentralized\""));
+    let file = std::env::temp_dir().join(format!(
+        "canopy-radio-range-shared-{}.toml",
+        std::process::id()
+    ));
+    std::fs::write(
+        &file,
+        text.replace("mode = \"decentralized\"", "mode = \"shared_data\""),
+    )
+    .expect("writes");
+    let r = procs::run(&file, &["--quiet", "--duration", "300"]);
+    let _ = std::fs::remove_file(&file);
+    r.print_standing("radio-range shared");
+    procs::assert_sound(&r);
+    let drops: u64 = r
+        .checks
+        .link_ends
+        .iter()
+        .map(|e| e.report.dropped_faults)
+        .sum();
+    let maps = r.maps();
+    let pooled = |m: &mut dyn Iterator<Item = &BTreeMap<u64, (f64, f64, f64)>>| {
+        let errs: Vec<f64> = m
+            .flat_map(|x| x.values().map(|v| v.1))
+            .filter(|e| e.is_finite())
+            .collect();
+        (errs.iter().map(|e| e * e).sum::<f64>() / errs.len().max(1) as f64).sqrt()
+    };
+    let base = pooled(&mut maps.get("baseline").into_iter());
+    let team = pooled(
+        &mut maps
+            .iter()
+            .filter(|(k, _)| k.as_str() != "baseline")
+            .map(|(_, m)| m),
+    );
+    eprintln!(
+        "radio-range shared as processes: team map RMSE {team:.3} m, reference {base:.3} m \
+         ({:.3}×), {drops} drops",
+        team / base
+    );
+    assert!(
+        drops > 0,
+        "the premise: range-limited links dropped messages"
+    );
+    assert!(
+        team / base <= MAX_MAP_RATIO,
+        "team map RMSE {:.3}× the reference",
+        team / base
+    );
 }
