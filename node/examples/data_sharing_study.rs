@@ -60,35 +60,22 @@ fn hops(s: &Scenario, from: usize) -> Vec<u32> {
     d
 }
 
-/// Sums IMU samples into one increment until `take` closes it.
+/// An increment ([`canopy_node::sharing::Increment`]) closed after `count` samples.
 #[derive(Default)]
 struct Increment {
-    sum: Option<ImuSample>,
+    sum: canopy_node::sharing::Increment,
     count: usize,
 }
 
 impl Increment {
     fn add(&mut self, s: &ImuSample) {
-        let a = self.sum.get_or_insert(ImuSample {
-            time: s.time,
-            dt: 0.0,
-            specific_force: Vector3::zeros(),
-            angular_rate: Vector3::zeros(),
-        });
-        a.time = s.time;
-        a.dt += s.dt;
-        a.specific_force += s.specific_force * s.dt;
-        a.angular_rate += s.angular_rate * s.dt;
+        self.sum.add(s);
         self.count += 1;
     }
 
-    /// The increment as one sample of the mean specific force and rate over its Δt.
     fn take(&mut self) -> Option<ImuSample> {
         self.count = 0;
-        let mut a = self.sum.take()?;
-        a.specific_force /= a.dt;
-        a.angular_rate /= a.dt;
-        Some(a)
+        self.sum.take()
     }
 }
 

@@ -52,14 +52,16 @@ pub struct SharingCounters {
     pub relay: canopy_fusion::share::RelayCounters,
 }
 
-/// Sums IMU samples into one increment (mean specific force and rate over its Δt).
+/// Sums IMU samples into one increment: the mean specific force and rate over its Δt
+/// (Δv / Δt, Δθ / Δt), ending at the last sample's time.
 #[derive(Clone, Debug, Default)]
-struct Increment {
+pub struct Increment {
     sum: Option<ImuSample>,
 }
 
 impl Increment {
-    fn add(&mut self, s: &ImuSample) {
+    /// Adds a sample.
+    pub fn add(&mut self, s: &ImuSample) {
         let a = self.sum.get_or_insert(ImuSample {
             time: s.time,
             dt: 0.0,
@@ -72,11 +74,13 @@ impl Increment {
         a.angular_rate += s.angular_rate * s.dt;
     }
 
-    fn dt(&self) -> f64 {
+    /// The time it spans so far [s].
+    pub fn dt(&self) -> f64 {
         self.sum.as_ref().map_or(0.0, |a| a.dt)
     }
 
-    fn take(&mut self) -> Option<ImuSample> {
+    /// The increment as one sample, and a fresh start (`None` when empty).
+    pub fn take(&mut self) -> Option<ImuSample> {
         let mut a = self.sum.take()?;
         a.specific_force /= a.dt;
         a.angular_rate /= a.dt;

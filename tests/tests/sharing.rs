@@ -87,6 +87,16 @@ fn rates(link: &LinkRecord) -> (f64, f64) {
     (mean, window)
 }
 
+/// No `share.*` rejection among a vehicle's rejections by reason.
+fn assert_no_shared_record_refused(who: &str, rejections: &BTreeMap<String, u64>) {
+    let refused: u64 = rejections
+        .iter()
+        .filter(|(k, _)| k.starts_with("share."))
+        .map(|(_, n)| n)
+        .sum();
+    assert_eq!(refused, 0, "{who}: shared records refused: {rejections:?}");
+}
+
 /// The checks of the module docs on one run; returns (map ratio, busiest mean, busiest window).
 fn assert_is_the_reference(name: &str, o: &SimOutcome, capacity: f64) -> (f64, f64, f64) {
     let vehicles: Vec<&VehicleRecord> = o.record.vehicles.iter().collect();
@@ -146,17 +156,7 @@ fn assert_is_the_reference(name: &str, o: &SimOutcome, capacity: f64) -> (f64, f
         "{name}: a link end sent {window:.0} B/s over 10 s"
     );
     for v in &vehicles {
-        let refused: u64 = v
-            .rejections
-            .iter()
-            .filter(|(k, _)| k.starts_with("share."))
-            .map(|(_, n)| n)
-            .sum();
-        assert_eq!(
-            refused, 0,
-            "{name}: {} refused shared records: {:?}",
-            v.name, v.rejections
-        );
+        assert_no_shared_record_refused(&format!("{name}: {}", v.name), &v.rejections);
     }
     (ratio, mean, window)
 }
@@ -197,6 +197,27 @@ fn shared_data_over_range_limited_radios_catches_up() {
     assert_is_the_reference("radio-range", &o, capacity);
 }
 
+/// Team map RMSE (every vehicle's final map, pooled) and the centralized reference's [m], of a
+/// multi-process run.
+fn team_and_reference_rmse(r: &procs::Run) -> (f64, f64) {
+    let pooled = |m: &mut dyn Iterator<Item = &BTreeMap<u64, (f64, f64, f64)>>| {
+        let errs: Vec<f64> = m
+            .flat_map(|x| x.values().map(|v| v.1))
+            .filter(|e| e.is_finite())
+            .collect();
+        (errs.iter().map(|e| e * e).sum::<f64>() / errs.len().max(1) as f64).sqrt()
+    };
+    let maps = r.maps();
+    let base = pooled(&mut maps.get("baseline").into_iter());
+    let team = pooled(
+        &mut maps
+            .iter()
+            .filter(|(k, _)| k.as_str() != "baseline")
+            .map(|(_, m)| m),
+    );
+    (team, base)
+}
+
 /// `topologies/shared-data-8k.toml` as real processes (module docs).
 #[test]
 fn shared_data_8k_runs_as_processes() {
@@ -205,21 +226,7 @@ fn shared_data_8k_runs_as_processes() {
     let r = procs::run(&file, &["--quiet"]);
     r.print_standing("shared-data-8k");
     procs::assert_sound(&r);
-    let maps = r.maps();
-    let pooled = |m: &mut dyn Iterator<Item = &BTreeMap<u64, (f64, f64, f64)>>| {
-        let errs: Vec<f64> = m
-            .flat_map(|x| x.values().map(|v| v.1))
-            .filter(|e| e.is_finite())
-            .collect();
-        (errs.iter().map(|e| e * e).sum::<f64>() / errs.len().max(1) as f64).sqrt()
-    };
-    let base = pooled(&mut maps.get("baseline").into_iter());
-    let team = pooled(
-        &mut maps
-            .iter()
-            .filter(|(k, _)| k.as_str() != "baseline")
-            .map(|(_, m)| m),
-    );
+    let (team, base) = team_and_reference_rmse(&r);
     let ratio = team / base;
     let duration = r.summary.duration_s;
     let mut busiest: f64 = 0.0;
@@ -238,17 +245,7 @@ fn shared_data_8k_runs_as_processes() {
     );
     for v in &r.checks.vehicles {
         for c in &v.counters {
-            let refused: u64 = c
-                .rejections
-                .iter()
-                .filter(|(k, _)| k.starts_with("share."))
-                .map(|(_, n)| n)
-                .sum();
-            assert_eq!(
-                refused, 0,
-                "{}: shared records refused: {:?}",
-                v.name, c.rejections
-            );
+            assert_no_shared_record_refused(&v.name, &c.rejections);
         }
     }
 }
@@ -281,21 +278,7 @@ fn shared_data_over_range_limited_radios_runs_as_processes() {
         .iter()
         .map(|e| e.report.dropped_faults)
         .sum();
-    let maps = r.maps();
-    let pooled = |m: &mut dyn Iterator<Item = &BTreeMap<u64, (f64, f64, f64)>>| {
-        let errs: Vec<f64> = m
-            .flat_map(|x| x.values().map(|v| v.1))
-            .filter(|e| e.is_finite())
-            .collect();
-        (errs.iter().map(|e| e * e).sum::<f64>() / errs.len().max(1) as f64).sqrt()
-    };
-    let base = pooled(&mut maps.get("baseline").into_iter());
-    let team = pooled(
-        &mut maps
-            .iter()
-            .filter(|(k, _)| k.as_str() != "baseline")
-            .map(|(_, m)| m),
-    );
+    let (team, base) = team_and_reference_rmse(&r);
     eprintln!(
         "radio-range shared as processes: team map RMSE {team:.3} m, reference {base:.3} m \
          ({:.3}×), {drops} drops",
