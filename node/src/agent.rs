@@ -324,7 +324,8 @@ pub enum AgentError {
 pub struct FusionCounters {
     /// Fusion rounds run.
     pub rounds: u64,
-    /// Received deltas fused into the estimator.
+    /// Received deltas fused into the estimator (data sharing: other vehicles' records
+    /// applied to the team filter).
     pub fused: u64,
     /// Received deltas the estimator refused (non-PD result, …).
     pub fuse_refused: u64,
@@ -676,7 +677,13 @@ impl VehicleFusion {
 
     /// Counters.
     pub fn counters(&self) -> FusionCounters {
-        self.counters
+        match &self.sharing {
+            Some(s) => FusionCounters {
+                fused: s.counters().applied,
+                ..self.counters
+            },
+            None => self.counters,
+        }
     }
 
     /// Fuses the received information batched since the last call into `filter`.

@@ -788,25 +788,6 @@ pub fn validate(s: &Scenario) -> Result<(), ScenarioError> {
             format!("must be in (0, 1000] Hz, got {}", f.share_imu_hz),
         ));
     }
-    if f.mode == FusionMode::SharedData {
-        if s.world.frames == crate::scenario::Frames::Own {
-            return Err(ScenarioError::invalid(
-                "fusion.mode",
-                "\"shared_data\" needs the team's shared frame ([world] frames = \"shared\"): \
-                 a team filter over vehicles in unknown own frames is not built yet",
-            ));
-        }
-        if let Some(e) = s.events.iter().find(|e| e.restart_after_s.is_some()) {
-            return Err(ScenarioError::invalid(
-                "fusion.mode",
-                format!(
-                    "\"shared_data\" does not share restarts yet (the [[event]] at {} s \
-                     restarts a vehicle)",
-                    e.at_s
-                ),
-            ));
-        }
-    }
     let identity = s.world.appearance.identity;
     let kind = f.association_kind(identity);
     if kind == AssociationKind::Appearance && identity == Identity::Perfect {

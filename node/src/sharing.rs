@@ -156,7 +156,9 @@ pub struct Relaying {
     /// Team order (the scenario's): index in the team filter.
     team: Vec<NodeId>,
     relay: Relay<Item>,
-    started: Vec<bool>,
+    /// Per vehicle, the stream whose records the team filter takes (`None` before its first
+    /// start): the latest incarnation's.
+    active: Vec<Option<u64>>,
     namespaced: bool,
     budgets: BTreeMap<NodeId, usize>,
     neighbours: Vec<NodeId>,
@@ -164,7 +166,14 @@ pub struct Relaying {
     counters: SharingCounters,
 }
 
-/// Data sharing for vehicle `me` (process start `epoch`): its team filter, over every vehicle
+/// The stream epoch of a process start: its incarnation in the top 16 bits, so that a
+/// vehicle's streams order by incarnation ([`canopy_fusion::share::StreamId`] orders by epoch),
+/// and the process's fresh epoch below.
+pub fn stream_epoch(incarnation: u32, epoch: u64) -> u64 {
+    (u64::from(incarnation & 0xFFFF) << 48) | (epoch & 0xFFFF_FFFF_FFFF)
+}
+
+/// Data sharing for vehicle `me` (process start `incarnation`, fresh `epoch`): its team filter, over every vehicle
 /// of `team` (scenario order) with the models of `setups` — the state and covariance of each
 /// vehicle but `me` are placeholders until its stream's start record arrives (nothing touches
 /// a vehicle before) — the estimator's side and the relay's. `namespaced`: tracker ids are
@@ -172,6 +181,7 @@ pub struct Relaying {
 #[allow(clippy::too_many_arguments)]
 pub fn build(
     me: NodeId,
+    incarnation: u32,
     epoch: u64,
     slam: SlamConfig,
     team: &[NodeId],
@@ -197,14 +207,15 @@ pub fn build(
         )));
     }
     let filter = SlamFilter::new(slam, setups)?;
+    let epoch = stream_epoch(incarnation, epoch);
     let mut relay = Relay::new(me, epoch, topology, RelayConfig::default())?;
     let own = &setups[index];
     relay.publish(Item::Start {
         state: own.state,
         covariance: Box::new(own.covariance),
     })?;
-    let mut started = vec![false; team.len()];
-    started[index] = true;
+    let mut active = vec![None; team.len()];
+    active[index] = Some(epoch);
     let records = OwnRecords {
         index,
         increment: Increment::default(),
@@ -217,7 +228,7 @@ pub fn build(
         epoch,
         team: team.to_vec(),
         relay,
-        started,
+        active,
         namespaced,
         budgets: BTreeMap::new(),
         neighbours: topology.neighbours(me).unwrap_or_default().to_vec(),
@@ -335,7 +346,12 @@ impl Relaying {
         self.relay.on_link_down(peer);
     }
 
-    /// Applies every record that is ready, in each stream's order.
+    /// Applies every record that is ready, in each stream's order; a vehicle's streams come in
+    /// incarnation order ([`stream_epoch`]). A start of a later incarnation than the one
+    /// applied restarts the vehicle in the team filter ([`SlamFilter::restart_vehicle`]: its old
+    /// state marginalised out, the new start uncorrelated); records of an earlier incarnation
+    /// after that are refused (`stale_incarnation`), as are this vehicle's own earlier streams
+    /// (`earlier_incarnation`: their vehicle state is gone with the process that had it).
     fn apply_ready(&mut self, filter: &mut SlamFilter, rejections: &mut Rejections) {
         for (stream, _seq, item) in self.relay.take_ready() {
             if stream.origin == self.me {
@@ -343,7 +359,7 @@ impl Relaying {
                     self.refuse(
                         rejections,
                         "earlier_incarnation",
-                        &"restarts are not shared yet",
+                        &"this vehicle's own earlier process",
                     );
                 }
                 continue;
@@ -352,29 +368,49 @@ impl Relaying {
                 self.refuse(rejections, "not_in_team", &"origin not in the team");
                 continue;
             };
+            let active = self.active[index];
             match item {
                 Item::Start { state, covariance } => {
-                    if self.started[index] {
-                        // A second start: a restart of that vehicle (a new stream).
-                        self.refuse(rejections, "restart", &"restarts are not shared yet");
-                        continue;
-                    }
-                    match filter.start_vehicle(index, &state, &covariance) {
+                    let result = match active {
+                        None => filter.start_vehicle(index, &state, &covariance),
+                        Some(e) if stream.epoch > e => {
+                            filter.restart_vehicle(index, &state, &covariance)
+                        }
+                        Some(_) => {
+                            self.refuse(
+                                rejections,
+                                "stale_incarnation",
+                                &"a start of an earlier incarnation",
+                            );
+                            continue;
+                        }
+                    };
+                    match result {
                         Ok(()) => {
-                            self.started[index] = true;
+                            self.active[index] = Some(stream.epoch);
                             self.counters.applied += 1;
                         }
                         Err(e) => self.refuse(rejections, "start", &e),
                     }
                 }
-                Item::Imu(imu) if self.started[index] => match filter.predict(index, &imu) {
+                _ if active.is_none() => self.refuse(
+                    rejections,
+                    "before_start",
+                    &"a record before its stream's start",
+                ),
+                _ if active != Some(stream.epoch) => self.refuse(
+                    rejections,
+                    "stale_incarnation",
+                    &"a record of an earlier incarnation after a later one started",
+                ),
+                Item::Imu(imu) => match filter.predict(index, &imu) {
                     Ok(()) => self.counters.applied += 1,
                     Err(e) => {
                         let key = format!("imu.{}", variant_key(&format!("{e:?}")));
                         self.refuse(rejections, &key, &e);
                     }
                 },
-                Item::Frame(frame) if self.started[index] => {
+                Item::Frame(frame) => {
                     let f = if self.namespaced {
                         namespaced(index, &frame)
                     } else {
@@ -395,11 +431,6 @@ impl Relaying {
                         }
                     }
                 }
-                Item::Imu(_) | Item::Frame(_) => self.refuse(
-                    rejections,
-                    "before_start",
-                    &"a record before its stream's start",
-                ),
             }
         }
     }
@@ -484,6 +515,35 @@ mod tests {
                 records,
             }),
         }
+    }
+
+    /// What it proves: a scenario that data sharing cannot run is refused at validation with
+    /// the field and the reason (vehicles in own frames), and the shipped default validates
+    /// in the mode (restarts are shared).
+    #[test]
+    fn own_frames_are_refused_at_validation() {
+        let mut s = Scenario::builtin_default();
+        s.fusion.mode = FusionMode::SharedData;
+        s.validate().unwrap();
+        let local =
+            std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../topologies/local-4.toml");
+        let mut s = Scenario::load(&local).unwrap();
+        assert_eq!(s.world.frames, crate::scenario::Frames::Own);
+        s.fusion.mode = FusionMode::SharedData;
+        let e = s.validate().unwrap_err().to_string();
+        assert!(
+            e.contains("world.frames") && e.contains("decentralized"),
+            "{e}"
+        );
+    }
+
+    /// Stream epochs order a vehicle's process starts by incarnation, whatever the fresh
+    /// epochs drawn.
+    #[test]
+    fn stream_epochs_order_by_incarnation() {
+        assert!(stream_epoch(1, 0) > stream_epoch(0, u64::MAX));
+        assert!(stream_epoch(2, 5) > stream_epoch(1, u64::MAX));
+        assert_eq!(stream_epoch(0, 7), 7);
     }
 
     /// What it proves: a vehicle publishes its start, then its IMU as increments at

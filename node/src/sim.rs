@@ -301,6 +301,7 @@ pub fn vehicle_agent(
         };
         let (mut filter, own, relaying) = crate::sharing::build(
             NodeId(cfg.id),
+            incarnation,
             epoch,
             slam,
             &team,

@@ -803,6 +803,45 @@ impl SlamFilter {
         Ok(())
     }
 
+    /// Restarts vehicle `vehicle` at `state` with `covariance`, independent of every other state:
+    /// how a team filter of data sharing takes a restarted vehicle's new stream, whose start is
+    /// an external fix (`crate::share`). The old state is marginalised out (its rows and columns
+    /// dropped — exact in covariance form, and what it knew is given up, never counted twice)
+    /// and the new one joins uncorrelated, so the joint covariance stays positive
+    /// semi-definite. An invalid state or covariance is an error that changes nothing.
+    pub fn restart_vehicle(
+        &mut self,
+        vehicle: usize,
+        state: &VehicleState,
+        covariance: &VehicleCovariance,
+    ) -> Result<(), SlamError> {
+        let off = self.check_vehicle(vehicle)?;
+        if !state.is_finite() {
+            return Err(SlamError::InvalidConfig(format!(
+                "vehicle {vehicle}: non-finite restart state"
+            )));
+        }
+        if !is_symmetric_pd(covariance) {
+            return Err(SlamError::InvalidConfig(format!(
+                "vehicle {vehicle}: restart covariance is not symmetric positive definite"
+            )));
+        }
+        let n = self.layout.dim();
+        for i in off..off + VEHICLE_DIM {
+            for j in 0..n {
+                if !(off..off + VEHICLE_DIM).contains(&j) {
+                    self.p[(i, j)] = 0.0;
+                    self.p[(j, i)] = 0.0;
+                }
+            }
+        }
+        let slot = &mut self.vehicles[vehicle];
+        slot.pending = SMatrix::identity();
+        slot.has_pending = false;
+        // x_m and P_mm are unchanged (the map's information stays valid).
+        self.start_vehicle(vehicle, state, covariance)
+    }
+
     /// INS prediction of one vehicle over one IMU sample (eqs. 21.19–21.25 / 21.33–21.38 for the
     /// mean, 21.46/21.47 for the covariance, applied lazily to the cross terms; module docs).
     /// An invalid sample or a non-finite result is a typed error and changes nothing.

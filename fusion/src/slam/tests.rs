@@ -2202,3 +2202,46 @@ fn starting_an_untouched_vehicle_is_exact_and_anything_else_is_refused() {
     );
     assert_eq!(snapshot(&fresh), before);
 }
+
+/// What it proves: restarting a vehicle that was predicted and correlated with the map
+/// (data sharing's start of a new incarnation) leaves the map's mean and covariance and the
+/// other vehicle untouched bit for bit, puts the new estimate in place uncorrelated with
+/// everything else, keeps the joint covariance positive semi-definite, and refuses a
+/// non-finite state without changing anything.
+#[test]
+fn restarting_a_vehicle_marginalises_its_old_state() {
+    let mut rng = ChaCha8Rng::seed_from_u64(9);
+    let mut f = random_local_filter(4, &mut rng);
+    for k in 0..5 {
+        f.predict(0, &imu(0.01 * k as f64)).unwrap();
+    }
+    f.flush();
+    let map_before: Vec<_> = f
+        .features()
+        .into_iter()
+        .map(|(id, m)| (id, m, f.feature_covariance(id).unwrap()))
+        .collect();
+    let new = vehicle(Vector3::new(900.0, 50.0, -120.0));
+    let before = snapshot(&f);
+    let mut bad = new.state;
+    bad.position.x = f64::INFINITY;
+    assert!(f.restart_vehicle(0, &bad, &new.covariance).is_err());
+    assert_eq!(snapshot(&f), before);
+    f.restart_vehicle(0, &new.state, &new.covariance).unwrap();
+    let map_after: Vec<_> = f
+        .features()
+        .into_iter()
+        .map(|(id, m)| (id, m, f.feature_covariance(id).unwrap()))
+        .collect();
+    assert_eq!(map_before, map_after);
+    assert_eq!(f.vehicle_state(0).unwrap(), new.state);
+    assert_eq!(f.vehicle_covariance(0).unwrap(), new.covariance);
+    let p = to_dense(&f.joint_covariance());
+    for i in 0..VEHICLE_DIM {
+        for j in VEHICLE_DIM..p.ncols() {
+            assert_eq!(p[(i, j)], 0.0, "cross term ({i}, {j})");
+        }
+    }
+    let min_eig = p.symmetric_eigenvalues().min();
+    assert!(min_eig > -1e-9 * p.amax(), "λ_min {min_eig}");
+}
