@@ -760,6 +760,28 @@ impl SlamFilter {
         Ok(nis)
     }
 
+    /// The vehicle's block offset, when `state` is finite and `covariance` symmetric positive
+    /// definite (a start or restart estimate).
+    fn check_vehicle_estimate(
+        &self,
+        vehicle: usize,
+        state: &VehicleState,
+        covariance: &VehicleCovariance,
+    ) -> Result<usize, SlamError> {
+        let off = self.check_vehicle(vehicle)?;
+        if !state.is_finite() {
+            return Err(SlamError::InvalidConfig(format!(
+                "vehicle {vehicle}: non-finite estimate"
+            )));
+        }
+        if !is_symmetric_pd(covariance) {
+            return Err(SlamError::InvalidConfig(format!(
+                "vehicle {vehicle}: covariance is not symmetric positive definite"
+            )));
+        }
+        Ok(off)
+    }
+
     /// Starts vehicle `vehicle` at `state` with `covariance`: how a team filter of data sharing
     /// learns a vehicle's initial estimate, from the first record of its stream
     /// (`crate::share`). Only a vehicle nothing has touched can be started: no prediction
@@ -772,17 +794,7 @@ impl SlamFilter {
         state: &VehicleState,
         covariance: &VehicleCovariance,
     ) -> Result<(), SlamError> {
-        let off = self.check_vehicle(vehicle)?;
-        if !state.is_finite() {
-            return Err(SlamError::InvalidConfig(format!(
-                "vehicle {vehicle}: non-finite start state"
-            )));
-        }
-        if !is_symmetric_pd(covariance) {
-            return Err(SlamError::InvalidConfig(format!(
-                "vehicle {vehicle}: start covariance is not symmetric positive definite"
-            )));
-        }
+        let off = self.check_vehicle_estimate(vehicle, state, covariance)?;
         let n = self.layout.dim();
         let touched = self.vehicles[vehicle].has_pending
             || (off..off + VEHICLE_DIM).any(|i| {
@@ -815,17 +827,7 @@ impl SlamFilter {
         state: &VehicleState,
         covariance: &VehicleCovariance,
     ) -> Result<(), SlamError> {
-        let off = self.check_vehicle(vehicle)?;
-        if !state.is_finite() {
-            return Err(SlamError::InvalidConfig(format!(
-                "vehicle {vehicle}: non-finite restart state"
-            )));
-        }
-        if !is_symmetric_pd(covariance) {
-            return Err(SlamError::InvalidConfig(format!(
-                "vehicle {vehicle}: restart covariance is not symmetric positive definite"
-            )));
-        }
+        let off = self.check_vehicle_estimate(vehicle, state, covariance)?;
         let n = self.layout.dim();
         for i in off..off + VEHICLE_DIM {
             for j in 0..n {
