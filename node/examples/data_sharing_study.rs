@@ -28,8 +28,8 @@ use std::collections::VecDeque;
 
 use anyhow::{Context, bail};
 use canopy_fusion::sensor::{ImuSample, Measurement};
-use canopy_fusion::slam::{SlamFilter, VehicleSetup};
-use canopy_node::baseline::{estimator_setup, reference_config};
+use canopy_fusion::slam::SlamFilter;
+use canopy_node::baseline::{reference_config, reference_setups, set_team_bearing};
 use canopy_node::process::protocol::FrameAssociations;
 use canopy_node::replay::SensorSource;
 use canopy_node::scenario::{Identity, Scenario};
@@ -101,20 +101,13 @@ fn run_node(
         bail!("the scenario's links do not connect every vehicle");
     }
     let (world, mut sources) = SensorSource::for_scenario(s)?;
-    let setups: Vec<VehicleSetup> = s
-        .vehicles
-        .iter()
-        .zip(&sources)
-        .map(|(cfg, src)| estimator_setup(cfg, &src.reference_initial_estimate()))
-        .collect();
+    let setups = reference_setups(s, &sources);
     let mut cfg = reference_config(s, &world);
     if !true_ids {
         cfg.association = s.fusion.association_config(&s.world.appearance);
     }
     let mut filter = SlamFilter::new(cfg, &setups)?;
-    if let Some(first) = s.vehicles.first() {
-        filter.set_bearing_config(first.bearing.config())?;
-    }
+    set_team_bearing(s, &mut filter, "the study's team filter", "")?;
     let mut audit = TruthAudit::default();
     let mut applied: Vec<Increment> = (0..n).map(|_| Increment::default()).collect();
     let mut wire: Vec<Increment> = (0..n).map(|_| Increment::default()).collect();

@@ -65,6 +65,36 @@ pub fn reference_config(s: &Scenario, world: &World) -> SlamConfig {
     }
 }
 
+/// Every vehicle's estimator setup from the initial estimate the reference starts it from
+/// (scenario order).
+pub fn reference_setups(s: &Scenario, sources: &[SensorSource]) -> Vec<VehicleSetup> {
+    s.vehicles
+        .iter()
+        .zip(sources)
+        .map(|(cfg, src)| estimator_setup(cfg, &src.reference_initial_estimate()))
+        .collect()
+}
+
+/// Gives `filter`, one filter over the whole team, the vehicles' bearing options: one filter,
+/// one set of options, so they must agree (the error names the filter, `what`, and ends with
+/// `way_out`).
+pub fn set_team_bearing(
+    s: &Scenario,
+    filter: &mut SlamFilter,
+    what: &str,
+    way_out: &str,
+) -> Result<(), SlamError> {
+    let Some(first) = s.vehicles.first() else {
+        return Ok(());
+    };
+    if s.vehicles.iter().any(|v| v.bearing != first.bearing) {
+        return Err(SlamError::InvalidConfig(format!(
+            "{what} is one filter: every vehicle needs the same [vehicle.bearing] options{way_out}"
+        )));
+    }
+    filter.set_bearing_config(first.bearing.config())
+}
+
 /// The reference filter over `setups` (one per vehicle, in scenario order).
 pub fn reference_filter(
     s: &Scenario,
@@ -72,17 +102,12 @@ pub fn reference_filter(
     setups: &[VehicleSetup],
 ) -> Result<SlamFilter, SlamError> {
     let mut filter = SlamFilter::new(reference_config(s, world), setups)?;
-    // One filter, one set of bearing options: the vehicles' (they must agree).
-    if let Some(first) = s.vehicles.first() {
-        if s.vehicles.iter().any(|v| v.bearing != first.bearing) {
-            return Err(SlamError::InvalidConfig(
-                "the centralized reference is one filter: every vehicle needs the same \
-                 [vehicle.bearing] options (or run without the baseline)"
-                    .into(),
-            ));
-        }
-        filter.set_bearing_config(first.bearing.config())?;
-    }
+    set_team_bearing(
+        s,
+        &mut filter,
+        "the centralized reference",
+        " (or run without the baseline)",
+    )?;
     Ok(filter)
 }
 
@@ -185,12 +210,7 @@ pub fn run_reference(
     progress: Option<&AtomicU64>,
 ) -> Result<BaselineRun, BaselineError> {
     let (world, mut sources) = SensorSource::for_scenario(s)?;
-    let setups: Vec<VehicleSetup> = s
-        .vehicles
-        .iter()
-        .zip(&sources)
-        .map(|(cfg, src)| estimator_setup(cfg, &src.reference_initial_estimate()))
-        .collect();
+    let setups = reference_setups(s, &sources);
     let mut filter = reference_filter(s, &world, &setups)?;
     let mut run = BaselineRun {
         vehicles: s

@@ -15,7 +15,7 @@ use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 
 use canopy_fusion::ddf::Outgoing;
-use canopy_fusion::slam::{CorrespondenceConfig, SlamConfig, SlamFilter, VehicleSetup};
+use canopy_fusion::slam::{CorrespondenceConfig, SlamConfig, SlamFilter};
 use canopy_fusion::topology::NodeId;
 use canopy_transport::fault::{Clock, FaultyLink, ManualClock};
 use canopy_transport::link::{Link, LinkEvent, PeerState};
@@ -311,8 +311,7 @@ pub fn vehicle_agent(
             s.world.appearance.identity == Identity::Appearance,
         )
         .map_err(sharing_error)?;
-        filter
-            .set_bearing_config(cfg.bearing.config())
+        crate::baseline::set_team_bearing(s, &mut filter, "the team filter of data sharing", "")
             .map_err(|e| sharing_error(e.into()))?;
         agent.use_sharing(filter, own, relaying);
         return Ok(agent);
@@ -737,12 +736,7 @@ pub fn simulate(s: &Scenario, mut opts: SimOptions<'_>) -> Result<SimOutcome, Si
 
     // The centralized all-data reference EKF.
     if with_baseline {
-        let setups: Vec<VehicleSetup> = sim
-            .vehicles
-            .iter()
-            .zip(&s.vehicles)
-            .map(|(v, cfg)| estimator_setup(cfg, &v.reference_initial_estimate()))
-            .collect();
+        let setups = crate::baseline::reference_setups(s, &sim.vehicles);
         // The reference associates by descriptor, verified by the gate (shared with the
         // monitor of multi-process runs).
         sim.baseline = Some(
