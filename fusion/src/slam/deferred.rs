@@ -167,12 +167,7 @@ impl SlamFilter {
         }
         for (v, (x, p, pending)) in out.into_iter().enumerate() {
             let off = self.layout.vehicle_block(v);
-            for i in 0..VEHICLE_DIM {
-                self.x[off + i] = x[i];
-                for j in 0..VEHICLE_DIM {
-                    self.p[(off + i, off + j)] = p[(i, j)];
-                }
-            }
+            super::write_vehicle_block(&mut self.x, &mut self.p, off, &x, &p);
             self.vehicles[v].pending = pending;
             self.vehicles[v].has_pending = pending != TransitionJacobian::identity();
         }

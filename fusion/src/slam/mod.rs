@@ -385,6 +385,43 @@ fn is_symmetric_pd(m: &SMatrix<f64, VEHICLE_DIM, VEHICLE_DIM>) -> bool {
     sym && m.iter().all(|v| v.is_finite()) && m.cholesky().is_some()
 }
 
+/// Checks an estimate of vehicle `v` given to the filter (`what`: initial, start, restart):
+/// a finite state and a symmetric positive definite covariance.
+fn check_estimate(
+    v: usize,
+    state: &VehicleState,
+    covariance: &VehicleCovariance,
+    what: &str,
+) -> Result<(), SlamError> {
+    if !state.is_finite() {
+        return Err(SlamError::InvalidConfig(format!(
+            "vehicle {v}: non-finite {what} state"
+        )));
+    }
+    if !is_symmetric_pd(covariance) {
+        return Err(SlamError::InvalidConfig(format!(
+            "vehicle {v}: {what} covariance is not symmetric positive definite"
+        )));
+    }
+    Ok(())
+}
+
+/// Writes a vehicle's state and covariance block at offset `off` of `x` and `p`.
+pub(crate) fn write_vehicle_block(
+    x: &mut Col<f64>,
+    p: &mut Mat<f64>,
+    off: usize,
+    state: &ins::VehicleVector,
+    covariance: &VehicleCovariance,
+) {
+    for i in 0..VEHICLE_DIM {
+        x[off + i] = state[i];
+        for j in 0..VEHICLE_DIM {
+            p[(off + i, off + j)] = covariance[(i, j)];
+        }
+    }
+}
+
 impl SlamFilter {
     /// A filter with the given vehicles and an empty map.
     pub fn new(config: SlamConfig, vehicles: &[VehicleSetup]) -> Result<Self, SlamError> {
@@ -410,24 +447,15 @@ impl SlamFilter {
         let mut p = Mat::zeros(n, n);
         let mut slots = Vec::with_capacity(vehicles.len());
         for (v, setup) in vehicles.iter().enumerate() {
-            if !setup.state.is_finite() {
-                return Err(SlamError::InvalidConfig(format!(
-                    "vehicle {v}: non-finite initial state"
-                )));
-            }
-            if !is_symmetric_pd(&setup.covariance) {
-                return Err(SlamError::InvalidConfig(format!(
-                    "vehicle {v}: initial covariance is not symmetric positive definite"
-                )));
-            }
+            check_estimate(v, &setup.state, &setup.covariance, "initial")?;
             let off = layout.vehicle_block(v);
-            let xv = setup.state.to_vector();
-            for i in 0..VEHICLE_DIM {
-                x[off + i] = xv[i];
-                for j in 0..VEHICLE_DIM {
-                    p[(off + i, off + j)] = setup.covariance[(i, j)];
-                }
-            }
+            write_vehicle_block(
+                &mut x,
+                &mut p,
+                off,
+                &setup.state.to_vector(),
+                &setup.covariance,
+            );
             slots.push(VehicleSlot {
                 model: ObservationModel {
                     frame: config.frame,
@@ -760,28 +788,6 @@ impl SlamFilter {
         Ok(nis)
     }
 
-    /// The vehicle's block offset, when `state` is finite and `covariance` symmetric positive
-    /// definite (a start or restart estimate).
-    fn check_vehicle_estimate(
-        &self,
-        vehicle: usize,
-        state: &VehicleState,
-        covariance: &VehicleCovariance,
-    ) -> Result<usize, SlamError> {
-        let off = self.check_vehicle(vehicle)?;
-        if !state.is_finite() {
-            return Err(SlamError::InvalidConfig(format!(
-                "vehicle {vehicle}: non-finite estimate"
-            )));
-        }
-        if !is_symmetric_pd(covariance) {
-            return Err(SlamError::InvalidConfig(format!(
-                "vehicle {vehicle}: covariance is not symmetric positive definite"
-            )));
-        }
-        Ok(off)
-    }
-
     /// Starts vehicle `vehicle` at `state` with `covariance`: how a team filter of data sharing
     /// learns a vehicle's initial estimate, from the first record of its stream
     /// (`crate::share`). Only a vehicle nothing has touched can be started: no prediction
@@ -794,7 +800,8 @@ impl SlamFilter {
         state: &VehicleState,
         covariance: &VehicleCovariance,
     ) -> Result<(), SlamError> {
-        let off = self.check_vehicle_estimate(vehicle, state, covariance)?;
+        let off = self.check_vehicle(vehicle)?;
+        check_estimate(vehicle, state, covariance, "start")?;
         let n = self.layout.dim();
         let touched = self.vehicles[vehicle].has_pending
             || (off..off + VEHICLE_DIM).any(|i| {
@@ -805,13 +812,13 @@ impl SlamFilter {
                 "vehicle {vehicle} cannot be started: it has been predicted or correlated"
             )));
         }
-        let xv = state.to_vector();
-        for i in 0..VEHICLE_DIM {
-            self.x[off + i] = xv[i];
-            for j in 0..VEHICLE_DIM {
-                self.p[(off + i, off + j)] = covariance[(i, j)];
-            }
-        }
+        write_vehicle_block(
+            &mut self.x,
+            &mut self.p,
+            off,
+            &state.to_vector(),
+            covariance,
+        );
         Ok(())
     }
 
@@ -827,7 +834,8 @@ impl SlamFilter {
         state: &VehicleState,
         covariance: &VehicleCovariance,
     ) -> Result<(), SlamError> {
-        let off = self.check_vehicle_estimate(vehicle, state, covariance)?;
+        let off = self.check_vehicle(vehicle)?;
+        check_estimate(vehicle, state, covariance, "restart")?;
         let n = self.layout.dim();
         for i in off..off + VEHICLE_DIM {
             for j in 0..n {
@@ -841,7 +849,14 @@ impl SlamFilter {
         slot.pending = SMatrix::identity();
         slot.has_pending = false;
         // x_m and P_mm are unchanged (the map's information stays valid).
-        self.start_vehicle(vehicle, state, covariance)
+        write_vehicle_block(
+            &mut self.x,
+            &mut self.p,
+            off,
+            &state.to_vector(),
+            covariance,
+        );
+        Ok(())
     }
 
     /// INS prediction of one vehicle over one IMU sample (eqs. 21.19–21.25 / 21.33–21.38 for the
@@ -865,12 +880,7 @@ impl SlamFilter {
         // covariance is unaffected); pitch stays in its ±π/2 range by construction.
         xn[ATT] = wrap_angle(xn[ATT]);
         xn[ATT + 2] = wrap_angle(xn[ATT + 2]);
-        for i in 0..VEHICLE_DIM {
-            self.x[off + i] = xn[i];
-            for j in 0..VEHICLE_DIM {
-                self.p[(off + i, off + j)] = next[(i, j)];
-            }
-        }
+        write_vehicle_block(&mut self.x, &mut self.p, off, &xn, &next);
         let slot = &mut self.vehicles[vehicle];
         slot.pending = phi;
         slot.has_pending = true;
