@@ -1365,11 +1365,6 @@ impl VehicleAgent {
         self.fusion.sharing()
     }
 
-    /// The data-sharing counters (data sharing only).
-    pub fn sharing_counters(&self) -> Option<crate::sharing::SharingCounters> {
-        self.fusion.sharing().map(|s| s.counters())
-    }
-
     /// This vehicle's index in [`filter`](Self::filter) (0, or its place in the team filter
     /// of data sharing).
     pub fn vehicle_index(&self) -> usize {

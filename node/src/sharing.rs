@@ -88,12 +88,20 @@ impl Increment {
     }
 }
 
-/// Tracker ids of vehicle `index` moved into its own namespace (appearance identities), so that
-/// the team filter never takes one vehicle's track for another's.
-pub fn namespaced(index: usize, frame: &ObservationFrame) -> ObservationFrame {
+/// The frame of vehicle `index` as the team filter takes it: with `namespaced` (appearance
+/// identities) its tracker ids moved into the vehicle's own namespace, so that the team filter
+/// never takes one vehicle's track for another's; as it is otherwise (perfect identities: the
+/// descriptors are the true ids).
+pub fn for_team_filter(
+    index: usize,
+    frame: &ObservationFrame,
+    namespaced: bool,
+) -> ObservationFrame {
     let mut f = frame.clone();
-    for o in &mut f.observations {
-        o.descriptor ^= (index as u64 + 1) << 48;
+    if namespaced {
+        for o in &mut f.observations {
+            o.descriptor ^= (index as u64 + 1) << 48;
+        }
     }
     f
 }
@@ -134,11 +142,7 @@ impl OwnRecords {
             self.outbox.push(Item::Imu(inc));
         }
         self.outbox.push(Item::Frame(frame.clone()));
-        if self.namespaced {
-            namespaced(self.index, frame)
-        } else {
-            frame.clone()
-        }
+        for_team_filter(self.index, frame, self.namespaced)
     }
 
     /// The records published since the last call.
@@ -173,10 +177,10 @@ pub fn stream_epoch(incarnation: u32, epoch: u64) -> u64 {
     (u64::from(incarnation & 0xFFFF) << 48) | (epoch & 0xFFFF_FFFF_FFFF)
 }
 
-/// Data sharing for vehicle `me` (process start `incarnation`, fresh `epoch`): its team filter, over every vehicle
-/// of `team` (scenario order) with the models of `setups` — the state and covariance of each
-/// vehicle but `me` are placeholders until its stream's start record arrives (nothing touches
-/// a vehicle before) — the estimator's side and the relay's. `namespaced`: tracker ids are
+/// Data sharing for vehicle `me` (process start `incarnation`, fresh `epoch`): its team filter,
+/// over every vehicle of `team` (scenario order) with the models of `setups` — the state and
+/// covariance of each vehicle but `me` are placeholders until its stream's start record arrives
+/// (nothing touches a vehicle before) — the estimator's side and the relay's. `namespaced`: tracker ids are
 /// moved into their vehicle's namespace (appearance identities).
 #[allow(clippy::too_many_arguments)]
 pub fn build(
@@ -411,11 +415,7 @@ impl Relaying {
                     }
                 },
                 Item::Frame(frame) => {
-                    let f = if self.namespaced {
-                        namespaced(index, &frame)
-                    } else {
-                        frame.clone()
-                    };
+                    let f = for_team_filter(index, &frame, self.namespaced);
                     match filter.process_frame(index, &f) {
                         Ok(report) => {
                             self.counters.applied += 1;
