@@ -257,9 +257,10 @@ impl Default for FusionConfig {
 impl FusionConfig {
     /// How often a capacity-limited link forms its delta [1/s]: every round, or once per
     /// `radio_interval_s` when that is longer. Radio budgets are sized per delta at this rate
-    /// (`crate::radio::round_budget`).
+    /// (`crate::radio::round_budget`). Data sharing sends a batch every round, so its rate is
+    /// the round rate whatever `radio_interval_s` (a channel-filter setting) says.
     pub fn budget_rate_hz(&self) -> f64 {
-        if self.radio_interval_s * self.rate_hz > 1.0 {
+        if self.mode != FusionMode::SharedData && self.radio_interval_s * self.rate_hz > 1.0 {
             1.0 / self.radio_interval_s
         } else {
             self.rate_hz

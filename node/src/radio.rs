@@ -361,6 +361,13 @@ mod tests {
         // An interval shorter than the round period changes nothing.
         s.fusion.radio_interval_s = 0.5;
         assert_eq!(s.fusion.budget_rate_hz(), 1.0);
+        // Data sharing sends every round: the interval, a channel-filter setting, does not
+        // apply (one round's budget and a one-second queue).
+        s.fusion.mode = crate::network::FusionMode::SharedData;
+        s.fusion.radio_interval_s = 2.0;
+        assert_eq!(s.fusion.budget_rate_hz(), 1.0);
+        assert_eq!(radio(None).queue_bytes(&s.fusion), 32_000);
+        assert_eq!(radio(None).delta_budget(&s.fusion), 28_288);
     }
 
     /// Two vehicles on the same orbit (radius 650 m), half a period apart, at 120 m and 160 m

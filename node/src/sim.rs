@@ -447,15 +447,9 @@ impl<'s> Sim<'s> {
             let node = self.nodes.get_mut(&id).expect("node exists");
             let out = match node.agent.as_mut() {
                 Some(Agent::Vehicle(a)) => {
-                    // Data sharing sends every round: a round's share of the capacity.
-                    let rate = if a.is_sharing() {
-                        self.s.fusion.rate_hz
-                    } else {
-                        self.s.fusion.budget_rate_hz()
-                    };
                     let budgets = crate::radio::capacity_budgets(
                         node.links.iter().map(|(&p, l)| (p, l)),
-                        rate,
+                        self.s.fusion.budget_rate_hz(),
                     );
                     // A refused budget is counted by reason by the fusion half.
                     let _ = a.set_link_budgets(&budgets);

@@ -460,15 +460,9 @@ impl Vehicle<'_> {
             // Out already: only if the fusion thread is gone (`fusion_lost`, a bug); counted.
             Err(_) => return,
         };
-        // Data sharing sends every round: a round's share of the capacity.
-        let rate = if self.s.fusion.mode == crate::network::FusionMode::SharedData {
-            self.s.fusion.rate_hz
-        } else {
-            self.s.fusion.budget_rate_hz()
-        };
         let budgets = crate::radio::capacity_budgets(
             self.links.links.iter().map(|(&p, l)| (NodeId(p), l)),
-            rate,
+            self.s.fusion.budget_rate_hz(),
         );
         self.fusion.submit(Job::Round {
             now,
