@@ -354,39 +354,7 @@ fn shared_data_survives_a_hub_restart() {
     procs::assert_sound(&r);
     // The launcher killed uav3's first process and the second ran to the end, cleanly, and
     // applied the team's records again.
-    let uav3: Vec<_> = r
-        .checks
-        .processes
-        .iter()
-        .filter(|p| p.name == "uav3")
-        .collect();
-    assert_eq!(uav3.len(), 2, "uav3 should run twice: {uav3:?}");
-    assert!(
-        uav3[0].killed_by_monitor && uav3[0].signal == Some(9),
-        "{:?}",
-        uav3[0]
-    );
-    assert!(
-        uav3[1].clean_exit() && uav3[1].incarnation == 1,
-        "{:?}",
-        uav3[1]
-    );
-    let v = r
-        .checks
-        .vehicles
-        .iter()
-        .find(|v| v.name == "uav3")
-        .expect("uav3 reported");
-    assert_eq!(v.initialisations, 2);
-    assert!(
-        v.counters[1].fused > 0,
-        "the restarted uav3 applied no record"
-    );
-    assert!(
-        v.last_report_t >= 89.0,
-        "uav3 stopped at {}",
-        v.last_report_t
-    );
+    procs::assert_process_restarted(&r, "uav3", 90.0);
     let (team, base) = team_and_reference_rmse(&r);
     eprintln!(
         "crash-restart (shared data, processes): team map RMSE {team:.3} m, reference \

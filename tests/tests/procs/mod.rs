@@ -287,14 +287,11 @@ pub fn link_end<'a>(
         .unwrap_or_else(|| panic!("no link end {node}->{peer}"))
 }
 
-/// The crash-restart checks (outage.rs `crash_restart`, hosts.rs across machines): `vehicle`
-/// ran twice — killed with SIGKILL by the launcher, then incarnation 1 exiting cleanly —, was
-/// initialised twice, fused again after the restart and reported until the end (`end` − 1 s);
-/// every neighbour saw the new epoch and, holding history, initiated the new pair's Sync (the
-/// side with history initiates), which the new incarnation applied (its link ends report the
-/// new incarnation's counters) without initiating any; and the team converged on one map: the
-/// vehicles' information shares agree within 0.05 of each other (measured identical to 0.01).
-pub fn assert_crash_restarted(r: &Run, vehicle: &str, neighbours: &[&str], end: f64) {
+/// The process side of a crash-restart: `vehicle` ran twice — killed with SIGKILL by the
+/// launcher, then incarnation 1 exiting cleanly —, was initialised twice, fused again after the
+/// restart (channel-filter deltas, or in data sharing the team's records) and reported until
+/// the end (`end` − 1 s).
+pub fn assert_process_restarted(r: &Run, vehicle: &str, end: f64) {
     let procs: Vec<_> = r
         .checks
         .processes
@@ -328,6 +325,16 @@ pub fn assert_crash_restarted(r: &Run, vehicle: &str, neighbours: &[&str], end: 
         "the restarted {vehicle} stopped reporting at {}",
         v.last_report_t
     );
+}
+
+/// The crash-restart checks (outage.rs `crash_restart`, hosts.rs across machines):
+/// [`assert_process_restarted`]; every neighbour saw the new epoch and, holding history, initiated
+/// the new pair's Sync (the side with history initiates), which the new incarnation applied (its
+/// link ends report the new incarnation's counters) without initiating any; and the team converged
+/// on one map: the vehicles' information shares agree within 0.05 of each other (measured identical
+/// to 0.01).
+pub fn assert_crash_restarted(r: &Run, vehicle: &str, neighbours: &[&str], end: f64) {
+    assert_process_restarted(r, vehicle, end);
     for n in neighbours {
         let c = &link_end(r, n, vehicle).report.channel;
         assert!(c.peer_restarts >= 1, "{n} did not see {vehicle} restart");
